@@ -1,0 +1,19 @@
+"""lfstudy: parametric studies of single-camera light-field (plenoptic) 3-D PIV.
+
+Stages are pure functions over numpy/xarray objects (see ``lfstudy.optics``,
+``lfstudy.particles``, ``lfstudy.flows`` ...); I/O lives in ``lfstudy.io`` and
+the sweep in the top-level ``Snakefile``.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("lfstudy")
+except PackageNotFoundError:  # running from a source tree without install
+    __version__ = "0+unknown"
+
+from lfstudy.optics import PlenopticCamera  # noqa: E402
+
+__all__ = ["PlenopticCamera", "__version__"]

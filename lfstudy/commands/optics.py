@@ -1,0 +1,38 @@
+"""``lfstudy optics CONFIG``: derived camera parameters and the focal-plane table."""
+
+from __future__ import annotations
+
+import argparse
+
+NAME = "optics"
+HELP = "print the derived camera parameters and the refocus-plane table (as Table 5.1)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="study config (YAML)")
+    p.add_argument("--case", help="case id from `lfstudy cases` (default: the base config)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lfstudy.config import case_config, load_config
+    from lfstudy.optics import PlenopticCamera
+
+    cfg = load_config(args.config)
+    if args.case:
+        cfg = case_config(cfg, args.case)
+    cam = PlenopticCamera.from_config(cfg)
+    width = max(len(k) for k in cam.summary())
+    print("Camera")
+    for k, v in cam.summary().items():
+        print(f"  {k:<{width}}  {v}")
+    r = cfg["refocus"]
+    fp = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
+    print("\nRefocus planes (eqs 5.16-5.20)")
+    print(f"{'plane':>5} {'D_N,i':>10} {'D_F,i':>10} {'D_F-D_N':>9} {'/c':>8} {'D_i':>10} {'t':>9} {'z obj':>9}")
+    c = fp.attrs["circle_of_confusion"]
+    for p in fp["plane"].values:
+        row = fp.sel(plane=p)
+        n, f = float(row["near"]), float(row["far"])
+        print(f"{int(p):>5} {n:>10.4f} {f:>10.4f} {f - n:>9.4f} {(f - n) / c:>8.4f} "
+              f"{float(row['image_distance']):>10.4f} {float(row['t']):>9.4f} {float(row['z']):>9.4f}")
+    return 0

@@ -1,0 +1,87 @@
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lfstudy.cli import main
+from lfstudy.config import Case, ConfigError, case_config, expand_cases, load_config, validate_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def demo_raw():
+    return yaml.safe_load((ROOT / "config" / "demo.yaml").read_text())
+
+
+def test_shipped_configs_valid():
+    for name in ("demo.yaml", "thesis.yaml"):
+        cfg = load_config(ROOT / "config" / name)
+        assert cfg["refocus"]["resize"] is True  # defaults filled
+    thesis = load_config(ROOT / "config" / "thesis.yaml")
+    assert {c.flow for c in expand_cases(thesis)} == {"uniform_x", "uniform_z", "hill"}
+
+
+def test_demo_sweep_has_two_values_of_each(demo_raw):
+    cfg = validate_config(demo_raw)
+    cases = expand_cases(cfg)
+    for key in ("magnification", "fnumber", "lenslet_pitch", "ppp"):
+        assert len({getattr(c, key) for c in cases}) >= 2
+    ids = [c.case_id for c in cases]
+    assert len(set(ids)) == len(ids)
+    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.001/flow~uniform_x"
+    assert Case.from_id(ids[5]) == cases[5]
+    one = case_config(cfg, ids[-1])
+    assert one["camera"]["magnification"] == cases[-1].magnification
+    assert one["flow"]["name"] == "uniform_x"
+
+
+@pytest.mark.parametrize(
+    "path, value, match",
+    [
+        (("camera", "lenslet", "pitch"), -0.1, r"camera\.lenslet\.pitch.*\(0, 10\]"),
+        (("particles", "ppp"), 1.5, r"particles\.ppp.*\(0, 1\]"),
+        (("particles", "ppp"), 0, r"particles\.ppp"),
+        (("camera", "magnification"), 1.0, r"camera\.magnification.*< *0|camera\.magnification.*0\)"),
+        (("sweep", "flow"), ["uniform_x", "tornado"], r"sweep\.flow.*tornado.*allowed"),
+        (("sweep", "fnumber"), [0.5], r"cannot reach.*\[1, 32\]"),
+        (("camera", "main_lens", "fnumber"), "wide", r"camera\.main_lens\.fnumber.*matched"),
+        (("flows", "uniform_x", "kind"), "vortex", r"flows\.uniform_x\.kind.*'uniform', 'hill'"),
+        (("camera", "sensor", "n_pixels_x"), 2.5, r"camera\.sensor\.n_pixels_x"),
+        (("refocus", "unknown_key"), 1, r"unknown_key"),
+    ],
+)
+def test_bad_config_names_key(demo_raw, path, value, match):
+    cfg = copy.deepcopy(demo_raw)
+    node = cfg
+    for k in path[:-1]:
+        node = node.setdefault(k, {})
+    node[path[-1]] = value
+    with pytest.raises(ConfigError, match=match):
+        validate_config(cfg)
+
+
+def test_sweep_fnumber_unreachable(demo_raw):
+    cfg = copy.deepcopy(demo_raw)
+    cfg["sweep"]["fnumber"] = ["matched", 64.0]
+    with pytest.raises(ConfigError, match="cannot reach"):
+        validate_config(cfg)
+
+
+def test_cli_optics_prints_table51(capsys):
+    assert main(["optics", str(ROOT / "config" / "thesis.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "289 x 193" in out and "-5.8236" in out and "6.1837" in out
+
+
+def test_cli_cases_and_errors(capsys, tmp_path):
+    assert main(["cases", str(ROOT / "config" / "demo.yaml"), "--ids"]) == 0
+    assert len(capsys.readouterr().out.split()) == 16
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("camera: {sensor: {n_pixels_x: 64, n_pixels_y: 64, pixel_pitch: 0.0074}, "
+                   "lenslet: {pitch: 0.1, focal_length: 0.4}, main_lens: {focal_length: 50}, magnification: 2}\n")
+    assert main(["cases", str(bad)]) == 2
+    assert "camera.magnification" in capsys.readouterr().err
