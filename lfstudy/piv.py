@@ -40,7 +40,6 @@ _DIMS2 = ("y", "x")
 _MODES = ("deform", "offset")
 # correlation-plane voxels per batch when chunk_windows is not given (~128 MB float32)
 _AUTO_BATCH_VOXELS = 2**25
-_SPLINE_ORDER = 3
 
 
 # --------------------------------------------------------------------------- inputs
@@ -180,6 +179,9 @@ def _correlate(wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | No
     n, w = wa.shape[0], wa.shape[1:]
     nd = len(w)
     axes = tuple(range(1, nd + 1))
+    # a constant window has no pattern: exact test before any rounding of the mean
+    nonempty = _ptp(wa) > 0
+    nonempty &= _ptp(wb) > 0
     wa = wa.astype(np.float32, copy=True)
     wb = wb.astype(np.float32, copy=True)
     wa -= wa.mean(axis=axes, keepdims=True)  # correlate fluctuations only [3, p. 320]
@@ -197,9 +199,9 @@ def _correlate(wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | No
     r = sfft.irfftn(fa, s=shape, axes=axes, workers=workers)
     del fa
     denom = float(np.prod(w)) * sa * sb  # eq. 6.1 scaled to a correlation coefficient
-    nonempty = denom > 1e-12 * max(float(np.max(denom, initial=0.0)), 1e-300)
-    nonempty &= denom > 0
-    scale = np.where(nonempty, 1.0 / np.where(nonempty, denom, 1.0), 0.0).astype(np.float32)
+    nonempty &= denom > 1e-30  # below float32 resolution of the correlation sums
+    scale = np.where(nonempty, 1.0 / np.where(nonempty, denom, 1.0), 0.0)
+    scale = np.minimum(scale, np.finfo(np.float32).max).astype(np.float32)
     r *= scale.reshape((n,) + (1,) * nd)
     r = np.fft.fftshift(r, axes=axes)  # zero lag at index shape // 2
     # integer peak, boundary voxels excluded so eq. 6.2 has both neighbours
@@ -219,6 +221,11 @@ def _correlate(wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | No
     peak = np.where(nonempty, r0, 0.0).astype(np.float64)
     disp[~nonempty] = 0.0
     return disp, peak, nonempty
+
+
+def _ptp(win: np.ndarray) -> np.ndarray:
+    flat = win.reshape(win.shape[0], -1)
+    return flat.max(axis=1) - flat.min(axis=1)
 
 
 def _gather(img: np.ndarray, origin: Sequence[int], full: Sequence[int],
@@ -356,7 +363,7 @@ def _load_pair(a: _Input, b: _Input, lo_a, hi_a, lo_b, hi_b) -> tuple[np.ndarray
 
 def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
           pred: np.ndarray, centres: list[np.ndarray], mode: str, zero_pad: bool,
-          batch: int, workers: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          batch: int, workers: int | None, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Correlate every window once; returns corrector (nd, *grid), peak, nonempty."""
     full = tuple(int(s) for s in a.data.shape)
     nd = len(full)
@@ -395,13 +402,20 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
             base = np.meshgrid(*[v - s for v, s in zip(vox, slo)], indexing="ij")
             # symmetric offset: a sampled at x - d/2, b at x + d/2 (cubic spline)
             da = ndimage.map_coordinates(sa, [g - 0.5 * dd for g, dd in zip(base, dense)],
-                                         order=_SPLINE_ORDER, mode="grid-constant", cval=0.0)
+                                         order=order, mode="grid-constant", cval=0.0)
             db = ndimage.map_coordinates(sb, [g + 0.5 * dd for g, dd in zip(base, dense)],
-                                         order=_SPLINE_ORDER, mode="grid-constant", cval=0.0)
+                                         order=order, mode="grid-constant", cval=0.0)
             del base, dense
             wa = _gather(da, lo, full, st, w)
             wb = _gather(db, lo, full, st, w)
+            # the spline prefilter rings faintly into empty regions; judge emptiness on
+            # the raw windows so an all-zero input window stays empty (peak 0, invalid)
+            raw_ok = (_ptp(_gather(sa, slo, full, st, w)) > 0) & (_ptp(_gather(sb, slo, full, st, w)) > 0)
         c, p, ne = _correlate(wa, wb, zero_pad, workers)
+        if mode != "offset":
+            ne &= raw_ok
+            p = np.where(raw_ok, p, 0.0)
+            c[~raw_ok] = 0.0
         corr[k0:k1], peak[k0:k1], nonempty[k0:k1] = c, p, ne
     corr_g = np.moveaxis(corr.reshape(grid + (nd,)), -1, 0)
     return corr_g, peak.reshape(grid), nonempty.reshape(grid)
@@ -416,6 +430,7 @@ def widim(
     spacing: int | Sequence[int] | None = None,
     levels: int = 1,
     mode: str = "deform",
+    order: int = 3,
     zero_pad: bool = False,
     max_passes: int = 10,
     tol: float = 0.01,
@@ -446,6 +461,10 @@ def widim(
         predictor with cubic splines (default, beyond the thesis).
         ``"offset"``: discrete integer window offset of the second window by the
         rounded predictor (the thesis' method, sec. 6.1.4).
+    order : int
+        Spline order of the image deformation (1..5; ``"deform"`` mode only).
+        Cubic is the default; quintic lowers the interpolation bias further
+        (about 0.002 instead of 0.01 voxel for 2.8-voxel particles) at ~2x cost.
     zero_pad : bool
         Zero-pad windows to twice their size before the FFT (sec. 6.1.2).
     max_passes : int
@@ -496,6 +515,9 @@ def widim(
     levels = _check_int(levels, "levels", 1)
     if mode not in _MODES:
         raise ValueError(f"`mode` must be one of {_MODES}; got {mode!r}")
+    order = _check_int(order, "order", 1)
+    if order > 5:
+        raise ValueError(f"`order` must be an integer in 1..5; got {order}")
     if not isinstance(zero_pad, (bool, np.bool_)):
         raise ValueError(f"`zero_pad` must be True or False; got {zero_pad!r}")
     max_passes = _check_int(max_passes, "max_passes", 1)
@@ -541,7 +563,7 @@ def widim(
         for _ in range(max_passes):  # multi-pass (sec. 6.1.4, Fig. 6.1)
             pred = np.rint(field) if mode == "offset" else field
             corr, peak, nonempty = _pass(ia, ib, nodes, w, pred, centres, mode, zero_pad,
-                                         batch, workers)
+                                         batch, workers, order)
             d = pred + corr  # d = p + c (Fig. 6.1)
             field, valid = _validate(d, nonempty, nmt_eps, nmt_threshold)
             rms = float(np.sqrt(np.mean(np.sum(corr[:, nonempty] ** 2, axis=0)))) if nonempty.any() else 0.0
@@ -555,7 +577,7 @@ def widim(
 
     return _to_dataset(field, valid, peak, centres, ia, dims, shape, sizes, rec_rms, rec_valid,
                        rec_level, dict(window=window_t, spacing=spacing_t, levels=levels, mode=mode,
-                                       zero_pad=zero_pad, max_passes=max_passes, tol=tol,
+                                       order=order, zero_pad=zero_pad, max_passes=max_passes, tol=tol,
                                        nmt_eps=nmt_eps, nmt_threshold=nmt_threshold,
                                        chunk_windows=chunk_windows))
 
