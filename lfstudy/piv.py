@@ -32,6 +32,8 @@ import scipy.fft as sfft
 import xarray as xr
 from scipy import ndimage
 
+from lfstudy.piv_deform import deform, dense_predictor, spline_coefficients
+
 __all__ = ["widim", "peak_locking_index", "grid_nodes"]
 
 _COMP = ("u", "v", "w")  # component of array axis -1, -2, -3
@@ -251,26 +253,6 @@ def _gather(img: np.ndarray, origin: Sequence[int], full: Sequence[int],
 
 
 # --------------------------------------------------------------------------- fields
-def _frac_index(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    # fractional grid index of points; clamped, i.e. constant extrapolation beyond the
-    # outermost window centres (a linear extrapolation would amplify edge noise)
-    if centres.size == 1:
-        return np.zeros_like(points, dtype=float)
-    return np.interp(points, centres, np.arange(centres.size, dtype=float))
-
-
-def _resample(field: np.ndarray, centres: Sequence[np.ndarray],
-              points: Sequence[np.ndarray]) -> np.ndarray:
-    """(Multi-)linear interpolation of a gridded vector field onto a separable grid.
-
-    Used for the predictor on a refined grid (sec. 6.1.4, App. D uses ``interp3``)
-    and for the dense per-voxel predictor of the deformation mode.
-    """
-    fi = [_frac_index(np.asarray(p, dtype=float), c) for p, c in zip(points, centres)]
-    mesh = np.meshgrid(*fi, indexing="ij")
-    return np.stack([ndimage.map_coordinates(f, mesh, order=1, mode="nearest") for f in field])
-
-
 def _neighbours(field: np.ndarray) -> np.ndarray:
     """Stack of the 3x3(x3) neighbours (centre excluded), NaN beyond the grid edge.
 
@@ -363,7 +345,8 @@ def _load_pair(a: _Input, b: _Input, lo_a, hi_a, lo_b, hi_b) -> tuple[np.ndarray
 
 def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
           pred: np.ndarray, centres: list[np.ndarray], mode: str, zero_pad: bool,
-          batch: int, workers: int | None, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+          batch: int, workers: int | None, order: int, cache: dict | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Correlate every window once; returns corrector (nd, *grid), peak, nonempty."""
     full = tuple(int(s) for s in a.data.shape)
     nd = len(full)
@@ -395,17 +378,32 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
         else:
             slo = np.maximum(lo - margin, 0)
             shi = np.minimum(hi + margin, full)
-            sa, sb = _load_pair(a, b, slo, shi, slo, shi)
-            # dense predictor on the voxels of this batch's windows
-            vox = [np.arange(l, h, dtype=float) for l, h in zip(lo, hi)]
-            dense = _resample(pred, centres, vox)
-            base = np.meshgrid(*[v - s for v, s in zip(vox, slo)], indexing="ij")
-            # symmetric offset: a sampled at x - d/2, b at x + d/2 (cubic spline)
-            da = ndimage.map_coordinates(sa, [g - 0.5 * dd for g, dd in zip(base, dense)],
-                                         order=order, mode="grid-constant", cval=0.0)
-            db = ndimage.map_coordinates(sb, [g + 0.5 * dd for g, dd in zip(base, dense)],
-                                         order=order, mode="grid-constant", cval=0.0)
-            del base, dense
+            key = (tuple(slo), tuple(shi))
+            if cache is not None and cache.get("key") == key:
+                sa, sb, coefs = cache["slabs"]
+            else:
+                sa, sb = _load_pair(a, b, slo, shi, slo, shi)
+                coefs = None
+            if order == 3:
+                # numba kernel, predictor interpolated per voxel in the kernel
+                if coefs is None:
+                    coefs = (spline_coefficients(sa), spline_coefficients(sb))
+                da = deform(coefs[0], nd, -1.0, lo, hi, slo, pred, centres)
+                db = deform(coefs[1], nd, +1.0, lo, hi, slo, pred, centres)
+            else:
+                vox = [np.arange(l, h, dtype=float) for l, h in zip(lo, hi)]
+                dense = dense_predictor(pred, centres, vox)
+                base = np.meshgrid(*[v - s for v, s in zip(vox, slo)], indexing="ij")
+                # symmetric offset: a sampled at x - d/2, b at x + d/2
+                da = ndimage.map_coordinates(sa, [g - 0.5 * dd for g, dd in zip(base, dense)],
+                                             order=order, mode="grid-constant", cval=0.0)
+                db = ndimage.map_coordinates(sb, [g + 0.5 * dd for g, dd in zip(base, dense)],
+                                             order=order, mode="grid-constant", cval=0.0)
+                del base, dense
+            if cache is not None and nwin <= batch:
+                # one batch covers the domain: keep the slabs and spline coefficients for the
+                # next pass instead of re-reading and re-filtering unchanged frames
+                cache["key"], cache["slabs"] = key, (sa, sb, coefs)
             wa = _gather(da, lo, full, st, w)
             wb = _gather(db, lo, full, st, w)
             # the spline prefilter rings faintly into empty regions; judge emptiness on
@@ -544,6 +542,7 @@ def widim(
                 raise ValueError(f"inputs `a` and `b` have different coordinates along '{ia.dims[ax]}'")
 
     field = None
+    cache: dict = {}
     centres_prev: list[np.ndarray] | None = None
     rec_rms, rec_valid, rec_level = [], [], []
     for level, (w, s) in enumerate(sizes, start=1):  # grid refinement (sec. 6.1.5)
@@ -553,7 +552,7 @@ def widim(
         if field is None:
             field = np.zeros((nd,) + grid)  # no predictor on the first pass
         else:  # predictor interpolated onto the finer grid (sec. 6.1.4)
-            field = _resample(field, centres_prev, centres)
+            field = dense_predictor(field, centres_prev, centres)
         if chunk_windows is not None:
             batch = chunk_windows
         else:
@@ -563,7 +562,7 @@ def widim(
         for _ in range(max_passes):  # multi-pass (sec. 6.1.4, Fig. 6.1)
             pred = np.rint(field) if mode == "offset" else field
             corr, peak, nonempty = _pass(ia, ib, nodes, w, pred, centres, mode, zero_pad,
-                                         batch, workers, order)
+                                         batch, workers, order, cache)
             d = pred + corr  # d = p + c (Fig. 6.1)
             field, valid = _validate(d, nonempty, nmt_eps, nmt_threshold)
             rms = float(np.sqrt(np.mean(np.sum(corr[:, nonempty] ** 2, axis=0)))) if nonempty.any() else 0.0
