@@ -184,8 +184,8 @@ def _correlate(wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | No
     # a constant window has no pattern: exact test before any rounding of the mean
     nonempty = _ptp(wa) > 0
     nonempty &= _ptp(wb) > 0
-    wa = wa.astype(np.float32, copy=True)
-    wb = wb.astype(np.float32, copy=True)
+    wa = wa.astype(np.float32, copy=False)  # fresh copies from _gather: modified in place
+    wb = wb.astype(np.float32, copy=False)
     wa -= wa.mean(axis=axes, keepdims=True)  # correlate fluctuations only [3, p. 320]
     wb -= wb.mean(axis=axes, keepdims=True)
     # std before zero padding (sec. 6.1.2); float64 sums so the flag of empty windows is exact
@@ -205,21 +205,30 @@ def _correlate(wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | No
     scale = np.where(nonempty, 1.0 / np.where(nonempty, denom, 1.0), 0.0)
     scale = np.minimum(scale, np.finfo(np.float32).max).astype(np.float32)
     r *= scale.reshape((n,) + (1,) * nd)
-    r = np.fft.fftshift(r, axes=axes)  # zero lag at index shape // 2
-    # integer peak, boundary voxels excluded so eq. 6.2 has both neighbours
-    inner = r[(slice(None),) + (slice(1, -1),) * nd]
-    flat = inner.reshape(n, -1).argmax(axis=1)
-    peak_idx = [i + 1 for i in np.unravel_index(flat, inner.shape[1:])]
+    # integer peak on the unshifted plane (lag L at index L mod S); the boundary lags of
+    # the shifted plane (-S//2 and S-1-S//2) are excluded so eq. 6.2 has both neighbours
+    saved = []
+    for ax, sz in enumerate(shape):
+        for lag in (-(sz // 2), sz - 1 - sz // 2):
+            sl = (slice(None),) * (ax + 1) + (lag % sz,)
+            saved.append((sl, r[sl].copy()))
+            r[sl] = -np.inf
+    flat = r.reshape(n, -1).argmax(axis=1)
+    for sl, vals in saved[::-1]:
+        r[sl] = vals
+    peak_idx = np.unravel_index(flat, shape)
     rows = np.arange(n)
     r0 = r[(rows, *peak_idx)]
     disp = np.empty((n, nd), dtype=np.float64)
     for ax in range(nd):  # loop over axes, not windows
+        sz = shape[ax]
         im = list(peak_idx)
         ip = list(peak_idx)
-        im[ax] = im[ax] - 1
-        ip[ax] = ip[ax] + 1
+        im[ax] = (im[ax] - 1) % sz  # circular neighbours = neighbours in the shifted plane
+        ip[ax] = (ip[ax] + 1) % sz
         eps = _subpixel(r[(rows, *im)], r0, r[(rows, *ip)])
-        disp[:, ax] = peak_idx[ax] + eps - shape[ax] // 2  # eqs 6.3-6.4 (0-based)
+        lag = (peak_idx[ax] + sz // 2) % sz - sz // 2  # eqs 6.3-6.4 (0-based, unshifted)
+        disp[:, ax] = lag + eps
     peak = np.where(nonempty, r0, 0.0).astype(np.float64)
     disp[~nonempty] = 0.0
     return disp, peak, nonempty
@@ -230,26 +239,23 @@ def _ptp(win: np.ndarray) -> np.ndarray:
     return flat.max(axis=1) - flat.min(axis=1)
 
 
-def _gather(img: np.ndarray, origin: Sequence[int], full: Sequence[int],
-            starts: np.ndarray, w: Sequence[int]) -> np.ndarray:
-    """Windows ``img[start : start + w]`` for all starts by fancy indexing.
+def _gather(img: np.ndarray, origin: Sequence[int], starts: np.ndarray,
+            w: Sequence[int]) -> np.ndarray:
+    """Windows ``img[start : start + w]`` (float32 copies, shape (n, *w)).
 
-    ``img`` is a slab of the full domain beginning at ``origin``; voxels outside
-    the full domain read as zero (App. D ``piv_pass_discrete_3d``).
+    ``img`` is a slab of the domain beginning at global index ``origin`` and
+    covering every in-domain voxel the windows touch; what lies beyond it is
+    beyond the domain and reads as zero (App. D ``piv_pass_discrete_3d``).
+    Fancy indexing of a sliding-window view copies whole window rows at once.
     """
-    n, nd = starts.shape
-    idx, mask = [], None
-    for ax in range(nd):
-        g = starts[:, ax, None] + np.arange(w[ax])
-        shp = [n] + [1] * nd
-        shp[ax + 1] = w[ax]
-        ok = ((g >= 0) & (g < full[ax])).reshape(shp)
-        mask = ok if mask is None else mask & ok
-        idx.append((np.clip(g, 0, full[ax] - 1) - origin[ax]).reshape(shp))
-    out = img[tuple(idx)]
-    if not mask.all():
-        out = out * mask
-    return out
+    rel = starts - np.asarray(origin)
+    before = np.maximum(0, -rel.min(axis=0))
+    after = np.maximum(0, rel.max(axis=0) + np.asarray(w) - np.asarray(img.shape))
+    src = img.astype(np.float32, copy=False)
+    if before.any() or after.any():
+        src = np.pad(src, list(zip(before, after)))
+    view = np.lib.stride_tricks.sliding_window_view(src, tuple(w))
+    return view[tuple((rel + before).T)]
 
 
 # --------------------------------------------------------------------------- fields
@@ -373,8 +379,8 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
             hib = np.clip(stb.max(axis=0) + wv, 0, full)
             hib = np.maximum(hib, lob + 1)
             sa, sb = _load_pair(a, b, lo, hi, lob, hib)
-            wa = _gather(sa, lo, full, st, w)
-            wb = _gather(sb, lob, full, stb, w)
+            wa = _gather(sa, lo, st, w)
+            wb = _gather(sb, lob, stb, w)
         else:
             slo = np.maximum(lo - margin, 0)
             shi = np.minimum(hi + margin, full)
@@ -404,11 +410,11 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
                 # one batch covers the domain: keep the slabs and spline coefficients for the
                 # next pass instead of re-reading and re-filtering unchanged frames
                 cache["key"], cache["slabs"] = key, (sa, sb, coefs)
-            wa = _gather(da, lo, full, st, w)
-            wb = _gather(db, lo, full, st, w)
+            wa = _gather(da, lo, st, w)
+            wb = _gather(db, lo, st, w)
             # the spline prefilter rings faintly into empty regions; judge emptiness on
             # the raw windows so an all-zero input window stays empty (peak 0, invalid)
-            raw_ok = (_ptp(_gather(sa, slo, full, st, w)) > 0) & (_ptp(_gather(sb, slo, full, st, w)) > 0)
+            raw_ok = (_ptp(_gather(sa, slo, st, w)) > 0) & (_ptp(_gather(sb, slo, st, w)) > 0)
         c, p, ne = _correlate(wa, wb, zero_pad, workers)
         if mode != "offset":
             ne &= raw_ok
