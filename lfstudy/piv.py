@@ -12,7 +12,7 @@ One code path serves images (y, x) and volumes (z, y, x):
 Two predictor modes: ``"offset"`` reproduces the thesis (discrete integer window
 offset of the second window, App. D ``piv_pass_discrete_3d``); ``"deform"`` (the
 default, beyond the thesis) deforms both frames by -/+ half the dense predictor
-with cubic-spline interpolation (symmetric, second-order offset after Wereley &
+with B-spline interpolation (symmetric, second-order offset after Wereley &
 Meinhart, ref. [60]), which removes the peak-locking bias of the integer offset.
 
 Sign convention: a pattern in ``b`` displaced by +d along an array axis relative
@@ -367,7 +367,7 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
         # integer predictor offsets the second window only (sec. 6.1.4, App. D)
         ioff = np.rint(pred).reshape(nd, -1).T.astype(np.int64)
     else:
-        margin = int(np.ceil(np.abs(pred).max(initial=0.0) / 2)) + 8  # spline support + decay
+        margin = int(np.ceil(np.abs(pred).max(initial=0.0) / 2)) + 16  # spline support + prefilter decay
     for k0 in range(0, nwin, batch):  # loop over batches of windows
         k1 = min(k0 + batch, nwin)
         st = starts_all[k0:k1]
@@ -390,12 +390,12 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
             else:
                 sa, sb = _load_pair(a, b, slo, shi, slo, shi)
                 coefs = None
-            if order == 3:
+            if order in (3, 5):
                 # numba kernel, predictor interpolated per voxel in the kernel
                 if coefs is None:
-                    coefs = (spline_coefficients(sa), spline_coefficients(sb))
-                da = deform(coefs[0], nd, -1.0, lo, hi, slo, pred, centres)
-                db = deform(coefs[1], nd, +1.0, lo, hi, slo, pred, centres)
+                    coefs = (spline_coefficients(sa, order), spline_coefficients(sb, order))
+                da = deform(coefs[0], nd, -1.0, lo, hi, slo, pred, centres, order)
+                db = deform(coefs[1], nd, +1.0, lo, hi, slo, pred, centres, order)
             else:
                 vox = [np.arange(l, h, dtype=float) for l, h in zip(lo, hi)]
                 dense = dense_predictor(pred, centres, vox)
@@ -434,7 +434,7 @@ def widim(
     spacing: int | Sequence[int] | None = None,
     levels: int = 1,
     mode: str = "deform",
-    order: int = 3,
+    order: int = 5,
     zero_pad: bool = False,
     max_passes: int = 10,
     tol: float = 0.01,
@@ -462,13 +462,14 @@ def widim(
         rounded up to even and ``ceil(spacing / Rf)`` (eqs 6.5-6.8).
     mode : {"deform", "offset"}
         ``"deform"``: symmetric image deformation by -/+ half the continuous
-        predictor with cubic splines (default, beyond the thesis).
+        predictor with B-splines (default, beyond the thesis).
         ``"offset"``: discrete integer window offset of the second window by the
         rounded predictor (the thesis' method, sec. 6.1.4).
     order : int
-        Spline order of the image deformation (1..5; ``"deform"`` mode only).
-        Cubic is the default; quintic lowers the interpolation bias further
-        (about 0.002 instead of 0.01 voxel for 2.8-voxel particles) at ~2x cost.
+        B-spline order of the image deformation (1..5; ``"deform"`` mode only;
+        3 and 5 use a numba kernel). Quintic is the default: its interpolation
+        bias is ~0.003 vox against ~0.01 vox for cubic (2.8-voxel particles,
+        benchmarks/bench_piv.py) at about twice the deformation cost.
     zero_pad : bool
         Zero-pad windows to twice their size before the FFT (sec. 6.1.2).
     max_passes : int
@@ -639,7 +640,7 @@ def _to_dataset(field, valid, peak, centres, ia: _Input, dims, shape, sizes, rec
     attrs = {
         "title": "WIDIM PIV result",
         "method": "WIDIM (Lynch 2011, ch. 6) with " + (
-            "symmetric cubic-spline image deformation" if settings["mode"] == "deform"
+            f"symmetric order-{settings['order']} B-spline image deformation" if settings["mode"] == "deform"
             else "discrete integer window offset"),
         "lfstudy_version": ver,
         "input_shape": list(shape),

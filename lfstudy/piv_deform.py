@@ -1,7 +1,7 @@
 """Image deformation kernels for ``lfstudy.piv`` (``mode="deform"``).
 
 ``scipy.ndimage.map_coordinates`` is generic and single-threaded; it dominated the
-run time of a deformation pass. Here the cubic B-spline is evaluated by a numba
+run time of a deformation pass. Here the cubic (or quintic) B-spline is evaluated by a numba
 kernel that also builds the sampling coordinates ``x -/+ d(x)/2`` on the fly, and
 the dense predictor ``d(x)`` is obtained separably (one 1-D linear interpolation
 per axis) from the vector grid. Each output voxel is computed independently, so
@@ -18,7 +18,7 @@ from scipy import ndimage
 
 __all__ = ["dense_predictor", "spline_coefficients", "deform"]
 
-_PAD = 12  # zeros around the slab: the B-spline prefilter decays as 0.268**k
+_PAD = 16  # zeros around the slab: the prefilter decays as 0.268**k (cubic), 0.43**k (quintic)
 
 
 def _axis_weights(points: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -60,17 +60,35 @@ def dense_predictor(field: np.ndarray, centres: Sequence[np.ndarray],
     return out
 
 
-@numba.njit(cache=True, inline="always")
-def _bweights(x: float) -> tuple[int, float, float, float, float]:
+@numba.njit(cache=True)
+def _bweights(x: float, order: int) -> tuple:
+    """First tap and the tap weights (6, zero-filled) of the cubic or quintic B-spline."""
     i = int(np.floor(x))
     t = x - i
-    t2 = t * t
-    t3 = t2 * t
-    w0 = (1.0 - t) ** 3 / 6.0
-    w1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
-    w2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
-    w3 = t3 / 6.0
-    return i - 1, w0, w1, w2, w3
+    if order == 0:  # a single plane (2-D data): the plane itself, weight 1
+        return 0, (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if order == 3:
+        t2 = t * t
+        t3 = t2 * t
+        return i - 1, ((1.0 - t) ** 3 / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
+                       (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, t3 / 6.0, 0.0, 0.0)
+    # quintic: taps i-2 .. i+3 at distances u = |t - j|
+    return i - 2, (_b5(t + 2.0), _b5(t + 1.0), _b5(t), _b5(1.0 - t), _b5(2.0 - t), _b5(3.0 - t))
+
+
+@numba.njit(cache=True)
+def _b5(u: float) -> float:
+    u = abs(u)
+    if u < 1.0:
+        u2 = u * u
+        return (66.0 - 60.0 * u2 + 30.0 * u2 * u2 - 10.0 * u2 * u2 * u) / 120.0
+    if u < 2.0:
+        u2 = u * u
+        return (51.0 + 75.0 * u - 210.0 * u2 + 150.0 * u2 * u - 45.0 * u2 * u2
+                + 5.0 * u2 * u2 * u) / 120.0
+    if u < 3.0:
+        return (3.0 - u) ** 5 / 120.0
+    return 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -86,13 +104,14 @@ def _lerp3(f: np.ndarray, c: int, z0: int, z1: int, az: float, y0: int, y1: int,
 @numba.njit(parallel=True, cache=True)
 def _deform3(coef: np.ndarray, origin: np.ndarray, field: np.ndarray,
              iz: np.ndarray, tz: np.ndarray, iy: np.ndarray, ty: np.ndarray,
-             ix: np.ndarray, tx: np.ndarray, sign: float,
+             ix: np.ndarray, tx: np.ndarray, sign: float, order: int,
              out: np.ndarray) -> None:  # pragma: no cover - compiled
     # out[k,j,i] = spline(coef) at (k,j,i) + origin + sign * d(k,j,i) / 2, where d is the
     # trilinear interpolation of `field` with per-axis lower index i* and weight t*
     nz, ny, nx = coef.shape
     oz, oy, ox = out.shape
     flat_z = nz == 1  # 2-D data carried as a single plane
+    ntap = order + 1
     for k in numba.prange(oz):
         kz0 = iz[k]
         kz1 = min(kz0 + 1, field.shape[1] - 1)
@@ -108,35 +127,30 @@ def _deform3(coef: np.ndarray, origin: np.ndarray, field: np.ndarray,
                 z = k + origin[0] + 0.5 * sign * _lerp3(field, 0, kz0, kz1, az, jy0, jy1, ay, ix0, ix1, ax)
                 y = j + origin[1] + 0.5 * sign * _lerp3(field, 1, kz0, kz1, az, jy0, jy1, ay, ix0, ix1, ax)
                 x = i + origin[2] + 0.5 * sign * _lerp3(field, 2, kz0, kz1, az, jy0, jy1, ay, ix0, ix1, ax)
-                if flat_z:
-                    z0, wz0, wz1, wz2, wz3 = 0, 1.0, 0.0, 0.0, 0.0
-                else:
-                    z0, wz0, wz1, wz2, wz3 = _bweights(z)
-                wz = (wz0, wz1, wz2, wz3)
-                y0, wy0, wy1, wy2, wy3 = _bweights(y)
-                x0, wx0, wx1, wx2, wx3 = _bweights(x)
-                wy = (wy0, wy1, wy2, wy3)
-                wx = (wx0, wx1, wx2, wx3)
+                z0, wz = _bweights(z, order if not flat_z else 0)
+                y0, wy = _bweights(y, order)
+                x0, wx = _bweights(x, order)
                 acc = 0.0
-                for a in range(4):
+                for a in range(ntap):
                     zz = z0 + a
-                    if wz[a] == 0.0 or zz < 0 or zz >= nz:
+                    wza = wz[a]
+                    if wza == 0.0 or zz < 0 or zz >= nz:
                         continue
-                    for b in range(4):
+                    for b in range(ntap):
                         yy = y0 + b
                         if yy < 0 or yy >= ny:
                             continue
-                        s = 0.0
-                        for c in range(4):
+                        acc1 = 0.0
+                        for c in range(ntap):
                             xx = x0 + c
                             if 0 <= xx < nx:
-                                s += wx[c] * coef[zz, yy, xx]
-                        acc += wz[a] * wy[b] * s
+                                acc1 += wx[c] * coef[zz, yy, xx]
+                        acc += wza * wy[b] * acc1
                 out[k, j, i] = acc
 
 
-def spline_coefficients(img: np.ndarray) -> np.ndarray:
-    """Cubic B-spline coefficients of a 2-D or 3-D frame, zero-extended.
+def spline_coefficients(img: np.ndarray, order: int = 3) -> np.ndarray:
+    """Cubic or quintic B-spline coefficients of a 2-D or 3-D frame, zero-extended.
 
     A zero border of ``_PAD`` voxels is added before the prefilter, so samples
     beyond the data read as zero (the window padding of App. D). 2-D frames are
@@ -144,13 +158,14 @@ def spline_coefficients(img: np.ndarray) -> np.ndarray:
     """
     img = np.asarray(img, dtype=np.float64)
     if img.ndim == 2:
-        return ndimage.spline_filter(np.pad(img, _PAD), order=3, mode="mirror")[None]
-    return ndimage.spline_filter(np.pad(img, _PAD), order=3, mode="mirror")
+        return ndimage.spline_filter(np.pad(img, _PAD), order=order, mode="mirror")[None]
+    return ndimage.spline_filter(np.pad(img, _PAD), order=order, mode="mirror")
 
 
 def deform(coef: np.ndarray, nd: int, sign: float, box_lo: Sequence[int], box_hi: Sequence[int],
-           slab_lo: Sequence[int], field: np.ndarray, centres: Sequence[np.ndarray]) -> np.ndarray:
-    """Frame sampled at ``x + sign * d(x) / 2`` on a box (cubic B-spline).
+           slab_lo: Sequence[int], field: np.ndarray, centres: Sequence[np.ndarray],
+           order: int = 3) -> np.ndarray:
+    """Frame sampled at ``x + sign * d(x) / 2`` on a box (cubic or quintic B-spline).
 
     The dense predictor ``d(x)`` is the multilinear interpolation of the vector
     grid (constant beyond the outermost centres), evaluated inside the kernel.
@@ -169,6 +184,8 @@ def deform(coef: np.ndarray, nd: int, sign: float, box_lo: Sequence[int], box_hi
         Predictor (voxels, array-axis order) on the window-centre grid.
     centres : sequence of ndarray
         Window-centre index coordinates per axis.
+    order : {3, 5}
+        B-spline order; must match the one of ``coef``.
 
     Returns
     -------
@@ -188,5 +205,5 @@ def deform(coef: np.ndarray, nd: int, sign: float, box_lo: Sequence[int], box_hi
     w = [_axis_weights(np.arange(l, h, dtype=float), c) for l, h, c in zip(lo, hi, cen)]
     out = np.empty([h - l for l, h in zip(lo, hi)], dtype=np.float64)
     _deform3(coef, origin, np.ascontiguousarray(field), w[0][0], w[0][2], w[1][0], w[1][2],
-             w[2][0], w[2][2], float(sign), out)
+             w[2][0], w[2][2], float(sign), order, out)
     return out[0] if nd == 2 else out

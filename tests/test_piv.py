@@ -62,10 +62,11 @@ def test_uniform_large_shift_3d_two_levels() -> None:
     assert ds.valid_fraction.dims == ("pass",)
 
 
-def test_uniform_shift_2d() -> None:
+@pytest.mark.parametrize("order", [3, 5, 4])
+def test_uniform_shift_2d(order: int) -> None:
     shift = (-0.4, 0.65)
     a, b = particle_pair(SHAPE2, shift, density=0.03, seed=4)
-    ds = widim(a, b, window=32, spacing=16)
+    ds = widim(a, b, window=32, spacing=16, order=order)  # 3, 5: numba; 4: ndimage path
     assert "w" not in ds and ds.u.dims == ("y", "x")
     for c, e in _errors(ds, {"v": shift[0], "u": shift[1]}).items():
         assert abs(e.mean()) <= 0.02, (c, e.mean())
