@@ -49,6 +49,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    # Leftovers of a writer that was killed (SIGKILL skips the cleanup below).
+    for stale in path.parent.glob(f".{path.name}.tmp-*"):
+        _remove(stale)
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
         yield tmp
