@@ -1,0 +1,626 @@
+"""Errors of a light-field PIV case against the known flow (thesis ch. 7).
+
+Pure computations over xarray objects (no file I/O except :func:`stage_times`,
+which reads Snakemake benchmark tables, and :func:`to_csv` / :func:`from_csv`):
+
+- :func:`case_errors`: true displacement at every PIV window centre, the error
+  field per component (measured − true) in voxels and mm, and per-case
+  scalars (bias, RMS, standard deviation, valid %, mean and spread of the
+  measured displacement, peak locking) as in sec. 7.1–7.4;
+- :func:`reconstruction_quality`: the reconstruction quality factor Q of
+  Elsinga et al. (2006);
+- :func:`stage_times`: run time of every workflow stage of a case;
+- :func:`combine_cases` / :func:`to_csv`: the sweep Dataset whose dimensions
+  are the swept parameters (``study.sel(ppp=0.001)``) and its flat table.
+
+Sign convention: everything is in the object frame (+z away from the camera).
+A particle moved +0.5625 mm in x images as +4.5 voxels of 0.125 mm; the
+thesis' histograms (Fig. 7.2: mean −4.45 px) carry the opposite sign.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import xarray as xr
+from scipy.special import ndtr
+
+from lfstudy.config import SWEEP_KEYS
+from lfstudy.flows import Flow, true_displacement
+
+__all__ = [
+    "AXES",
+    "case_errors",
+    "error_statistics",
+    "peak_locking_c1",
+    "locking_excess",
+    "reconstruction_quality",
+    "render_particles",
+    "stage_times",
+    "combine_cases",
+    "to_csv",
+    "from_csv",
+    "format_param",
+    "METRIC_LABELS",
+]
+
+#: Displacement component of each axis (pivpy names) and its array dimension.
+AXES: dict[str, str] = {"x": "u", "y": "v", "z": "w"}
+
+#: Headline per-case metrics and how to label them (used by the report).
+METRIC_LABELS: dict[str, str] = {
+    "rms_total": "total RMS error",
+    "bias_x": "bias x", "bias_y": "bias y", "bias_z": "bias z",
+    "rms_x": "RMS error x", "rms_y": "RMS error y", "rms_z": "RMS error z",
+    "std_x": "random error (std) x", "std_y": "random error (std) y", "std_z": "random error (std) z",
+    "valid_percent": "valid vectors",
+    "peak_locking_x": "peak locking C1 x", "peak_locking_y": "peak locking C1 y",
+    "peak_locking_z": "peak locking C1 z",
+    "locking_excess_z": "excess near-integer fraction z",
+    "Q": "reconstruction quality Q",
+    "time_total": "run time (all stages)",
+}
+
+
+def _attrs(units: str, long_name: str, **extra: Any) -> dict[str, Any]:
+    return {"units": units, "long_name": long_name, **extra}
+
+
+# --------------------------------------------------------------- statistics
+def error_statistics(error: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]:
+    """Bias, RMS and standard deviation of the errors selected by ``mask``.
+
+    Parameters
+    ----------
+    error : ndarray
+        Error values (measured − true).
+    mask : ndarray of bool
+        Vectors to include (valid and finite); broadcast against ``error``.
+
+    Returns
+    -------
+    bias, rms, std : float
+        Mean error, root-mean-square error and population standard deviation
+        (ddof = 0, so rms² = bias² + std² exactly). NaN, without a warning,
+        when no vector is selected.
+    """
+    e = np.asarray(error, dtype=float)[np.broadcast_to(mask, np.shape(error))]
+    if e.size == 0:
+        return math.nan, math.nan, math.nan
+    bias = float(e.mean())
+    rms = float(np.sqrt(np.mean(e * e)))
+    std = float(e.std())
+    return bias, rms, std
+
+
+def peak_locking_c1(displacement: np.ndarray, *, bins: int = 10) -> float:
+    """Degree of peak locking C1 of Christensen (2004), in [0, 1].
+
+    The fractional parts of the measured displacements (voxels) are
+    histogrammed into ``bins`` equal bins over one voxel (Christensen uses
+    0.1 px bins); ``C1 = 1 − N_min / N_max``. 0 means fractional parts spread
+    evenly (no locking), 1 that some sub-voxel bin is empty.
+
+    C1 presumes a broad displacement distribution (turbulence, the vortex of
+    sec. 7.4). For a uniform displacement the fractional parts sit in one or
+    two bins *by construction* and C1 is ~1 whatever the estimator; compare
+    C1 only between cases of the same flow, and use :func:`locking_excess`
+    for a figure that accounts for the truth.
+
+    Returns
+    -------
+    float
+        C1, or NaN if ``displacement`` holds no finite value.
+    """
+    d = np.asarray(displacement, dtype=float).ravel()
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return math.nan
+    frac = d - np.floor(d)
+    n = np.bincount(np.minimum((frac * bins).astype(np.int64), bins - 1), minlength=bins)
+    return float(1.0 - n.min() / n.max())
+
+
+def locking_excess(measured: np.ndarray, true: np.ndarray, *, half_width: float = 0.25) -> float:
+    """Excess fraction of measured displacements near an integer voxel, in [−1, 1].
+
+    ``F_meas`` is the fraction of measured displacements within ``half_width``
+    voxels of an integer. ``F_ref`` is the same fraction expected if the
+    errors were Gaussian about the truth with the observed bias and standard
+    deviation (no locking): the mean over vectors of
+    P(|t_i + b + σZ − k| < h for some integer k), Z ~ N(0, 1). The figure is
+    ``F_meas − F_ref``: ~0 for an unbiased-in-sub-voxel-position estimator,
+    positive when the estimates pile up on integers (the bimodal histogram of
+    Fig. 7.8: a true 2.5 voxel shift measured as 2 or 3). Unlike
+    :func:`peak_locking_c1` it is meaningful for a uniform displacement.
+
+    Returns
+    -------
+    float
+        ``F_meas − F_ref``; NaN if there is no finite pair.
+    """
+    m = np.asarray(measured, dtype=float).ravel()
+    t = np.broadcast_to(np.asarray(true, dtype=float), np.shape(measured)).ravel()
+    ok = np.isfinite(m) & np.isfinite(t)
+    if not ok.any():
+        return math.nan
+    m, t = m[ok], t[ok]
+    f_meas = float(np.mean(np.abs(m - np.rint(m)) < half_width))
+    err = m - t
+    b, s = float(err.mean()), float(err.std())
+    mu = t + b
+    if s == 0.0:
+        f_ref = float(np.mean(np.abs(mu - np.rint(mu)) < half_width))
+    else:
+        # Probability mass of N(mu, s) within ±h of each integer k near mu.
+        reach = int(math.ceil(6.0 * s)) + 1
+        k = np.rint(mu)[:, None] + np.arange(-reach, reach + 1)[None, :]
+        p = ndtr((k + half_width - mu[:, None]) / s) - ndtr((k - half_width - mu[:, None]) / s)
+        f_ref = float(np.mean(p.sum(axis=1)))
+    return f_meas - f_ref
+
+
+# ------------------------------------------------------------ voxel size
+def _voxel_steps(piv: xr.Dataset, voxel_size: float | Sequence[float] | Mapping[str, float] | None
+                 ) -> dict[str, np.ndarray]:
+    """Voxel size [mm] per axis at each window centre (1-D along that axis)."""
+    out: dict[str, np.ndarray] = {}
+    for i, ax in enumerate(("x", "y", "z")):
+        if ax not in piv.dims:
+            continue
+        n = piv.sizes[ax]
+        if voxel_size is not None:
+            if isinstance(voxel_size, Mapping):
+                val = voxel_size[ax]
+            elif np.ndim(voxel_size) == 0:
+                val = voxel_size
+            else:  # (x, y, z) order
+                val = list(voxel_size)[i]
+            out[ax] = np.full(n, float(val))
+            continue
+        idx = f"{ax}_index"
+        if idx in piv.coords and n > 1:
+            # Window centres in mm over centres in voxel index: the local step,
+            # as WIDIM used for *_mm (z planes need not be evenly spaced).
+            out[ax] = np.abs(np.gradient(piv[ax].values.astype(float)) /
+                             np.gradient(piv[idx].values.astype(float)))
+            continue
+        spacing = piv.attrs.get("final_spacing")
+        dims = [d for d in ("z", "y", "x") if d in piv.dims]
+        if spacing is not None and n > 1 and len(spacing) == len(dims):
+            # Window-centre step [mm] over the final window spacing [voxels].
+            sp = float(spacing[dims.index(ax)])
+            out[ax] = np.abs(np.gradient(piv[ax].values.astype(float))) / sp
+            continue
+        comp = AXES[ax]
+        if comp in piv and f"{comp}_mm" in piv:
+            vox, mm = piv[comp].values, piv[f"{comp}_mm"].values
+            ok = np.isfinite(vox) & np.isfinite(mm) & (np.abs(vox) > 1e-9)
+            if ok.any():
+                out[ax] = np.full(n, float(np.median(np.abs(mm[ok] / vox[ok]))))
+                continue
+        raise ValueError(
+            f"case_errors: cannot infer the voxel size along {ax} (no '{idx}' coordinate, no non-zero "
+            f"'{comp}'/'{comp}_mm' pair); pass voxel_size=(dx, dy, dz) in mm"
+        )
+    return out
+
+
+# --------------------------------------------------------------- case errors
+def case_errors(
+    piv: xr.Dataset,
+    flow: Flow,
+    *,
+    dt: float = 1.0,
+    n_steps: int = 100,
+    voxel_size: float | Sequence[float] | Mapping[str, float] | None = None,
+) -> xr.Dataset:
+    """Error of a PIV result against the known flow, field and per-case scalars (ch. 7).
+
+    Parameters
+    ----------
+    piv : xarray.Dataset
+        WIDIM result (``lfstudy.piv.widim``): dims ``("z", "y", "x")`` of window
+        centres with coords in mm (object frame), ``u, v, w`` [voxel] and/or
+        ``u_mm, v_mm, w_mm`` [mm], ``valid`` (bool).
+    flow : Flow
+        The imposed flow (``lfstudy.flows.flow_from_config``).
+    dt, n_steps : float, int
+        Time separation and RK4 sub-steps of the true displacement.
+    voxel_size : float, (dx, dy, dz) or mapping, optional
+        Voxel size [mm]. By default the local step at each window centre,
+        window centre [mm] over window centre [voxel index] (the ``x_index``
+        coords of WIDIM), else the window-centre step over the ``final_spacing``
+        attribute, else the median ratio ``u_mm / u``.
+
+    Returns
+    -------
+    xarray.Dataset
+        Fields over the PIV grid: ``<c>_true`` / ``<c>_true_mm`` (true
+        displacement at the window centre, midpoint reference, i.e. the path
+        of the particle centred on the window), ``<c>_err`` / ``<c>_err_mm``
+        (measured − true, NaN where invalid) for c in u, v, w, and
+        ``voxel_<ax>``. Scalars, over valid vectors with finite values, for
+        ax in x, y, z (``_mm`` suffix: in mm, else voxels):
+
+        - ``bias_<ax>``: mean error; ``rms_<ax>``: RMS error; ``std_<ax>``:
+          standard deviation of the error (ddof 0, rms² = bias² + std²);
+          ``rms_total``: sqrt(rms_x² + rms_y² + rms_z²);
+        - ``mean_<ax>`` / ``sd_<ax>``: mean and standard deviation of the
+          *measured* displacement (cf. Fig. 7.2: μ = −4.45 px, σ = 0.07 px in
+          the thesis' image-frame sign; ours is +), ``true_<ax>``: mean true
+          displacement;
+        - ``peak_locking_<ax>``: Christensen's C1 (:func:`peak_locking_c1`),
+          ``locking_excess_<ax>`` (:func:`locking_excess`);
+        - ``n_vectors``, ``n_valid``, ``valid_percent``.
+
+        With no valid vector every statistic is NaN and ``valid_percent`` is 0
+        (no exception, no warning).
+    """
+    steps = _voxel_steps(piv, voxel_size)
+    dims = tuple(d for d in ("z", "y", "x") if d in piv.dims)
+    axes = [ax for ax in ("x", "y", "z") if ax in dims]
+    grid = xr.broadcast(*(piv[d] for d in dims))
+    pts = {d: g.transpose(*dims).values.astype(float) for d, g in zip(dims, grid)}
+    zeros = np.zeros_like(pts[dims[0]])
+    tx, ty, tz = true_displacement(flow, pts.get("x", zeros), pts.get("y", zeros), pts.get("z", zeros),
+                                   dt=dt, n_steps=n_steps, reference="midpoint")
+    true_mm = {"x": tx, "y": ty, "z": tz}
+
+    valid = (piv["valid"].transpose(*dims).values.astype(bool) if "valid" in piv
+             else np.ones(zeros.shape, bool))
+    coords = {d: piv[d] for d in dims}
+    out = xr.Dataset(coords=coords)
+    fin = valid.copy()
+    meas_vox: dict[str, np.ndarray] = {}
+    meas_mm: dict[str, np.ndarray] = {}
+    step_b: dict[str, np.ndarray] = {}
+    for ax in axes:
+        c = AXES[ax]
+        shp = [1] * len(dims)
+        shp[dims.index(ax)] = -1
+        step = steps[ax].reshape(shp)
+        step_b[ax] = step
+        if c in piv:
+            vx = piv[c].transpose(*dims).values.astype(float)
+            mm = piv[f"{c}_mm"].transpose(*dims).values.astype(float) if f"{c}_mm" in piv else vx * step
+        elif f"{c}_mm" in piv:
+            mm = piv[f"{c}_mm"].transpose(*dims).values.astype(float)
+            vx = mm / step
+        else:
+            raise ValueError(f"case_errors: the PIV result has neither '{c}' nor '{c}_mm'")
+        meas_vox[ax], meas_mm[ax] = vx, mm
+        fin &= np.isfinite(vx) & np.isfinite(mm) & np.isfinite(true_mm[ax])
+        out[f"voxel_{ax}"] = (ax, steps[ax], _attrs("mm", f"voxel size along {ax} at the window centre"))
+
+    n_vec = int(valid.size)
+    n_valid = int(fin.sum())
+    for ax in axes:
+        c = AXES[ax]
+        t_mm = np.broadcast_to(true_mm[ax], zeros.shape)
+        t_vx = t_mm / step_b[ax]
+        e_mm = np.where(fin, meas_mm[ax] - t_mm, np.nan)
+        e_vx = np.where(fin, meas_vox[ax] - t_vx, np.nan)
+        out[f"{c}_true"] = (dims, t_vx, _attrs("voxel", f"true {ax} displacement at the window centre"))
+        out[f"{c}_true_mm"] = (dims, t_mm, _attrs("mm", f"true {ax} displacement at the window centre"))
+        out[f"{c}_err"] = (dims, e_vx, _attrs("voxel", f"{ax} displacement error (measured − true)"))
+        out[f"{c}_err_mm"] = (dims, e_mm, _attrs("mm", f"{ax} displacement error (measured − true)"))
+        for unit, err, meas, tru, sfx in (("voxel", e_vx, meas_vox[ax], t_vx, ""),
+                                          ("mm", e_mm, meas_mm[ax], t_mm, "_mm")):
+            bias, rms, std = error_statistics(err, fin)
+            mb, _, ms = error_statistics(meas, fin)  # mean and std of the measured values
+            tb = error_statistics(tru, fin)[0]
+            out[f"bias_{ax}{sfx}"] = ((), bias, _attrs(unit, f"bias error {ax} (mean of measured − true)"))
+            out[f"rms_{ax}{sfx}"] = ((), rms, _attrs(unit, f"RMS error {ax}"))
+            out[f"std_{ax}{sfx}"] = ((), std, _attrs(unit, f"random error {ax} (std of measured − true)"))
+            out[f"mean_{ax}{sfx}"] = ((), mb, _attrs(unit, f"mean measured {ax} displacement"))
+            out[f"sd_{ax}{sfx}"] = ((), ms, _attrs(unit, f"std of measured {ax} displacement"))
+            out[f"true_{ax}{sfx}"] = ((), tb, _attrs(unit, f"mean true {ax} displacement"))
+        mv = meas_vox[ax][fin]
+        out[f"peak_locking_{ax}"] = ((), peak_locking_c1(mv), _attrs(
+            "1", f"degree of peak locking C1 {ax} (Christensen 2004)",
+            description="1 - Nmin/Nmax of the histogram (10 bins) of the fractional parts of the "
+                        "measured displacement in voxels"))
+        out[f"locking_excess_{ax}"] = ((), locking_excess(mv, t_vx[fin]), _attrs(
+            "1", f"excess near-integer fraction {ax}",
+            description="fraction of measured displacements within 0.25 voxel of an integer minus "
+                        "that expected for Gaussian errors about the truth"))
+    rt = math.sqrt(sum(float(out[f"rms_{ax}"]) ** 2 for ax in axes)) if n_valid else math.nan
+    out["rms_total"] = ((), rt, _attrs("voxel", "total RMS error (all components)"))
+    rt_mm = math.sqrt(sum(float(out[f"rms_{ax}_mm"]) ** 2 for ax in axes)) if n_valid else math.nan
+    out["rms_total_mm"] = ((), rt_mm, _attrs("mm", "total RMS error (all components)"))
+    out["n_vectors"] = ((), n_vec, _attrs("1", "number of PIV vectors"))
+    out["n_valid"] = ((), n_valid, _attrs("1", "number of valid vectors"))
+    out["valid_percent"] = ((), 100.0 * n_valid / n_vec if n_vec else 0.0,
+                            _attrs("percent", "valid vectors"))
+    out.attrs.update(
+        title="PIV errors against the known flow",
+        flow=getattr(flow, "name", type(flow).__name__),
+        dt=float(dt), n_steps=int(n_steps),
+        true_displacement_reference="midpoint",
+        sign_convention="object frame, +z away from the camera; error = measured - true",
+    )
+    return out
+
+
+# ----------------------------------------------------------- reconstruction Q
+def _fractional_index(coord: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Positions ``p`` as fractional indices along an ascending coordinate."""
+    c = np.asarray(coord, dtype=float)
+    if c.size == 1:
+        return np.zeros_like(p)
+    idx = np.arange(c.size, dtype=float)
+    # Linear inside, extrapolated with the end steps outside the grid.
+    f = np.interp(p, c, idx)
+    lo, hi = p < c[0], p > c[-1]
+    f[lo] = (p[lo] - c[0]) / (c[1] - c[0])
+    f[hi] = c.size - 1 + (p[hi] - c[-1]) / (c[-1] - c[-2])
+    return f
+
+
+def render_particles(coords: Mapping[str, np.ndarray], particles: xr.Dataset, *,
+                     sigma_vox: float | Sequence[float] = 1.0, truncate: float = 3.0) -> np.ndarray:
+    """A "true" volume: one Gaussian blob per particle on a voxel grid.
+
+    Parameters
+    ----------
+    coords : mapping with ``z``, ``y``, ``x``
+        Ascending voxel-centre coordinates [mm] (may be uneven; blobs are
+        Gaussian in *index* space, i.e. one voxel wide whatever its size).
+    particles : xarray.Dataset
+        ``x, y, z`` [mm] and optional ``intensity`` over ``particle``.
+    sigma_vox : float or (sz, sy, sx)
+        Blob standard deviation in voxels.
+    truncate : float
+        Blobs are cut at ``truncate`` sigmas.
+
+    Returns
+    -------
+    ndarray, shape (nz, ny, nx), float64
+    """
+    dims = ("z", "y", "x")
+    shape = tuple(len(coords[d]) for d in dims)
+    sig = np.broadcast_to(np.asarray(sigma_vox, dtype=float), (3,))
+    if np.any(sig <= 0):
+        raise ValueError(f"sigma_vox = {sigma_vox!r}: must be > 0")
+    out = np.zeros(int(np.prod(shape)), dtype=np.float64)
+    n = particles.sizes.get("particle", len(particles["x"]))
+    if n == 0:
+        return out.reshape(shape)
+    amp = (np.asarray(particles["intensity"].values, float) if "intensity" in particles
+           else np.ones(n))
+    f = [_fractional_index(coords[d], np.asarray(particles[d].values, float)) for d in dims]
+    r = [int(math.ceil(truncate * s)) for s in sig]
+    # Per-axis 1-D weights on a (particle, offset) stencil, then an outer
+    # product: the blob is separable, no loop over particles or voxels.
+    idx, wts = [], []
+    for a in range(3):
+        base = np.rint(f[a]).astype(np.int64)
+        off = np.arange(-r[a], r[a] + 1)
+        i = base[:, None] + off[None, :]
+        w = np.exp(-0.5 * ((i - f[a][:, None]) / sig[a]) ** 2)
+        w[(i < 0) | (i >= shape[a])] = 0.0
+        idx.append(np.clip(i, 0, shape[a] - 1))
+        wts.append(w)
+    flat = (idx[0][:, :, None, None] * shape[1] + idx[1][:, None, :, None]) * shape[2] + idx[2][:, None, None, :]
+    val = amp[:, None, None, None] * wts[0][:, :, None, None] * wts[1][:, None, :, None] * wts[2][:, None, None, :]
+    keep = val > 0
+    out += np.bincount(flat[keep], weights=val[keep], minlength=out.size)
+    return out.reshape(shape)
+
+
+def reconstruction_quality(volume: xr.DataArray, particles: xr.Dataset, *,
+                           sigma_vox: float | Sequence[float] = 1.0, planes_per_block: int = 8) -> float:
+    """Reconstruction quality Q of Elsinga et al. (2006).
+
+    Q = Σ E·E_true / sqrt(Σ E² · Σ E_true²), the normalised correlation of the
+    reconstructed volume E and a true volume E_true made of one Gaussian blob
+    per particle (:func:`render_particles`) on the same voxel grid (the
+    volume's coords). Elsinga et al. deem Q > 0.75 adequate for tomographic
+    PIV.
+
+    Parameters
+    ----------
+    volume : xarray.DataArray (z, y, x)
+        Reconstructed intensity, coords ascending [mm]; may be dask-backed:
+        it is read ``planes_per_block`` planes at a time.
+    particles : xarray.Dataset
+        Particle field of the same exposure (``x, y, z, intensity`` [mm]).
+    sigma_vox : float or (sz, sy, sx)
+        Standard deviation of the true blobs [voxels].
+    planes_per_block : int
+        Planes of ``volume`` computed at once.
+
+    Returns
+    -------
+    float
+        Q in [−1, 1] (in [0, 1] for non-negative volumes); NaN if either
+        volume is identically zero.
+    """
+    vol = volume.transpose("z", "y", "x")
+    coords = {d: np.asarray(vol[d].values, float) for d in ("z", "y", "x")}
+    for d, c in coords.items():
+        if c.size > 1 and np.any(np.diff(c) <= 0):
+            raise ValueError(f"reconstruction_quality: coordinate {d} must be strictly ascending")
+    truth = render_particles(coords, particles, sigma_vox=sigma_vox)
+    num = e2 = 0.0
+    for k in range(0, truth.shape[0], max(1, int(planes_per_block))):
+        e = np.asarray(vol.isel(z=slice(k, k + planes_per_block)).values, dtype=np.float64)
+        t = truth[k:k + e.shape[0]]
+        num += float(np.sum(e * t))
+        e2 += float(np.sum(e * e))
+    t2 = float(np.sum(truth * truth))
+    if e2 == 0.0 or t2 == 0.0:
+        return math.nan
+    return num / math.sqrt(e2 * t2)
+
+
+# --------------------------------------------------------------- run times
+def stage_times(benchmark_dir: str | Path, case_id: str) -> dict[str, float]:
+    """Wall-clock seconds of every workflow rule of one case, from Snakemake benchmarks.
+
+    Reads ``<benchmark_dir>/<rule>/<case_id>.tsv`` and the per-frame tables
+    ``<case_id>_<f>.tsv`` (one lowercase letter, e.g. ``_a``, ``_b``), which
+    are summed. Repeated benchmark runs (several rows) are averaged. Rules
+    keyed by something other than the case (shared calibration) are not
+    attributed to the case.
+
+    Returns
+    -------
+    dict
+        ``{rule: seconds}`` plus ``"total"`` (sum), empty if nothing is found.
+    """
+    import pandas as pd
+
+    root = Path(benchmark_dir)
+    out: dict[str, float] = {}
+    if not root.is_dir():
+        return out
+    head, name = Path(case_id).parent, Path(case_id).name
+    pat = re.compile(rf"^{re.escape(name)}(_[a-z])?\.tsv$")
+    for rule_dir in sorted(p for p in root.iterdir() if p.is_dir()):
+        d = rule_dir / head
+        if not d.is_dir():
+            continue
+        total, found = 0.0, False
+        for f in sorted(d.iterdir()):
+            if pat.match(f.name):
+                try:
+                    s = pd.read_csv(f, sep="\t")["s"].astype(float)
+                except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
+                    continue
+                if len(s):
+                    total += float(s.mean())
+                    found = True
+        if found:
+            out[rule_dir.name] = total
+    if out:
+        out["total"] = float(sum(out.values()))
+    return out
+
+
+# ----------------------------------------------------------------- the sweep
+def format_param(key: str, value: Any) -> Any:
+    """A swept value as stored in the study Dataset.
+
+    ``fnumber`` becomes a string ("matched" or "4", as in case ids, because a
+    sweep mixes both), ``flow`` a string, everything else a float.
+    """
+    if key in ("fnumber", "flow"):
+        if isinstance(value, str):
+            try:
+                return f"{float(value):g}" if key == "fnumber" and value != "matched" else value
+            except ValueError:
+                return value
+        return f"{float(value):g}"
+    return float(value)
+
+
+_PARAM_ATTRS: dict[str, dict[str, str]] = {
+    "magnification": _attrs("1", "magnification M"),
+    "fnumber": _attrs("1", "main-lens f-number (matched or explicit)"),
+    "lenslet_pitch": _attrs("mm", "lenslet pitch"),
+    "ppp": _attrs("1", "seeding density (particles per sensor pixel)"),
+    "flow": _attrs("1", "flow case"),
+}
+
+
+def _sort_values(key: str, values: Iterable[Any]) -> list[Any]:
+    vals = set(values)
+    if key == "fnumber":  # "matched" first, then numbers ascending
+        return sorted(vals, key=lambda v: (v != "matched", float(v) if v != "matched" else 0.0))
+    return sorted(vals)
+
+
+def combine_cases(per_case: Iterable[tuple[Mapping[str, Any], xr.Dataset]]) -> xr.Dataset:
+    """One Dataset whose dimensions are the swept parameters.
+
+    Parameters
+    ----------
+    per_case : iterable of (params, scalars)
+        ``params``: the case's swept values (``Case.params``); ``scalars``: a
+        Dataset of 0-d variables (e.g. the scalars of :func:`case_errors` plus
+        ``Q`` and ``time_<rule>``). Non-scalar variables are ignored.
+
+    Returns
+    -------
+    xarray.Dataset
+        Dims ``magnification, fnumber, lenslet_pitch, ppp, flow`` (coords
+        sorted; fnumber and flow as strings), one float variable per scalar,
+        NaN for combinations (or variables) that were not computed, and
+        ``computed`` (bool) marking the cases present. Attrs (units,
+        long_name) are taken from the first case that has the variable.
+    """
+    rows = [({k: format_param(k, p[k]) for k in SWEEP_KEYS}, s) for p, s in per_case]
+    coords = {k: _sort_values(k, (r[0][k] for r in rows)) for k in SWEEP_KEYS}
+    shape = tuple(len(coords[k]) for k in SWEEP_KEYS)
+    pos = {k: {v: i for i, v in enumerate(coords[k])} for k in SWEEP_KEYS}
+    data: dict[str, np.ndarray] = {}
+    attrs: dict[str, dict[str, Any]] = {}
+    computed = np.zeros(shape, bool)
+    for params, s in rows:
+        at = tuple(pos[k][params[k]] for k in SWEEP_KEYS)
+        computed[at] = True
+        for name, var in s.data_vars.items():
+            if var.ndim != 0:
+                continue
+            if name not in data:
+                data[name] = np.full(shape, np.nan)
+                attrs[name] = dict(var.attrs)
+            try:
+                data[name][at] = float(var.values)
+            except (TypeError, ValueError):
+                pass
+    ds = xr.Dataset(
+        {n: (SWEEP_KEYS, a, attrs[n]) for n, a in data.items()},
+        # Object (variable-length) strings: zarr v3 stores them as vlen-utf8,
+        # fixed-width '<U' has no v3 specification yet.
+        coords={k: (k, np.asarray(coords[k], dtype=object if k in ("fnumber", "flow") else float),
+                    _PARAM_ATTRS[k]) for k in SWEEP_KEYS},
+    )
+    ds["computed"] = (SWEEP_KEYS, computed, _attrs("1", "case computed"))
+    ds.attrs["title"] = "light-field PIV parametric study: errors per case"
+    return ds
+
+
+def to_csv(study: xr.Dataset, path: str | Path) -> Path:
+    """Write the study as a flat table, one row per computed case.
+
+    Columns: ``case_id``, the swept parameters, then every variable. Units
+    stay in the zarr store (variable attrs), so the file reads straight back
+    with :func:`from_csv` or ``pandas.read_csv``.
+    """
+    from lfstudy.config import Case
+    from lfstudy.io import atomic_path
+
+    df = study.to_dataframe().reset_index()
+    if "computed" in df:
+        df = df[df["computed"].astype(bool)].drop(columns="computed")
+    ids = []
+    for _, r in df.iterrows():
+        fn = r["fnumber"]
+        ids.append(Case(magnification=float(r["magnification"]), fnumber=fn if fn == "matched" else float(fn),
+                        lenslet_pitch=float(r["lenslet_pitch"]), ppp=float(r["ppp"]),
+                        flow=str(r["flow"])).case_id)
+    df.insert(0, "case_id", ids)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False)
+    return path
+
+
+def from_csv(path: str | Path) -> xr.Dataset:
+    """Read a table written by :func:`to_csv` back into a study Dataset (no units)."""
+    import pandas as pd
+
+    df = pd.read_csv(path, dtype={"fnumber": str, "flow": str})
+    rows = []
+    for _, r in df.iterrows():
+        params = {k: r[k] for k in SWEEP_KEYS}
+        vals = {c: ((), float(r[c])) for c in df.columns if c not in SWEEP_KEYS and c != "case_id"}
+        rows.append((params, xr.Dataset(vals)))
+    return combine_cases(rows)

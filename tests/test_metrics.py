@@ -1,0 +1,242 @@
+"""Tests of lfstudy.metrics: errors against the truth, Q, run times, the sweep Dataset."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lfstudy import io
+from lfstudy.config import Case
+from lfstudy.flows import HillVortex, UniformFlow
+from lfstudy.metrics import (
+    case_errors,
+    combine_cases,
+    from_csv,
+    locking_excess,
+    peak_locking_c1,
+    reconstruction_quality,
+    render_particles,
+    stage_times,
+    to_csv,
+)
+
+VOX = 0.125  # mm, the thesis' lenslet pitch at M = -1
+
+
+def synthetic_piv(u, v, w, *, valid=None, shape=(4, 5, 6), spacing=(8, 16, 16), vox=VOX,
+                  with_index=True, with_mm=True) -> xr.Dataset:
+    """A WIDIM-like result on a (z, y, x) grid of window centres (voxels and mm)."""
+    nz, ny, nx = shape
+    idx = {d: (np.arange(n) + 0.5) * s for d, n, s in zip("zyx", shape, spacing)}
+    coords = {d: (d, (idx[d] - idx[d].mean()) * vox, {"units": "mm"}) for d in "zyx"}
+    if with_index:
+        coords.update({f"{d}_index": (d, idx[d], {"units": "voxel"}) for d in "zyx"})
+    b = lambda a: np.broadcast_to(np.asarray(a, float), shape).copy()  # noqa: E731
+    data = {}
+    for c, val in zip("uvw", (u, v, w)):
+        data[c] = (("z", "y", "x"), b(val), {"units": "voxel"})
+        if with_mm:
+            data[f"{c}_mm"] = (("z", "y", "x"), b(val) * vox, {"units": "mm"})
+    data["valid"] = (("z", "y", "x"), np.ones(shape, bool) if valid is None else valid)
+    data["peak"] = (("z", "y", "x"), np.full(shape, 0.8))
+    data["corrector_rms"] = ("pass", [1.0, 0.2, 0.05])
+    data["valid_fraction"] = ("pass", [90.0, 97.0, 99.0])
+    ds = xr.Dataset(data, coords=coords, attrs={"final_spacing": list(spacing)})
+    return ds.assign_coords({"pass": ("pass", [1, 2, 3]), "level": ("pass", [1, 2, 2])})
+
+
+def test_uniform_x_sign_and_zero_bias():
+    # Sec. 7.1: a +0.5625 mm flow imaged by 0.125 mm voxels is +4.5 voxels in the object frame.
+    err = case_errors(synthetic_piv(4.5, 0.0, 0.0), UniformFlow((0.5625, 0.0, 0.0)))
+    for ax in "xyz":
+        assert float(err[f"bias_{ax}"]) == pytest.approx(0.0, abs=1e-12)
+        assert float(err[f"rms_{ax}"]) == pytest.approx(0.0, abs=1e-12)
+    assert float(err["mean_x"]) == pytest.approx(4.5)
+    assert float(err["mean_x_mm"]) == pytest.approx(0.5625)
+    assert float(err["true_x"]) == pytest.approx(4.5)
+    assert float(err["valid_percent"]) == 100.0
+    assert err["u_true"].dims == ("z", "y", "x")
+    assert np.allclose(err["voxel_x"], VOX)
+
+
+@pytest.mark.parametrize("with_index,with_mm", [(True, True), (False, True), (True, False)])
+def test_known_errors_exact(with_index, with_mm):
+    rng = np.random.default_rng(0)
+    shape = (4, 5, 6)
+    noise = rng.normal(0.0, 0.07, shape)
+    u = 4.45 + noise                         # thesis' 0.05 voxel under-estimate
+    valid = np.ones(shape, bool)
+    valid[0, 0, :3] = False
+    u[0, 0, :3] = 1e6                         # outliers flagged invalid must not count
+    u[1, 1, 1] = np.nan                       # a NaN never leaks into the statistics
+    err = case_errors(synthetic_piv(u, 0.0, 0.25, valid=valid, with_index=with_index, with_mm=with_mm),
+                      UniformFlow((0.5625, 0.0, 0.0)))
+    sel = valid & np.isfinite(u)
+    e = u[sel] - 4.5
+    assert float(err["bias_x"]) == pytest.approx(e.mean(), abs=1e-12)
+    assert float(err["rms_x"]) == pytest.approx(np.sqrt(np.mean(e**2)), abs=1e-12)
+    assert float(err["std_x"]) == pytest.approx(e.std(), abs=1e-12)
+    assert float(err["bias_x_mm"]) == pytest.approx(e.mean() * VOX, abs=1e-12)
+    assert float(err["bias_z"]) == pytest.approx(0.25)
+    assert float(err["std_z"]) == pytest.approx(0.0, abs=1e-12)
+    assert float(err["rms_total"]) == pytest.approx(math.hypot(float(err["rms_x"]), 0.25))
+    assert float(err["valid_percent"]) == pytest.approx(100.0 * sel.sum() / sel.size)
+    assert int(err["n_valid"]) == sel.sum()
+    assert np.isnan(err["u_err"].values[~sel]).all()
+    assert np.isfinite(err["u_err"].values[sel]).all()
+    assert float(err["bias_x"]) ** 2 + float(err["std_x"]) ** 2 == pytest.approx(float(err["rms_x"]) ** 2)
+
+
+def test_all_invalid_gives_nan_and_zero_percent():
+    piv = synthetic_piv(4.5, 0, 0, valid=np.zeros((4, 5, 6), bool))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        err = case_errors(piv, UniformFlow((0.5625, 0, 0)))
+    assert float(err["valid_percent"]) == 0.0
+    for name in ("bias_x", "rms_x", "std_z", "rms_total", "mean_x", "peak_locking_x", "locking_excess_z"):
+        assert np.isnan(float(err[name])), name
+
+
+def test_hill_vortex_truth_is_midpoint():
+    flow = HillVortex(radius=1.5, u0=0.25)
+    piv = synthetic_piv(0.0, 0.0, 0.0)
+    err = case_errors(piv, flow, dt=1.0, n_steps=50)
+    # Measured zero: the error is minus the true displacement everywhere.
+    assert np.allclose(err["w_err_mm"], -err["w_true_mm"])
+    assert float(err["rms_z_mm"]) > 0
+
+
+def test_voxel_size_required_when_not_inferable():
+    piv = synthetic_piv(0.0, 0.0, 0.0, with_index=False)
+    piv.attrs.clear()
+    with pytest.raises(ValueError, match="voxel_size"):
+        case_errors(piv, UniformFlow((0, 0, 0)))
+    err = case_errors(piv, UniformFlow((0.125, 0, 0)), voxel_size=0.125)
+    assert float(err["bias_x"]) == pytest.approx(-1.0)
+
+
+def test_peak_locking_figures():
+    rng = np.random.default_rng(1)
+    broad = rng.uniform(-5, 5, 20000)
+    assert peak_locking_c1(broad) < 0.1
+    assert peak_locking_c1(np.round(broad)) == pytest.approx(1.0)
+    # Sec. 7.2: a true 2.5 voxel shift measured as 2 or 3 (locked) vs Gaussian about 2.5.
+    locked = 2.5 + rng.choice([-0.5, 0.5], 5000) + rng.normal(0, 0.05, 5000)
+    free = 2.5 + rng.normal(0, 0.07, 5000)
+    assert locking_excess(locked, 2.5) > 0.3
+    assert abs(locking_excess(free, 2.5)) < 0.02
+    assert np.isnan(locking_excess([np.nan], [1.0]))
+
+
+def _volume(particles, shape=(10, 24, 28), vox=0.125):
+    coords = {d: (np.arange(n) - (n - 1) / 2) * vox for d, n in zip("zyx", shape)}
+    coords["z"] = np.cumsum(np.linspace(0.1, 0.2, shape[0])) - 1.0  # uneven planes
+    data = render_particles(coords, particles, sigma_vox=1.0)
+    return xr.DataArray(data, dims=("z", "y", "x"), coords=coords, name="intensity")
+
+
+def _particles(n, seed):
+    rng = np.random.default_rng(seed)
+    return xr.Dataset({
+        "x": ("particle", rng.uniform(-1.4, 1.4, n)),
+        "y": ("particle", rng.uniform(-1.2, 1.2, n)),
+        "z": ("particle", rng.uniform(-0.8, 0.5, n)),
+        "intensity": ("particle", rng.uniform(0.5, 1.0, n)),
+    })
+
+
+def test_reconstruction_quality():
+    p = _particles(40, 2)
+    vol = _volume(p)
+    assert reconstruction_quality(vol, p) == pytest.approx(1.0)
+    assert reconstruction_quality(vol.chunk({"z": 1}), p, planes_per_block=3) == pytest.approx(1.0)
+    shifted = vol.copy(data=np.roll(vol.values, 1, axis=2))
+    q_shift = reconstruction_quality(shifted, p)
+    assert 0.3 < q_shift < 0.9
+    p, vol = _particles(10, 3), _volume(_particles(10, 3))
+    other = _volume(_particles(10, 99))
+    assert reconstruction_quality(other, p) < 0.15
+    assert np.isnan(reconstruction_quality(vol * 0, p))
+
+
+def test_render_particles_centre_and_sum():
+    coords = {d: np.arange(9) * 0.1 for d in "zyx"}
+    p = xr.Dataset({d: ("particle", [0.4]) for d in "xyz"})
+    v = render_particles(coords, p, sigma_vox=1.0)
+    assert np.unravel_index(v.argmax(), v.shape) == (4, 4, 4)
+    assert v.max() == pytest.approx(1.0)
+
+
+def test_stage_times(tmp_path):
+    cid = Case(-1.0, "matched", 0.125, 0.001, "uniform_x").case_id
+    for rule, names, secs in (("piv", [""], [3.0]), ("simulate", ["_a", "_b"], [1.0, 2.0])):
+        for nm, s in zip(names, secs):
+            f = tmp_path / rule / f"{cid}{nm}.tsv"
+            f.parent.mkdir(parents=True, exist_ok=True)
+            f.write_text(f"s\th:m:s\tmax_rss\n{s}\t0:00:0{int(s)}\t100.0\n")
+    other = tmp_path / "piv" / (cid + "_fast.tsv")  # another flow's table: not ours
+    other.write_text("s\th:m:s\n50\t0:00:50\n")
+    t = stage_times(tmp_path, cid)
+    assert t == {"piv": 3.0, "simulate": 3.0, "total": 6.0}
+    assert stage_times(tmp_path / "missing", cid) == {}
+
+
+def _scalars(rms, q):
+    return xr.Dataset({
+        "rms_x": ((), rms, {"units": "voxel", "long_name": "RMS error x"}),
+        "Q": ((), q, {"units": "1", "long_name": "reconstruction quality Q"}),
+    })
+
+
+def test_combine_cases_dims_sel_and_csv(tmp_path):
+    rows = [
+        (Case(-1.0, "matched", 0.125, 0.001, "uniform_x").params, _scalars(0.07, 0.8)),
+        (Case(-1.0, 4.0, 0.125, 0.001, "uniform_x").params, _scalars(0.09, 0.7)),
+        (Case(-1.0, "matched", 0.125, 0.005, "uniform_x").params, _scalars(0.2, 0.5)),
+        (Case(-0.8, "matched", 0.125, 0.001, "hill").params, _scalars(0.3, 0.6)),
+    ]
+    study = combine_cases(rows)
+    assert study["rms_x"].dims == ("magnification", "fnumber", "lenslet_pitch", "ppp", "flow")
+    assert list(study["fnumber"].values) == ["matched", "4"]
+    sub = study.sel(ppp=0.001)
+    assert float(sub["rms_x"].sel(magnification=-1.0, fnumber="4", lenslet_pitch=0.125,
+                                  flow="uniform_x")) == pytest.approx(0.09)
+    assert np.isnan(float(study["rms_x"].sel(magnification=-0.8, fnumber="4", lenslet_pitch=0.125,
+                                             ppp=0.005, flow="hill")))
+    assert study["rms_x"].attrs["units"] == "voxel"
+    assert int(study["computed"].sum()) == 4
+    for v in study.variables.values():
+        assert "units" in v.attrs and "long_name" in v.attrs
+    # zarr round trip (string coords) and CSV round trip
+    io.write_zarr(study, tmp_path / "study.zarr")
+    back = io.open_zarr(tmp_path / "study.zarr").load()
+    xr.testing.assert_allclose(back["rms_x"], study["rms_x"])
+    csv = to_csv(study, tmp_path / "study.csv")
+    import pandas as pd
+
+    df = pd.read_csv(csv)
+    assert len(df) == 4
+    assert "mag~-1/fnum~4/pitch~0.125/ppp~0.001/flow~uniform_x" in set(df["case_id"])
+    again = from_csv(csv)
+    xr.testing.assert_allclose(again["rms_x"], study["rms_x"])
+    xr.testing.assert_allclose(again["Q"], study["Q"])
+
+
+def test_on_real_widim_result():
+    """The contract end to end: widim on a +4.5 voxel x-shift, physical coords in mm."""
+    from lfstudy.piv import widim
+    from lfstudy.piv_synthetic import particle_pair
+
+    a, b = particle_pair((24, 48, 48), (0.0, 0.0, 4.5), density=0.02, seed=1)
+    co = {d: (np.arange(n) - (n - 1) / 2) * VOX for d, n in zip("zyx", a.shape)}
+    fa = xr.DataArray(a, dims=("z", "y", "x"), coords=co)
+    res = widim(fa, fa.copy(data=b), window=(16, 16, 16), spacing=(8, 8, 8), levels=1)
+    err = case_errors(res, UniformFlow((0.5625, 0.0, 0.0)))
+    assert float(err["mean_x"]) == pytest.approx(4.5, abs=0.1)  # object frame: +, not -4.45
+    assert abs(float(err["bias_x"])) < 0.1
+    assert float(err["std_x"]) < 0.2
+    assert float(err["valid_percent"]) > 90
