@@ -1,0 +1,531 @@
+"""Plenoptic ray-tracing simulator, 2-D (thesis sec. 4.1–4.3, Appendix A).
+
+Every particle is a point source. Its rays are traced with paraxial transfer
+matrices written out in slope form: free space (eq. 4.2) to the main lens,
+the thin main lens (eq. 4.3), free space ``si`` to the lenslet array, the
+struck lenslet as a thin lens plus prism (eq. 4.4), and free space ``fl`` to
+the sensor, where each ray deposits its particle's intensity into one pixel
+(eq. 4.15).
+
+Conventions (shared with :mod:`lfstudy.optics` and the later stages):
+
+* mm and rad; the object frame has its origin where the object focal plane
+  meets the optical axis, +z away from the camera (a particle at depth z is
+  ``so + z`` in front of the main lens);
+* lenslet- and sensor-plane coordinates are in the sensor frame (origin at the
+  sensor centre, x right, y up; row 0 is the top row). The image is *not*
+  flipped: object +y lands at sensor −y (the main lens inverts, M < 0);
+* the lenslet a ray strikes is found by division and rounding in the grid
+  frame (eqs 4.10–4.11 generalised to a shifted and rotated grid);
+* diffraction (sec. 4.2.3) is a Gaussian shift of the ray position with
+  σ = ``camera.sigma_lenslet_plane`` at the lenslet plane (main-lens
+  f-number, |M| = si/so) and σ = ``camera.sigma_sensor_plane`` at the sensor
+  (lenslet f-number, |M| = fl/si). Appendix A's Fortran applies them the
+  other way round; we follow the text.
+
+Ray generation
+--------------
+Rays leave each particle towards points drawn uniformly over the circular
+main-lens aperture (r = R·√u, θ = 2πv, rejection-free), so no ray is ever
+generated outside the aperture (``rays_dropped_aperture`` is 0 by
+construction; it is kept in the attributes for comparison with the thesis,
+whose angular sampling wastes the rays outside the disc). Equal area on the
+aperture is equal solid angle to within (R/d)² (paraxial optics).
+
+The number of rays of particle *i* follows the solid-angle correction of
+eq. 4.14 generalised to 2-D: ``n_i = round(n · Ω_i / Ω_ref)`` where Ω_i is the
+solid angle the aperture disc subtends from the particle (Gauss–Legendre
+quadrature of dΩ = d·dA / r³) and Ω_ref the one from the on-axis point of the
+object focal plane. Closer or on-axis particles thus collect more light, as in
+the thesis; ``solid_angle=False`` gives every particle exactly ``n`` rays.
+
+Determinism
+-----------
+The numba kernel runs ``prange`` over a *fixed* number of particle chunks
+(``n_chunks``, independent of the thread count). Each chunk traces its
+particles in order into its own image buffer, and the buffers are summed in
+chunk order. Random numbers are counter-based: SplitMix64 evaluated at
+position ``(particle key) + (ray counter)``, so a particle's rays never depend
+on which thread runs it. One seed therefore gives a bit-identical image with
+1 or N threads.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import numba
+import numpy as np
+import xarray as xr
+from numba import njit, prange
+
+from lfstudy.optics import PlenopticCamera
+
+__all__ = [
+    "RaytraceError",
+    "DEFAULT_CHUNKS",
+    "solid_angle",
+    "ray_counts",
+    "memory_estimate",
+    "render",
+    "render_pinhole",
+    "quantize",
+]
+
+#: Particle chunks (= image buffers) of the kernel. Fixed so that the image is
+#: the same whatever the thread count; more threads than chunks gain nothing.
+DEFAULT_CHUNKS = 8
+
+
+class RaytraceError(ValueError):
+    """Bad simulator input (the message names the field and its allowed range)."""
+
+
+# ---------------------------------------------------------------- random numbers
+# SplitMix64 (Steele, Lea & Flood 2014): state advances by the golden gamma and
+# is finalised by a bijective mix. Evaluating it at an arbitrary counter makes
+# it a counter-based generator: stream position = particle key + ray counter.
+_GAMMA = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_S30, _S27, _S31, _S32 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(32)
+_LOW32 = np.uint64(0xFFFFFFFF)
+_TWO_M32 = 2.0**-32
+_TWO_PI = 2.0 * math.pi
+
+
+@njit(inline="always", cache=True)
+def _mix64(z):
+    z = (z ^ (z >> _S30)) * _M1
+    z = (z ^ (z >> _S27)) * _M2
+    return z ^ (z >> _S31)
+
+
+@njit(inline="always", cache=True)
+def _two_uniforms(h):
+    """Two uniforms in (0, 1) from the two 32-bit halves of one 64-bit hash."""
+    return ((h >> _S32) + 0.5) * _TWO_M32, ((h & _LOW32) + 0.5) * _TWO_M32
+
+
+@njit(inline="always", cache=True)
+def _two_normals(h):
+    """Box–Muller on the two halves of one hash: both outputs are used."""
+    u1, u2 = _two_uniforms(h)
+    rad = math.sqrt(-2.0 * math.log(u1))
+    a = _TWO_PI * u2
+    return rad * math.cos(a), rad * math.sin(a)
+
+
+# Geometry vector layout (one float64 array keeps the kernel signature stable).
+_G_SO, _G_SI, _G_FM, _G_FL, _G_R, _G_PL, _G_PP, _G_HW, _G_HH = range(9)
+_G_OX, _G_OY, _G_COS, _G_SIN, _G_NLX, _G_NLY, _G_SM, _G_SL = range(9, 17)
+_G_DIFF, _G_IMAGE, _G_HMAX = range(17, 20)
+_G_SIZE = 20
+
+
+@njit(parallel=True, fastmath=False, cache=True)
+def _trace(px, py, pz, pint, nrays, bounds, seed, g, buffers, stats, lost, hist, amax):  # pragma: no cover - jitted
+    """Trace every ray of every particle; one chunk of particles per buffer.
+
+    stats[k] = (rays traced, rays missing the lenslet array, rays off the sensor,
+    rays recorded); lost[k] = intensity not recorded; hist[k, 0|1, :] = θ|φ
+    histograms of recorded rays (if hist has bins); amax[k] = max |θ|, |φ|, γ.
+    """
+    so, si, fm, fl, rad = g[_G_SO], g[_G_SI], g[_G_FM], g[_G_FL], g[_G_R]
+    pl, pp, hw, hh = g[_G_PL], g[_G_PP], g[_G_HW], g[_G_HH]
+    ox, oy, cr, sr = g[_G_OX], g[_G_OY], g[_G_COS], g[_G_SIN]
+    nlx, nly, sm, sl = g[_G_NLX], g[_G_NLY], g[_G_SM], g[_G_SL]
+    diffraction = g[_G_DIFF] != 0.0
+    record = g[_G_IMAGE] != 0.0
+    hmax = g[_G_HMAX]
+    cx0, cy0 = 0.5 * (nlx - 1.0), 0.5 * (nly - 1.0)
+    nrow, ncol = buffers.shape[1], buffers.shape[2]
+    nbins = hist.shape[2]
+    key0 = _mix64(seed)
+    for k in prange(bounds.shape[0] - 1):
+        buf = buffers[k]
+        n_traced = 0
+        n_miss = 0
+        n_off = 0
+        n_rec = 0
+        lost_k = 0.0
+        for i in range(bounds[k], bounds[k + 1]):
+            d = so + pz[i]
+            x0, y0, inten = px[i], py[i], pint[i]
+            key = _mix64(key0 ^ (np.uint64(i) * _GAMMA))
+            ni = nrays[i]
+            n_traced += ni
+            for j in range(ni):
+                ctr = key + np.uint64(3 * j) * _GAMMA
+                # Aperture point, uniform over the disc (rejection-free).
+                u, v = _two_uniforms(_mix64(ctr))
+                r = rad * math.sqrt(u)
+                a = _TWO_PI * v
+                ax = r * math.cos(a)
+                ay = r * math.sin(a)
+                # Free space to the main lens (eq. 4.2), thin lens (eq. 4.3).
+                tx = (ax - x0) / d - ax / fm
+                ty = (ay - y0) / d - ay / fm
+                # Free space si to the lenslet array (eq. 4.2).
+                lx = ax + si * tx
+                ly = ay + si * ty
+                if diffraction:  # lenslet plane: main-lens spot (sec. 4.2.3)
+                    n1, n2 = _two_normals(_mix64(ctr + _GAMMA))
+                    lx += sm * n1
+                    ly += sm * n2
+                # Struck lenslet: grid frame, divide and round (eqs 4.10–4.11).
+                dx = lx - ox
+                dy = ly - oy
+                gx = cr * dx + sr * dy
+                gy = -sr * dx + cr * dy
+                fj = math.floor(gx / pl + cx0 + 0.5)
+                fi = math.floor(cy0 - gy / pl + 0.5)
+                if fj < 0.0 or fj >= nlx or fi < 0.0 or fi >= nly:
+                    n_miss += 1
+                    lost_k += inten
+                    continue
+                gcx = (fj - cx0) * pl
+                gcy = (cy0 - fi) * pl
+                scx = cr * gcx - sr * gcy + ox
+                scy = sr * gcx + cr * gcy + oy
+                # Lenslet = thin lens + prism (eq. 4.4), then free space fl.
+                tx2 = tx - (lx - scx) / fl
+                ty2 = ty - (ly - scy) / fl
+                sx = lx + fl * tx2
+                sy = ly + fl * ty2
+                if diffraction:  # sensor plane: lenslet spot (sec. 4.2.3)
+                    n3, n4 = _two_normals(_mix64(ctr + _GAMMA + _GAMMA))
+                    sx += sl * n3
+                    sy += sl * n4
+                # Pixel: column grows with x, row 0 at the top (eq. 4.15).
+                fc = math.floor((sx + hw) / pp)
+                fr = math.floor((hh - sy) / pp)
+                if fc < 0.0 or fc >= ncol or fr < 0.0 or fr >= nrow:
+                    n_off += 1
+                    lost_k += inten
+                    continue
+                n_rec += 1
+                if record:
+                    buf[int(fr), int(fc)] += inten
+                if nbins > 0:
+                    th = math.atan(tx2)
+                    ph = math.atan(ty2)
+                    gam = math.atan(math.sqrt(tx2 * tx2 + ty2 * ty2))
+                    amax[k, 0] = max(amax[k, 0], abs(th))
+                    amax[k, 1] = max(amax[k, 1], abs(ph))
+                    amax[k, 2] = max(amax[k, 2], gam)
+                    b = math.floor((th + hmax) / (2.0 * hmax) * nbins)
+                    if 0.0 <= b < nbins:
+                        hist[k, 0, int(b)] += 1
+                    b = math.floor((ph + hmax) / (2.0 * hmax) * nbins)
+                    if 0.0 <= b < nbins:
+                        hist[k, 1, int(b)] += 1
+        stats[k, 0] = n_traced
+        stats[k, 1] = n_miss
+        stats[k, 2] = n_off
+        stats[k, 3] = n_rec
+        lost[k] = lost_k
+
+
+# ------------------------------------------------------------------ inputs
+def _check_rays(rays_per_particle: Any, name: str = "rays_per_particle") -> int:
+    if isinstance(rays_per_particle, bool) or not isinstance(rays_per_particle, (int, np.integer)):
+        raise RaytraceError(f"{name} = {rays_per_particle!r}: must be an integer >= 1")
+    if rays_per_particle < 1:
+        raise RaytraceError(f"{name} = {rays_per_particle!r}: must be an integer >= 1")
+    return int(rays_per_particle)
+
+
+def _particle_arrays(camera: PlenopticCamera, particles: xr.Dataset) -> tuple[np.ndarray, ...]:
+    """Validated contiguous float64 arrays x, y, z, intensity."""
+    try:
+        arrs = [np.ascontiguousarray(np.asarray(particles[v].values, dtype=np.float64).ravel())
+                for v in ("x", "y", "z", "intensity")]
+    except KeyError as exc:
+        raise RaytraceError(f"particles: missing variable {exc.args[0]!r}; need x, y, z, intensity") from None
+    x, y, z, inten = arrs
+    if x.size == 0:
+        raise RaytraceError("particles: the particle set is empty; need at least 1 particle")
+    if not (x.size == y.size == z.size == inten.size):
+        raise RaytraceError("particles: x, y, z and intensity must have one length")
+    for name, a in (("x", x), ("y", y), ("z", z), ("intensity", inten)):
+        bad = ~np.isfinite(a)
+        if bad.any():
+            raise RaytraceError(f"particles.{name}: {int(bad.sum())} NaN/inf values; must be finite")
+    if np.any(inten < 0):
+        raise RaytraceError(f"particles.intensity: {int((inten < 0).sum())} negative values; allowed range is >= 0")
+    zmin = camera.main_focal_length - camera.so
+    if np.any(z <= zmin):
+        raise RaytraceError(
+            f"particles.z: {int((z <= zmin).sum())} particles at or inside the main-lens focal length "
+            f"(or behind the lens); allowed range is z > f - so = {zmin:.6g} mm"
+        )
+    return x, y, z, inten
+
+
+# ---------------------------------------------------------- solid angle
+def solid_angle(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                *, n_radial: int = 16, n_angular: int = 32) -> np.ndarray:
+    """Solid angle [sr] the main-lens aperture disc subtends from points (x, y, z).
+
+    Gauss–Legendre quadrature in the aperture radius and the (periodic,
+    spectrally accurate) trapezoid rule in azimuth of dΩ = d·dA / r³, with
+    d = so + z the axial distance; exact to ~1e-12 for the paraxial
+    geometries of interest.
+    """
+    x, y, z = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (x, y, z))
+    rad = camera.aperture_diameter / 2.0
+    t, w = np.polynomial.legendre.leggauss(n_radial)
+    r = 0.5 * rad * (t + 1.0)
+    wr = 0.5 * rad * w * r  # includes the Jacobian r dr
+    phi = np.arange(n_angular) * (2.0 * np.pi / n_angular)
+    ax = (r[:, None] * np.cos(phi)[None, :]).ravel()
+    ay = (r[:, None] * np.sin(phi)[None, :]).ravel()
+    wa = np.repeat(wr, n_angular) * (2.0 * np.pi / n_angular)
+    out = np.empty(x.shape)
+    step = 4096
+    for s in range(0, x.size, step):  # bounded temporaries for large fields
+        d = camera.so + z[s:s + step, None]
+        r2 = d * d + (ax - x[s:s + step, None]) ** 2 + (ay - y[s:s + step, None]) ** 2
+        out[s:s + step] = (d / (r2 * np.sqrt(r2))) @ wa
+    return out
+
+
+def ray_counts(camera: PlenopticCamera, particles: xr.Dataset, rays_per_particle: int,
+               *, solid_angle_correction: bool = True) -> np.ndarray:
+    """Rays traced for each particle: eq. 4.14 generalised to 2-D.
+
+    ``round(n · Ω_i / Ω_ref)``, Ω_ref being the aperture's solid angle from the
+    on-axis point of the object focal plane, 2π(1 − so/√(so² + R²)).
+    """
+    n = _check_rays(rays_per_particle)
+    x, y, z, _ = _particle_arrays(camera, particles)
+    if not solid_angle_correction:
+        return np.full(x.size, n, dtype=np.int64)
+    rad = camera.aperture_diameter / 2.0
+    ref = 2.0 * np.pi * (1.0 - camera.so / math.hypot(camera.so, rad))
+    return np.rint(n * solid_angle(camera, x, y, z) / ref).astype(np.int64)  # eq. 4.14
+
+
+# ---------------------------------------------------------------- kernel call
+def _geometry(camera: PlenopticCamera, diffraction: bool, record: bool, hmax: float = 1.0) -> np.ndarray:
+    g = np.zeros(_G_SIZE)
+    g[_G_SO], g[_G_SI], g[_G_FM] = camera.so, camera.si, camera.main_focal_length
+    g[_G_FL], g[_G_R] = camera.lenslet_focal_length, camera.aperture_diameter / 2.0
+    g[_G_PL], g[_G_PP] = camera.lenslet_pitch, camera.pixel_pitch
+    g[_G_HW], g[_G_HH] = camera.sensor_width / 2.0, camera.sensor_height / 2.0
+    g[_G_OX], g[_G_OY] = camera.lenslet_offset_x, camera.lenslet_offset_y
+    g[_G_COS], g[_G_SIN] = math.cos(camera.lenslet_rotation), math.sin(camera.lenslet_rotation)
+    g[_G_NLX], g[_G_NLY] = camera.n_lenslets_x, camera.n_lenslets_y
+    g[_G_SM], g[_G_SL] = camera.sigma_lenslet_plane, camera.sigma_sensor_plane
+    g[_G_DIFF], g[_G_IMAGE], g[_G_HMAX] = float(diffraction), float(record), hmax
+    return g
+
+
+def _chunk_bounds(n: int, n_chunks: int) -> np.ndarray:
+    k = max(1, min(int(n_chunks), n))
+    return np.linspace(0, n, k + 1).round().astype(np.int64)
+
+
+def _seed_u64(seed: Any) -> np.uint64:
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not (0 <= seed < 2**64):
+        raise RaytraceError(f"seed = {seed!r}: must be an integer in [0, 2**64)")
+    return np.uint64(int(seed))
+
+
+def memory_estimate(camera: PlenopticCamera, n_particles: int, n_chunks: int = DEFAULT_CHUNKS) -> int:
+    """Bytes ``render`` allocates: float32 chunk buffers, the float64 image, particle arrays."""
+    npx = camera.n_pixels_x * camera.n_pixels_y
+    k = max(1, min(int(n_chunks), int(n_particles)))
+    return int(k * npx * 4 + npx * 8 + n_particles * 5 * 8)
+
+
+def _run_kernel(camera, x, y, z, inten, nrays, seed, *, diffraction, n_chunks, record=True,
+                nbins=0, hmax=1.0):
+    bounds = _chunk_bounds(x.size, n_chunks)
+    k = bounds.size - 1
+    shape = (k, camera.n_pixels_y, camera.n_pixels_x) if record else (k, 1, 1)
+    buffers = np.zeros(shape, dtype=np.float32)
+    stats = np.zeros((k, 4), dtype=np.int64)
+    lost = np.zeros(k, dtype=np.float64)
+    hist = np.zeros((k, 2, nbins), dtype=np.int64)
+    amax = np.zeros((k, 3), dtype=np.float64)
+    g = _geometry(camera, diffraction, record, hmax)
+    _trace(x, y, z, inten, nrays, bounds, seed, g, buffers, stats, lost, hist, amax)
+    return buffers, stats, lost, hist, amax
+
+
+def _sensor_coords(camera: PlenopticCamera) -> dict[str, Any]:
+    x, y = camera.pixel_centers()
+    return {
+        "x": ("col", x, {"units": "mm", "long_name": "sensor x (pixel centre)"}),
+        "y": ("row", y, {"units": "mm", "long_name": "sensor y (pixel centre, up)"}),
+    }
+
+
+# ------------------------------------------------------------------ public API
+def render(
+    camera: PlenopticCamera,
+    particles: xr.Dataset,
+    rays_per_particle: int,
+    seed: int,
+    *,
+    diffraction: bool = True,
+    solid_angle_correction: bool = True,
+    shot_noise: bool = False,
+    read_noise: float = 0.0,
+    full_well: float | None = None,
+    bit_depth: int | None = None,
+    n_chunks: int = DEFAULT_CHUNKS,
+    max_image_bytes: float = 4e9,
+) -> xr.DataArray:
+    """Ray-trace a raw plenoptic image of a particle field (sec. 4.3).
+
+    Parameters
+    ----------
+    camera : PlenopticCamera
+        The camera (geometry, lenslet grid, diffraction sigmas).
+    particles : xarray.Dataset
+        Particle field over ``particle`` with ``x``, ``y``, ``z`` (object frame,
+        mm) and ``intensity`` (>= 0), as from :mod:`lfstudy.particles`.
+    rays_per_particle : int
+        Rays per particle at the reference solid angle (eq. 4.14).
+    seed : int
+        Seed of the counter-based ray streams; the same seed gives a
+        bit-identical image whatever the thread count.
+    diffraction : bool
+        Apply the Gaussian diffraction shifts at the lenslet and sensor planes.
+    solid_angle_correction : bool
+        Scale each particle's ray count by its aperture solid angle (eq. 4.14
+        generalised); otherwise every particle gets ``rays_per_particle`` rays.
+    shot_noise : bool
+        Replace each pixel's signal s by a Poisson draw of mean s (the signal
+        is read as photo-electrons); drawn from ``numpy.random.default_rng([seed, 1])``.
+    read_noise : float
+        Standard deviation of additive Gaussian read noise (same units), from
+        the same generator.
+    full_well, bit_depth : float, int, optional
+        Integer export (:func:`quantize`): with ``bit_depth`` the signal is
+        scaled so that ``full_well`` (default: the image maximum) maps to
+        2**bit_depth − 1, rounded and clipped to [0, 2**bit_depth − 1]; the
+        number of clipped-high pixels is ``attrs['saturated_pixels']``.
+    n_chunks : int
+        Particle chunks (image buffers) of the kernel; part of the result's
+        definition (summation order), not a tuning knob for threads.
+    max_image_bytes : float
+        Refuse (ValueError) if the estimated allocation exceeds this.
+
+    Returns
+    -------
+    xarray.DataArray
+        ``intensity`` over (``row``, ``col``) with sensor coords ``x``/``y`` [mm]
+        (row 0 at the top, y up), float64 (or unsigned integer with
+        ``bit_depth``); attrs hold the camera parameters, the seed and the ray
+        accounting (traced, recorded, dropped at the aperture / outside the
+        lenslet array / outside the sensor, and the intensity lost).
+    """
+    n = _check_rays(rays_per_particle)
+    seed64 = _seed_u64(seed)
+    x, y, z, inten = _particle_arrays(camera, particles)
+    if not (isinstance(read_noise, (int, float)) and math.isfinite(read_noise) and read_noise >= 0):
+        raise RaytraceError(f"read_noise = {read_noise!r}: must be a finite number >= 0")
+    if bit_depth is not None and (not isinstance(bit_depth, (int, np.integer)) or not 1 <= bit_depth <= 32):
+        raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
+    if not isinstance(n_chunks, (int, np.integer)) or n_chunks < 1:
+        raise RaytraceError(f"n_chunks = {n_chunks!r}: must be an integer >= 1")
+    need = memory_estimate(camera, x.size, n_chunks)
+    if need > max_image_bytes:
+        raise RaytraceError(
+            f"render: estimated memory {need / 1e9:.3g} GB ({min(n_chunks, x.size)} float32 chunk buffers + "
+            f"float64 image of {camera.n_pixels_y} x {camera.n_pixels_x} px) exceeds max_image_bytes = "
+            f"{max_image_bytes / 1e9:.3g} GB; use fewer n_chunks or raise the limit"
+        )
+    nrays = ray_counts(camera, particles, n, solid_angle_correction=solid_angle_correction)
+    buffers, stats, lost, _, _ = _run_kernel(camera, x, y, z, inten, nrays, seed64,
+                                             diffraction=diffraction, n_chunks=n_chunks)
+    # Fixed-order sum of the chunk buffers (deterministic whatever the threads).
+    image = np.zeros(buffers.shape[1:], dtype=np.float64)
+    for b in buffers:
+        image += b
+    del buffers
+    tot = stats.sum(axis=0)
+    attrs: dict[str, Any] = {
+        "units": "1",
+        "long_name": "simulated plenoptic raw image (sum of ray intensities)",
+        **camera.to_attrs(),
+        "seed": int(seed),
+        "rays_per_particle": n,
+        "n_particles": int(x.size),
+        "solid_angle_correction": int(bool(solid_angle_correction)),
+        "diffraction": int(bool(diffraction)),
+        "sigma_lenslet_plane": camera.sigma_lenslet_plane,
+        "sigma_sensor_plane": camera.sigma_sensor_plane,
+        "n_chunks": int(stats.shape[0]),
+        "rays_traced": int(tot[0]),
+        "rays_dropped_aperture": 0,
+        "rays_dropped_lenslet_array": int(tot[1]),
+        "rays_dropped_outside_sensor": int(tot[2]),
+        "rays_recorded": int(tot[3]),
+        "intensity_traced": float(np.dot(nrays.astype(np.float64), inten)),
+        "intensity_lost": float(lost.sum()),
+        "y_direction": "up; row 0 is the top",
+    }
+    if shot_noise or read_noise > 0:
+        rng = np.random.default_rng([int(seed), 1])
+        if shot_noise:
+            image = rng.poisson(image).astype(np.float64)
+        if read_noise > 0:
+            image += rng.normal(0.0, read_noise, image.shape)
+        attrs.update(shot_noise=int(bool(shot_noise)), read_noise=float(read_noise))
+    da = xr.DataArray(image, dims=("row", "col"), coords=_sensor_coords(camera), name="intensity", attrs=attrs)
+    if bit_depth is not None:
+        da = quantize(da, int(bit_depth), full_well)
+    return da
+
+
+def quantize(image: xr.DataArray, bit_depth: int, full_well: float | None = None) -> xr.DataArray:
+    """Integer export: scale, round and clip to ``bit_depth`` bits.
+
+    Policy: the signal ``full_well`` (default: the image maximum, i.e. no
+    saturation) maps to 2**bit_depth − 1; values are rounded to the nearest
+    integer and clipped to [0, 2**bit_depth − 1]. Pixels clipped high are
+    counted in ``attrs['saturated_pixels']``; the scale factor is recorded.
+    """
+    if not isinstance(bit_depth, (int, np.integer)) or not 1 <= bit_depth <= 32:
+        raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
+    top = float(2**int(bit_depth) - 1)
+    fw = float(image.max()) if full_well is None else float(full_well)
+    if not (math.isfinite(fw) and fw > 0):
+        if full_well is not None:
+            raise RaytraceError(f"full_well = {full_well!r}: must be a finite number > 0")
+        fw = 1.0  # an all-zero image
+    scaled = np.rint(image.values * (top / fw))
+    saturated = int((scaled > top).sum())
+    dtype = np.uint8 if bit_depth <= 8 else np.uint16 if bit_depth <= 16 else np.uint32
+    out = image.copy(data=np.clip(scaled, 0, top).astype(dtype))
+    out.attrs.update(bit_depth=int(bit_depth), full_well=fw, counts_per_unit=top / fw,
+                     saturated_pixels=saturated, units="counts")
+    return out
+
+
+def render_pinhole(camera: PlenopticCamera, *, fnumber: float = 16, count: int = 500_000,
+                   rays_per_point: int = 100, seed: int = 0, **kwargs: Any) -> xr.DataArray:
+    """Calibration "pinhole" image (sec. 5.1).
+
+    Many points on the object focal plane (:func:`lfstudy.particles.pinhole_field`)
+    imaged with the main lens stopped down to ``fnumber``: each lenslet then
+    images a small spot of the aperture at its projected centre. The camera's
+    diffraction sigmas follow the new f-number automatically.
+
+    Extra keyword arguments go to :func:`render`.
+    """
+    from lfstudy.particles import pinhole_field
+
+    _check_rays(rays_per_point, "rays_per_point")
+    cam = camera.with_(fnumber=float(fnumber))
+    field = pinhole_field(camera, count=count, seed=seed)
+    img = render(cam, field, rays_per_point, seed, **kwargs)
+    img.attrs.update(long_name="simulated pinhole calibration image", pinhole_fnumber=float(fnumber),
+                     pinhole_count=int(count))
+    return img
