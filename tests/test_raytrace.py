@@ -200,3 +200,53 @@ def test_bad_input(kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         rt.render(**args)
+
+
+def test_angle_histograms_table43():
+    """Sec. 4.3.4: a sizeable fraction of rays exceeds 10 deg; none exceeds the geometric bound.
+
+    Eq. 4.28 leaves out the aperture radius, so it is exceeded by a small
+    fraction of rays (recorded in the attrs, < 2 %).
+    """
+    cam = PlenopticCamera(4872, 3248, 0.0074, 0.125, 0.5, 50.0, -1.0)
+    field = seed_particles(cam, count=100, z_span=7.0, seed=2)
+    h = rt.angle_histograms(cam, field, 1000, 1)
+    a = h.attrs
+    tol = 5 * cam.sigma_lenslet_plane / cam.lenslet_focal_length  # diffraction shifts the exit slope
+    assert max(a["max_abs_theta"], a["max_abs_phi"]) <= a["incidence_angle_bound"] + tol
+    assert a["max_incidence_angle_eq428"] == pytest.approx(math.radians(19.39), abs=1e-3)  # "approximately 19 degrees"
+    assert a["fraction_theta_over_10deg"] > 0.1 and a["fraction_phi_over_10deg"] > 0.05
+    assert a["fraction_theta_over_eq428"] < 0.02 and a["fraction_phi_over_eq428"] < 0.02
+    assert int(h["theta_count"].sum()) <= a["rays_recorded"] and h["theta_count"].sum() > 0.95 * a["rays_recorded"]
+
+
+def test_cli_simulate_writes_files(tmp_path):
+    import yaml
+
+    from lfstudy import io
+    from lfstudy.cli import main
+
+    cfg = yaml.safe_load(open(__file__.rsplit("/tests/", 1)[0] + "/config/demo.yaml"))
+    cfg["camera"]["sensor"].update(n_pixels_x=160, n_pixels_y=120)
+    cfg["particles"]["ppp"] = 0.002
+    cfg["raytrace"]["rays_per_particle"] = 200
+    cfg["pinhole"].update(count=2000, rays_per_point=10)
+    cfg["sweep"] = {"ppp": [0.002], "flow": ["uniform_x"]}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "out"
+    assert main(["simulate", str(path), "--out", str(out)]) == 0
+    for name in ("particles_a.zarr", "particles_b.zarr", "image_a.tif", "image_a.zarr", "image_b.tif",
+                 "image_b.zarr", "pinhole.tif", "pinhole.zarr"):
+        assert (out / name).exists(), name
+    data, meta = io.read_tiff(out / "image_a.tif")
+    assert data.shape == (120, 160) and data.dtype == np.float32
+    assert meta["camera_n_pixels_x"] == 160 and meta["y_direction"] == "up; row 0 is the top"
+    a = io.open_zarr(out / "particles_a.zarr").load()
+    b = io.open_zarr(out / "particles_b.zarr").load()
+    np.testing.assert_allclose(b["x"] - a["x"], 0.2)  # demo's uniform_x flow
+    img_a = io.open_zarr(out / "image_a.zarr", name="intensity").load()
+    img_b = io.open_zarr(out / "image_b.zarr", name="intensity").load()
+    assert img_a.sum() > 0 and not np.array_equal(img_a.values, img_b.values)
+    pin = io.open_zarr(out / "pinhole.zarr", name="intensity")
+    assert pin.attrs["pinhole_fnumber"] == 16
