@@ -11,6 +11,7 @@ import json
 import os
 import shutil
 import uuid
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -104,6 +105,9 @@ def write_zarr(obj: xr.DataArray | xr.Dataset, path: str | Path, *, name: str | 
     ds.attrs = _jsonable_attrs(ds.attrs)
     for v in ds.variables.values():
         v.attrs = _jsonable_attrs(v.attrs)
+        # Encodings inherited from a store we read (its zarr chunks) would clash
+        # with the dask chunks of what we computed; chunking follows dask.
+        v.encoding = {}
     encoding = {v: {"compressors": [ZstdCodec(level=compressor_level)]} for v in ds.data_vars}
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -122,7 +126,10 @@ def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.D
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"zarr store {str(path)!r} does not exist")
-    ds = xr.open_zarr(path, zarr_format=3, consolidated=False)
+    with warnings.catch_warnings():
+        # Snakemake drops a .snakemake_timestamp file into directory() outputs.
+        warnings.filterwarnings("ignore", message=".*snakemake_timestamp.*")
+        ds = xr.open_zarr(path, zarr_format=3, consolidated=False)
     return ds[name] if name is not None else ds
 
 
