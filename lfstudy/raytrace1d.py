@@ -144,12 +144,11 @@ def trace_1d(
 def _draw(ax_rays, ax_sig, camera: PlenopticCamera, tr: xr.Dataset, n_show: int, title: str) -> None:
     um = 1e3
     z = tr["z"].values * um
-    so, fl = camera.so, camera.lenslet_focal_length
     ys = tr["ray_y"].values * um
     show = np.linspace(0, ys.shape[0] - 1, min(n_show, ys.shape[0])).astype(int)
     ax_rays.plot(z[:, None].repeat(show.size, 1), ys[show].T, lw=0.4, color="tab:blue", alpha=0.6)
     h = camera.sensor_height / 2 * um
-    z_focal = z[1] - so * um
+    z_focal = z[1] - camera.so * um
     for zz, label in ((z_focal, "focal plane"), (z[1], "main lens"), (z[2], "lenslets"), (z[3], "sensor")):
         ax_rays.axvline(zz, color="k", lw=0.8)
         ax_rays.text(zz, 1.02, label, transform=ax_rays.get_xaxis_transform(), rotation=30, fontsize=7)
@@ -169,7 +168,6 @@ def _draw(ax_rays, ax_sig, camera: PlenopticCamera, tr: xr.Dataset, n_show: int,
     ax_sig.set_xlabel("signal (rays)")
     ax_sig.tick_params(labelleft=False)
     ax_sig.set_xlim(left=0)
-    del fl
 
 
 def plot_ray_diagram(
