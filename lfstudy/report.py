@@ -1,0 +1,484 @@
+"""The comparative study report: one self-contained HTML file (and the same figures as PNGs).
+
+:func:`write_report` reads the study Dataset (``lfstudy.metrics.combine_cases``)
+and each case's artefacts, and writes one HTML file with inline CSS and every
+figure embedded as a base64 PNG: it opens offline and can be mailed as is.
+:func:`write_figures` writes the same figures as separate PNG files (for
+``snakemake --report``'s ``report(...)`` outputs).
+
+An artefact that is missing or unreadable never stops the report: its place
+says "not available" and why. Figures are drawn on :class:`~matplotlib.figure.Figure`
+objects (Agg canvas), not through ``pyplot``, so nothing leaks between calls.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io as _io
+import math
+import re
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from lfstudy import io
+from lfstudy.config import SWEEP_KEYS, Case, case_config
+from lfstudy.metrics import METRIC_LABELS, format_param
+from lfstudy.optics import PlenopticCamera
+
+__all__ = ["write_report", "write_figures", "report_blocks", "best_designs", "case_table", "SECTIONS"]
+
+#: Section ids and titles, in report order.
+SECTIONS: dict[str, str] = {
+    "overview": "Overview",
+    "best": "Best design",
+    "comparison": "Comparison across the sweep",
+    "thesis": "Comparison with the thesis (ch. 7)",
+    "cameras": "Camera designs",
+    "representative": "Representative case",
+    "cases": "Per-case results",
+}
+
+#: Columns of the case tables (when present in the study).
+HEADLINE = ("rms_total", "bias_x", "bias_y", "bias_z", "std_x", "std_y", "std_z", "valid_percent",
+            "peak_locking_z", "locking_excess_z", "Q", "time_total")
+
+#: Thesis figures for the uniform displacements (image-frame sign), sec. 7.1–7.2.
+THESIS_REFERENCE = {
+    "x": {"mean": -4.45, "std": 0.07, "where": "sec. 7.1, Fig. 7.2: 4.5 px x-shift, 0.001 ppp"},
+    "z": {"mean": -2.47, "std": 0.57, "where": "sec. 7.2, Fig. 7.8: 2.5 px z-shift (peak locking)"},
+}
+
+
+@dataclass
+class Block:
+    """One piece of a report section: a figure, an HTML fragment or a note."""
+
+    section: str
+    name: str
+    caption: str = ""
+    figure: Any = None          # matplotlib Figure
+    html: str = ""              # trusted fragment built here (tables are escaped by pandas)
+    note: str = ""              # plain text, escaped on output
+    case: str | None = None     # per-case blocks are grouped under their case id
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------- helpers
+def _na(section: str, name: str, what: str, why: str, case: str | None = None) -> Block:
+    return Block(section, name, note=f"{what}: not available ({why}).", case=case)
+
+
+def _try(section: str, name: str, caption: str, what: str, make: Callable[[], Any],
+         case: str | None = None) -> Block:
+    """Build a figure; any failure becomes a "not available" note (the report must not crash)."""
+    try:
+        fig = make()
+    except FileNotFoundError as exc:
+        return _na(section, name, what, f"missing {Path(str(exc.args[0]) if exc.args else '?').name}"
+                   if exc.args else "missing artefact", case)
+    except Exception as exc:  # noqa: BLE001 - an unreadable artefact is reported, not fatal
+        warnings.warn(f"report: {what} failed: {exc!r}", RuntimeWarning, stacklevel=2)
+        return _na(section, name, what, f"{type(exc).__name__}: {exc}", case)
+    return Block(section, name, caption=caption, figure=fig, case=case)
+
+
+def _open(case_dir: Path, store: str, var: str | None = None) -> xr.Dataset | xr.DataArray:
+    """Open ``case_dir/store`` lazily; with ``var=""`` return its first data variable."""
+    ds = io.open_zarr(Path(case_dir) / store)
+    if var is None:
+        return ds
+    name = var or (list(ds.data_vars)[0])
+    return ds[name]
+
+
+def _table(df: pd.DataFrame, *, index: bool = True, fmt: str = "{:.4g}") -> str:
+    def f(v: Any) -> str:
+        if isinstance(v, (float, np.floating)):
+            return "–" if not np.isfinite(v) else fmt.format(v)
+        return str(v)
+    return df.to_html(index=index, escape=True, border=0, classes="tbl", na_rep="–",
+                      formatters={c: f for c in df.columns})
+
+
+def _png(fig: Any) -> bytes:
+    buf = _io.BytesIO()
+    # No "Software" text chunk: the file carries no link to anywhere.
+    fig.savefig(buf, format="png", metadata={"Software": None})
+    return buf.getvalue()
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", name.replace("/", "__")).strip("-")
+
+
+def case_table(study: xr.Dataset, columns: tuple[str, ...] | list[str] = HEADLINE) -> pd.DataFrame:
+    """Computed cases as rows (index: swept parameters) and the given metrics as columns."""
+    cols = [c for c in columns if c in study]
+    if not cols:
+        return pd.DataFrame()
+    df = study[cols + (["computed"] if "computed" in study else [])].to_dataframe()
+    if "computed" in df:
+        df = df[df["computed"].astype(bool)].drop(columns="computed")
+    else:
+        df = df.dropna(how="all")
+    return df[cols]
+
+
+def best_designs(study: xr.Dataset) -> pd.DataFrame:
+    """Per flow, the case that wins each criterion (lowest total RMS error, ...).
+
+    Criteria (when the variables exist): lowest total RMS error, lowest bias
+    norm sqrt(bx² + by² + bz²), lowest random error sqrt(σx² + σy² + σz²),
+    highest valid %, highest Q, shortest run time. Returns an empty table for
+    an empty study.
+    """
+    df = case_table(study, [c for c in study.data_vars if c != "computed" and study[c].ndim == len(SWEEP_KEYS)])
+    if df.empty:
+        return df
+    if all(f"bias_{a}" in df for a in "xyz"):
+        df["bias_norm"] = np.sqrt(sum(df[f"bias_{a}"] ** 2 for a in "xyz"))
+    if all(f"std_{a}" in df for a in "xyz"):
+        df["random_norm"] = np.sqrt(sum(df[f"std_{a}"] ** 2 for a in "xyz"))
+    crit = [("lowest total RMS error", "rms_total", "min", "voxel"),
+            ("lowest bias |b|", "bias_norm", "min", "voxel"),
+            ("lowest random error |σ|", "random_norm", "min", "voxel"),
+            ("most valid vectors", "valid_percent", "max", "%"),
+            ("highest reconstruction quality Q", "Q", "max", ""),
+            ("shortest run time", "time_total", "min", "s")]
+    rows = []
+    for flow, sub in df.groupby(level="flow", sort=False):
+        for label, col, how, unit in crit:
+            if col not in sub or not sub[col].notna().any():
+                continue
+            idx = sub[col].idxmin() if how == "min" else sub[col].idxmax()
+            p = dict(zip(sub.index.names, idx))
+            rows.append({"flow": flow, "criterion": label, "value": float(sub.loc[idx, col]), "unit": unit,
+                         "magnification": p["magnification"], "fnumber": p["fnumber"],
+                         "lenslet_pitch [mm]": p["lenslet_pitch"], "ppp": p["ppp"],
+                         "total RMS [voxel]": float(sub.loc[idx, "rms_total"]) if "rms_total" in sub else math.nan})
+    return pd.DataFrame(rows)
+
+
+def _varied(study: xr.Dataset) -> list[str]:
+    return [k for k in SWEEP_KEYS if k in study.dims and study.sizes[k] > 1 and k != "flow"]
+
+
+def _cameras(study: xr.Dataset, cfg: Mapping[str, Any]) -> dict[str, PlenopticCamera]:
+    """The distinct cameras (magnification × f-number × lenslet pitch) of the computed cases."""
+    flow = next(iter(cfg["flows"]))
+    comp = study["computed"] if "computed" in study else None
+    out: dict[str, PlenopticCamera] = {}
+    for m in study["magnification"].values:
+        for fn in study["fnumber"].values:
+            for pl in study["lenslet_pitch"].values:
+                if comp is not None and not bool(comp.sel(magnification=m, fnumber=fn, lenslet_pitch=pl).any()):
+                    continue
+                fnv = fn if fn == "matched" else float(fn)
+                case = Case(float(m), fnv, float(pl), float(study["ppp"].values[0]), flow)
+                label = f"M={float(m):g}, f/{fn}, pl={float(pl):g} mm"
+                out[label] = PlenopticCamera.from_config(case_config(cfg, case))
+    return out
+
+
+def _representative(study: xr.Dataset, case_dirs: Mapping[str, Path]) -> str | None:
+    """The case with the lowest total RMS error whose directory exists, else the first existing."""
+    existing = [c for c, d in case_dirs.items() if Path(d).is_dir()]
+    if not existing:
+        return None
+    if "rms_total" in study:
+        df = case_table(study, ["rms_total"]).dropna()
+        for idx in df.sort_values("rms_total").index:
+            p = dict(zip(df.index.names, idx))
+            fn = p["fnumber"]
+            cid = Case(float(p["magnification"]), fn if fn == "matched" else float(fn),
+                       float(p["lenslet_pitch"]), float(p["ppp"]), str(p["flow"])).case_id
+            if cid in existing:
+                return cid
+    return existing[0]
+
+
+# ------------------------------------------------------------------ blocks
+def report_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any], *,
+                  max_cases: int = 50, progress: bool = True) -> Iterator[Block]:
+    """Every block of the report, section by section (figures are built lazily, one at a time).
+
+    Parameters
+    ----------
+    study : xarray.Dataset
+        The sweep Dataset (dims = swept parameters).
+    case_dirs : mapping case id -> directory
+        Per-case result directories (``results/<name>/<case_id>``).
+    cfg : mapping
+        The validated study config.
+    max_cases : int
+        Per-case sections drawn for at most this many cases (all stay in the tables).
+    progress : bool
+        Show a tqdm progress bar over the per-case figures.
+    """
+    from lfstudy import report_figures as rf
+
+    cfg = dict(cfg)
+    # ---------------------------------------------------------- overview
+    n_comp = int(study["computed"].sum()) if "computed" in study else len(case_dirs)
+    n_total = int(np.prod([study.sizes[k] for k in SWEEP_KEYS if k in study.dims]))
+    sweep = pd.DataFrame({"values": [", ".join(str(format_param(k, v)) for v in study[k].values)
+                                     for k in SWEEP_KEYS if k in study.coords]},
+                         index=[k for k in SWEEP_KEYS if k in study.coords])
+    yield Block("overview", "sweep", html=(
+        f"<p>{n_comp} of {n_total} parameter combinations computed; {len(case_dirs)} case directories. "
+        "Displacements and errors are in the object frame (+z away from the camera): a +x shift reads "
+        "positive here, negative in the thesis' histograms. Errors are measured − true over valid "
+        "vectors, in voxels unless marked mm.</p>" + _table(sweep)))
+    # -------------------------------------------------------------- best
+    best = best_designs(study)
+    if best.empty:
+        yield Block("best", "best", note="Best design: not available (no computed case with metrics).")
+    else:
+        yield Block("best", "best", html=_table(best, index=False))
+    # -------------------------------------------------------- comparison
+    metrics = [m for m in METRIC_LABELS if m in study]
+    varied = _varied(study)
+    if not varied:
+        yield Block("comparison", "none", note="Comparison: not available (only one value of every "
+                                               "swept camera/seeding parameter).")
+    for i, p in enumerate(varied):
+        others = [q for q in varied if q != p]
+        line = others[0] if others else None
+        yield _try("comparison", f"metrics_vs_{p}",
+                   f"Every error metric against {p}" + (f", one line per {line}" if line else "") +
+                   "; solid/dashed lines are flows.", f"metrics against {p}",
+                   lambda p=p, line=line: rf.metrics_vs_parameter(study, metrics, p, line))
+        cols = [m for m in HEADLINE if m in study]
+        if cols:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                red = [d for d in SWEEP_KEYS if d not in (p, "flow") and d in study.dims]
+                marg = study[cols].mean(red, skipna=True).to_dataframe()
+            yield Block("comparison", f"table_{p}", html=f"<h4>Mean over the other parameters, by {html.escape(p)}"
+                        f"</h4>" + _table(marg))
+    ct = case_table(study)
+    if not ct.empty:
+        yield Block("comparison", "all_cases", html="<h4>All computed cases</h4>" + _table(ct))
+    # ------------------------------------------------------------ thesis
+    rows = []
+    for flow in (study["flow"].values if "flow" in study.dims else []):
+        spec = cfg.get("flows", {}).get(str(flow), {})
+        if spec.get("kind") != "uniform":
+            continue
+        d = np.asarray(spec["displacement"], float)
+        ax = "xyz"[int(np.argmax(np.abs(d)))]
+        ref = THESIS_REFERENCE.get(ax)
+        cols = [f"mean_{ax}", f"sd_{ax}", f"true_{ax}", f"bias_{ax}", f"std_{ax}"]
+        sub = case_table(study.sel(flow=[flow]), cols)
+        for idx, r in sub.iterrows():
+            p = dict(zip(sub.index.names, idx))
+            rows.append({"flow": flow, "axis": ax, "M": p["magnification"], "f/#": p["fnumber"],
+                         "pl [mm]": p["lenslet_pitch"], "ppp": p["ppp"],
+                         "true [vox]": r.get(f"true_{ax}"), "mean [vox]": r.get(f"mean_{ax}"),
+                         "σ [vox]": r.get(f"sd_{ax}"), "bias [vox]": r.get(f"bias_{ax}"),
+                         "thesis μ [px]": ref["mean"] if ref else math.nan,
+                         "thesis σ [px]": ref["std"] if ref else math.nan})
+    if rows:
+        yield Block("thesis", "uniform", html=(
+            "<p>Mean and standard deviation of the measured displacement beside the thesis' histograms "
+            "(" + "; ".join(html.escape(v["where"]) for v in THESIS_REFERENCE.values()) + "). The thesis "
+            "reports image-frame signs (μ negative); ours are object-frame (positive for a +x or +z "
+            "shift).</p>" + _table(pd.DataFrame(rows), index=False)))
+    else:
+        yield Block("thesis", "uniform", note="Uniform-displacement comparison: not available "
+                                              "(no uniform flow among the computed cases).")
+    # ----------------------------------------------------------- cameras
+    try:
+        cams = _cameras(study, cfg)
+    except Exception as exc:  # noqa: BLE001
+        cams = {}
+        yield _na("cameras", "table", "Camera table", f"{type(exc).__name__}: {exc}")
+    if cams:
+        tab = pd.DataFrame({k: c.summary() for k, c in cams.items()})
+        yield Block("cameras", "table", html=_table(tab))
+        cam0 = next(iter(cams.values()))
+        yield _try("cameras", "ambiguity", "Depth ambiguity ξz (eq. 4.18) and in-plane ambiguity ξy "
+                   "(eq. 4.19) at z = 0 against |M|; dots: the swept magnifications. Steps mark where the "
+                   "matched f-number rounds up to the next standard stop (sec. 4.3.1).",
+                   "ambiguity against magnification",
+                   lambda: rf.ambiguity_vs_magnification(cam0, marked=[float(m) for m in study["magnification"].values]))
+        r = cfg.get("refocus", {})
+
+        def diamonds():
+            planes = {k: (c, c.focal_planes(r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0),
+                                            cubic=bool(r.get("cubic", False))))
+                      for k, c in list(cams.items())[:8]}
+            return rf.focal_plane_diamonds(planes)
+
+        yield _try("cameras", "focal_planes", "Depth-of-focus diamonds of the refocus planes "
+                   "(eqs 5.16–5.20) in image space; ticks: plane centres.", "focal-plane diamonds", diamonds)
+    # --------------------------------------------------- representative
+    rep = _representative(study, case_dirs)
+    if rep is None:
+        yield Block("representative", "none", note="Representative case: not available (no case directory).")
+    else:
+        d = Path(case_dirs[rep])
+        yield Block("representative", "id", html=f"<p>Case <code>{html.escape(rep)}</code> "
+                    "(lowest total RMS error with its artefacts on disk).</p>")
+        yield _try("representative", "raw", "Central crop of the raw plenoptic image, frame a.",
+                   "raw image", lambda: rf.raw_crop(_open(d, "raw_a.zarr", "")))
+        yield _try("representative", "refocused", "Refocused planes of frame a over the depth.",
+                   "refocused planes", lambda: rf.refocused_planes(_open(d, "stack_a.zarr", "")))
+    # ------------------------------------------------------------ cases
+    yield from _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
+
+
+def _case_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any], *,
+                 max_cases: int, progress: bool) -> Iterator[Block]:
+    from tqdm.auto import tqdm
+
+    from lfstudy import report_figures as rf
+
+    k = float(cfg.get("reconstruct", {}).get("k", 3.0))
+    items = list(case_dirs.items())
+    if len(items) > max_cases:
+        yield Block("cases", "truncated", note=f"Per-case figures drawn for the first {max_cases} of "
+                                               f"{len(items)} cases; every case is in the tables above.")
+    for cid, d in tqdm(items[:max_cases], desc="report: cases", unit="case", disable=not progress):
+        d = Path(d)
+        if not d.is_dir():
+            yield _na("cases", "dir", "Case directory", "missing", case=cid)
+            continue
+        try:
+            piv = _open(d, "piv.zarr").load()
+        except Exception as exc:  # noqa: BLE001
+            piv = None
+            yield _na("cases", "piv", "PIV result", f"{type(exc).__name__}: {exc}"[:200], case=cid)
+        try:
+            err = _open(d, "errors.zarr").load()
+        except Exception:  # noqa: BLE001 - histograms still work without the truth line
+            err = None
+        if piv is not None:
+            yield _try("cases", "convergence", "Corrector RMS and valid vectors per pass (Figs 6.14–6.15).",
+                       "PIV convergence", lambda: rf.piv_convergence(piv), case=cid)
+            yield _try("cases", "histograms", "Measured displacement per component, valid vectors "
+                       "(Figs 7.2–7.4, 7.8); dashed: mean true displacement.", "displacement histograms",
+                       lambda: rf.displacement_histograms(piv, err), case=cid)
+            yield _try("cases", "vectors", "Vector-field slices (Figs 7.1, 7.6, 7.9).", "vector slices",
+                       lambda: rf.vector_slices(piv), case=cid)
+        yield _try("cases", "intensity", f"Focal-stack intensities, threshold mean + {k:g}σ "
+                   "(Figs 5.17, 7.13–7.14).", "intensity histogram",
+                   lambda: rf.intensity_histogram(np.asarray(_open(d, "stack_a.zarr", "").values), k=k),
+                   case=cid)
+
+
+# ------------------------------------------------------------------ output
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:1.5em auto;
+max-width:1250px;color:#222;line-height:1.4;padding:0 1em}
+h1{border-bottom:2px solid #345}h2{border-bottom:1px solid #ccc;margin-top:2em;color:#234}
+nav ul{columns:2}figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
+figcaption{font-size:.9em;color:#555}.note{color:#a40;font-style:italic}
+table.tbl{border-collapse:collapse;font-size:.82em;margin:.5em 0}
+table.tbl td,table.tbl th{border:1px solid #ddd;padding:2px 6px;text-align:right}
+table.tbl th{background:#f2f4f7}details{margin:.4em 0;border:1px solid #e4e4e4;padding:.3em .6em}
+summary{cursor:pointer;font-family:monospace}code{background:#f4f4f4;padding:0 3px}
+.scroll{overflow-x:auto}
+"""
+
+
+def _render(b: Block) -> str:
+    if b.figure is not None:
+        data = base64.b64encode(_png(b.figure)).decode("ascii")
+        alt = html.escape(b.caption or b.name)
+        return (f'<figure><img alt="{alt}" src="data:image/png;base64,{data}">'
+                f"<figcaption>{html.escape(b.caption)}</figcaption></figure>")
+    if b.html:
+        return f'<div class="scroll">{b.html}</div>'
+    return f'<p class="note">{html.escape(b.note)}</p>'
+
+
+def write_report(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any],
+                 out_html: Path, *, max_cases: int = 50, progress: bool = True) -> Path:
+    """Write the self-contained HTML report of a study (atomically).
+
+    Parameters
+    ----------
+    study : xarray.Dataset
+        Output of :func:`lfstudy.metrics.combine_cases` (dims = swept parameters).
+    case_dirs : mapping case id -> Path
+        Per-case result directories; missing artefacts are reported as "not
+        available".
+    cfg : mapping
+        The validated study config (camera, flows, refocus, reconstruct).
+    out_html : Path
+        Output file; written via a temporary sibling and renamed.
+    max_cases : int
+        At most this many per-case sections with figures.
+    progress : bool
+        tqdm progress bar over the per-case figures.
+
+    Returns
+    -------
+    Path
+        ``out_html``.
+    """
+    parts: dict[str, list[str]] = {s: [] for s in SECTIONS}
+    per_case: dict[str, list[str]] = {}
+    for b in report_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress):
+        frag = _render(b)
+        b.figure = None  # free the figure before the next is drawn
+        if b.case is not None:
+            per_case.setdefault(b.case, []).append(frag)
+        else:
+            parts[b.section].append(frag)
+    for cid, frags in per_case.items():
+        parts["cases"].append(f"<details><summary>{html.escape(cid)}</summary>{''.join(frags)}</details>")
+    name = html.escape(str(cfg.get("name", "study")))
+    toc = "".join(f'<li><a href="#{s}">{html.escape(t)}</a></li>' for s, t in SECTIONS.items())
+    body = "".join(f'<section id="{s}"><h2>{html.escape(SECTIONS[s])}</h2>{"".join(parts[s])}</section>'
+                   for s in SECTIONS)
+    ver = html.escape(str(study.attrs.get("lfstudy_version", "")))
+    doc = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
+           f'<meta name="viewport" content="width=device-width,initial-scale=1">'
+           f"<title>lfstudy report: {name}</title><style>{_CSS}</style></head><body>"
+           f"<h1>Light-field PIV study <code>{name}</code></h1>"
+           f"<p>Generated {time.strftime('%Y-%m-%d %H:%M')} by lfstudy {ver}. Method: Lynch (2011), "
+           f"Development of a 3-D Fluid Velocimetry Technique based on Light Field Imaging.</p>"
+           f"<nav><ul>{toc}</ul></nav>{body}</body></html>")
+    out_html = Path(out_html)
+    with io.atomic_path(out_html) as tmp:
+        tmp.write_text(doc, encoding="utf-8")
+    return out_html
+
+
+def write_figures(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any],
+                  out_dir: Path, *, max_cases: int = 50, progress: bool = True) -> list[Path]:
+    """Write every report figure as a separate PNG (for Snakemake's ``report(...)``).
+
+    Files are named ``<section>_<name>.png`` (per-case figures
+    ``cases_<case id with / as __>_<name>.png``); tables and "not available"
+    notes have no file. Each file is written atomically.
+
+    Returns
+    -------
+    list of Path
+        The files written, in report order.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for b in report_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress):
+        if b.figure is None:
+            continue
+        stem = f"{b.section}_{_safe(b.case) + '_' if b.case else ''}{b.name}"
+        path = out_dir / f"{stem}.png"
+        data = _png(b.figure)
+        b.figure = None
+        with io.atomic_path(path) as tmp:
+            tmp.write_bytes(data)
+        paths.append(path)
+    return paths

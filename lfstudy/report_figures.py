@@ -1,0 +1,352 @@
+"""Figures of the study report: pure functions from data to a matplotlib Figure.
+
+No file I/O here (``lfstudy.report`` reads the artefacts and embeds or saves
+the figures). Figures are created with :class:`matplotlib.figure.Figure`
+directly, never through ``pyplot``'s global state, so they work on the Agg
+backend in a Snakemake job and are garbage-collected when dropped.
+Figure numbers refer to Lynch (2011).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import xarray as xr
+from matplotlib.figure import Figure
+
+from lfstudy.optics import OpticsError, PlenopticCamera
+
+__all__ = [
+    "ambiguity_vs_magnification",
+    "focal_plane_diamonds",
+    "raw_crop",
+    "refocused_planes",
+    "intensity_histogram",
+    "piv_convergence",
+    "displacement_histograms",
+    "vector_slices",
+    "metrics_vs_parameter",
+]
+
+_COMP = {"x": "u", "y": "v", "z": "w"}
+
+
+def _fig(w: float, h: float, **adjust: float) -> Figure:
+    # Fixed margins, not a layout engine: constrained layout triples the
+    # drawing time of a report with hundreds of small figures.
+    fig = Figure(figsize=(w, h), dpi=90)
+    fig.subplots_adjust(**{"left": 0.1, "right": 0.95, "bottom": 0.14, "top": 0.88, "wspace": 0.3,
+                           "hspace": 0.45, **adjust})
+    return fig
+
+
+# ------------------------------------------------------------------ optics
+def ambiguity_vs_magnification(camera: PlenopticCamera, magnifications: Sequence[float] | None = None,
+                               *, marked: Sequence[float] = ()) -> Figure:
+    """Depth and in-plane ambiguity ξz, ξy against magnification (Fig. 4.11, eqs 4.18–4.19).
+
+    Parameters
+    ----------
+    camera : PlenopticCamera
+        Supplies the focal length, lenslet pitch and f-number policy; its
+        magnification is replaced by each value of ``magnifications``.
+    magnifications : sequence of float, optional
+        Negative magnifications; default −0.1 … −3.
+    marked : sequence of float
+        Magnifications of the sweep, marked on the curves.
+    """
+    ms = np.linspace(-0.1, -3.0, 59) if magnifications is None else np.asarray(magnifications, float)
+    allm = np.unique(np.concatenate([ms, np.asarray(marked, float)]))
+    rows = []
+    for m in allm:
+        try:
+            dof = camera.with_(magnification=float(m)).depth_of_field(0.0)
+        except OpticsError:
+            continue  # this M is not reachable with the f-number policy
+        rows.append((abs(m), float(dof["depth_ambiguity"][0]), float(dof["inplane_ambiguity"][0])))
+    fig = _fig(6.5, 3.6, top=0.9)
+    ax = fig.add_subplot()
+    if rows:
+        a = np.array(sorted(rows))
+        ax.plot(a[:, 0], a[:, 1], "-", color="C0", label="depth ambiguity ξz")
+        ax.plot(a[:, 0], a[:, 2], "-", color="C1", label="in-plane ambiguity ξy")
+        for m in marked:
+            hit = np.isclose(a[:, 0], abs(m))
+            if hit.any():
+                ax.plot(a[hit, 0], a[hit, 1], "o", color="C0")
+                ax.plot(a[hit, 0], a[hit, 2], "o", color="C1")
+        ax.set_yscale("log")
+    ax.set_xlabel("|magnification M|")
+    ax.set_ylabel("ambiguity [mm]")
+    ax.set_title(f"Ambiguity vs magnification, f = {camera.main_focal_length:g} mm (cf. Fig. 4.11)")
+    ax.legend()
+    ax.grid(True, which="both", alpha=0.3)
+    return fig
+
+
+def focal_plane_diamonds(cameras: Mapping[str, tuple[PlenopticCamera, xr.Dataset]]) -> Figure:
+    """Depth-of-focus diamonds of the refocus planes in image space (Fig. 5.9, eqs 5.16–5.20).
+
+    Each plane's diamond spans its near and far image-side bounds D_N,i, D_F,i
+    (on the axis, t = D − si) and the circle of confusion c at D_i; plane
+    centres are marked.
+
+    Parameters
+    ----------
+    cameras : mapping label -> (camera, planes)
+        ``planes`` from :meth:`PlenopticCamera.focal_planes`.
+    """
+    n = max(1, len(cameras))
+    h = 1.9 * n + 1.0
+    fig = _fig(7.0, h, left=0.12, top=1 - 0.75 / h, bottom=0.55 / h, hspace=0.6)
+    axes = fig.subplots(n, 1, squeeze=False)[:, 0]
+    for ax, (label, (cam, planes)) in zip(axes, cameras.items()):
+        c = float(planes.attrs.get("circle_of_confusion", cam.lenslet_pitch))
+        si = cam.si
+        for k in range(planes.sizes["plane"]):
+            near = float(planes["near"][k]) - si
+            far = float(planes["far"][k]) - si
+            mid = float(planes["t"][k])
+            ax.fill([near, mid, far, mid], [0, c / 2, 0, -c / 2], alpha=0.35,
+                    color="C0" if k % 2 else "C1", lw=0.5, ec="k")
+        ax.plot(planes["t"], np.zeros(planes.sizes["plane"]), "k|", ms=8)
+        ax.set_ylabel("height [mm]")
+        ax.set_title(f"{label}: {planes.sizes['plane']} planes, f/{cam.main_fnumber:g}", fontsize=9)
+    axes[-1].set_xlabel("refocus distance t = D_i − s_i [mm]")
+    fig.suptitle("Focal-plane depth-of-focus diamonds (cf. Fig. 5.9, Table 5.1)", y=1 - 0.2 / h)
+    return fig
+
+
+# ----------------------------------------------------------------- images
+def raw_crop(raw: xr.DataArray, *, size: int = 160) -> Figure:
+    """The central ``size`` × ``size`` pixels of a raw plenoptic image (cf. Fig. 4.21).
+
+    ``raw`` has dims (row, col) with physical ``x``/``y`` coords [mm]; only the
+    crop is read (lazy input stays lazy).
+    """
+    nr, nc = raw.sizes[raw.dims[0]], raw.sizes[raw.dims[1]]
+    r0, c0 = max(0, nr // 2 - size // 2), max(0, nc // 2 - size // 2)
+    crop = raw.isel({raw.dims[0]: slice(r0, r0 + size), raw.dims[1]: slice(c0, c0 + size)})
+    img = np.asarray(crop.values, float)
+    fig = _fig(4.8, 4.4, left=0.16, right=0.92)
+    ax = fig.add_subplot()
+    extent = None
+    if "x" in crop.coords and "y" in crop.coords and crop["x"].ndim == 1 and crop["y"].ndim == 1:
+        x, y = crop["x"].values, crop["y"].values
+        extent = (x[0], x[-1], y[-1], y[0])  # row 0 at the top
+    im = ax.imshow(img, cmap="gray", extent=extent, interpolation="nearest")
+    fig.colorbar(im, ax=ax, shrink=0.8, label="intensity")
+    ax.set_xlabel("sensor x [mm]" if extent else "column")
+    ax.set_ylabel("sensor y [mm]" if extent else "row")
+    ax.set_title(f"Raw image, central {img.shape[0]}×{img.shape[1]} px")
+    return fig
+
+
+def refocused_planes(stack: xr.DataArray, *, n: int = 4) -> Figure:
+    """``n`` planes of a focal stack spread over its depth (cf. Figs 5.12–5.16)."""
+    nz = stack.sizes["z"]
+    ks = np.unique(np.linspace(0, nz - 1, min(n, nz)).round().astype(int))
+    fig = _fig(3.2 * len(ks), 3.2, left=0.08, top=0.82, bottom=0.16)
+    axes = fig.subplots(1, len(ks), squeeze=False)[0]
+    x, y = stack["x"].values, stack["y"].values
+    for ax, k in zip(axes, ks):
+        img = np.asarray(stack.isel(z=int(k)).transpose("y", "x").values, float)
+        ax.imshow(img, cmap="gray", origin="lower", extent=(x[0], x[-1], y[0], y[-1]),
+                  interpolation="nearest")
+        ax.set_title(f"z = {float(stack['z'][k]):+.3f} mm", fontsize=9)
+        ax.set_xlabel("x [mm]")
+    axes[0].set_ylabel("y [mm]")
+    fig.suptitle("Refocused planes (constant magnification, object frame)")
+    return fig
+
+
+def intensity_histogram(values: np.ndarray, *, k: float = 3.0, bins: int = 100,
+                        title: str = "") -> Figure:
+    """Histogram of rendered intensities with the threshold mean + kσ (Figs 5.17, 7.13–7.14, sec. 5.5)."""
+    v = np.asarray(values, float).ravel()
+    v = v[np.isfinite(v)]
+    mu, sd = float(v.mean()), float(v.std())
+    thr = mu + k * sd
+    fig = _fig(6.0, 3.4, left=0.12, top=0.9)
+    ax = fig.add_subplot()
+    ax.hist(v, bins=bins, color="0.5")
+    ax.axvline(mu, color="C0", ls="--", label=f"mean {mu:.3g}")
+    ax.axvline(thr, color="C3", label=f"threshold mean + {k:g}σ = {thr:.3g}")
+    ax.set_yscale("log")
+    ax.set_xlabel("intensity")
+    ax.set_ylabel("voxels")
+    kept = 100.0 * float(np.mean(v > thr)) if v.size else math.nan
+    ax.set_title(title or f"Focal-stack intensities ({kept:.2f} % above threshold)", fontsize=10)
+    ax.legend(fontsize=8)
+    return fig
+
+
+# -------------------------------------------------------------------- PIV
+def piv_convergence(piv: xr.Dataset) -> Figure:
+    """Corrector RMS and valid-vector percentage per pass, with the level Rf (Figs 6.14–6.15)."""
+    p = piv["pass"].values if "pass" in piv.coords else np.arange(1, piv.sizes["pass"] + 1)
+    lvl = piv["level"].values if "level" in piv else None
+    fig = _fig(9.0, 3.2, left=0.08, right=0.92, wspace=0.5, top=0.88, bottom=0.16)
+    axes = fig.subplots(1, 2)
+    for ax, name, ylabel, log in ((axes[0], "corrector_rms", "corrector RMS [voxel]", True),
+                                  (axes[1], "valid_fraction", "valid vectors [%]", False)):
+        if name in piv:
+            ax.plot(p, piv[name].values, "o-", color="C0")
+        if log:
+            ax.set_yscale("log")
+        ax.set_xlabel("pass")
+        ax.set_ylabel(ylabel)
+        if lvl is not None:
+            tw = ax.twinx()
+            tw.step(p, lvl, where="mid", color="C1", alpha=0.6)
+            tw.set_ylabel("refinement level Rf", color="C1")
+            tw.set_yticks(np.unique(lvl))
+    axes[0].set_title("Corrector RMS (cf. Fig. 6.14)", fontsize=10)
+    axes[1].set_title("Valid vectors (cf. Fig. 6.15)", fontsize=10)
+    return fig
+
+
+def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *, bins: int = 50) -> Figure:
+    """Histograms of the measured displacement per component with μ and σ (Figs 7.2–7.4, 7.8).
+
+    Valid vectors only, in voxels, object-frame sign. The mean true
+    displacement (from ``errors``) is drawn as a dashed line.
+    """
+    comps = [(ax, c) for ax, c in _COMP.items() if c in piv]
+    fig = _fig(4.0 * max(1, len(comps)), 3.3, left=0.07, top=0.84, bottom=0.16)
+    axes = fig.subplots(1, max(1, len(comps)), squeeze=False)[0]
+    valid = piv["valid"].values.astype(bool) if "valid" in piv else None
+    for a, (axn, c) in zip(axes, comps):
+        d = np.asarray(piv[c].values, float)
+        d = d[valid & np.isfinite(d)] if valid is not None else d[np.isfinite(d)]
+        if d.size:
+            a.hist(d, bins=bins, color="C0", alpha=0.8)
+            a.text(0.03, 0.95, f"μ = {d.mean():+.3f} vox\nσ = {d.std():.3f} vox\nn = {d.size}",
+                   transform=a.transAxes, va="top", fontsize=8,
+                   bbox={"fc": "white", "alpha": 0.8, "lw": 0})
+        else:
+            a.text(0.5, 0.5, "no valid vector", ha="center", transform=a.transAxes)
+        if errors is not None and f"true_{axn}" in errors and np.isfinite(float(errors[f"true_{axn}"])):
+            a.axvline(float(errors[f"true_{axn}"]), color="C3", ls="--", label="true mean")
+            a.legend(fontsize=7, loc="upper right")
+        a.set_xlabel(f"{axn} displacement {c} [voxel]")
+    axes[0].set_ylabel("count")
+    fig.suptitle("Displacement histograms, valid vectors (cf. Figs 7.2–7.4, 7.8)")
+    return fig
+
+
+def vector_slices(piv: xr.Dataset) -> Figure:
+    """Quiver plots: u, v on the middle z slice; u, w on the middle y slice; and
+    the middle z slice with the mean displacement subtracted (cf. Figs 7.1, 7.6, 7.9)."""
+    fig = _fig(13.5, 4.2, left=0.06, right=0.98, top=0.9, bottom=0.14, wspace=0.25)
+    axes = fig.subplots(1, 3)
+    valid = piv["valid"] if "valid" in piv else xr.ones_like(piv["u"], dtype=bool)
+    get = lambda c: piv[f"{c}_mm"] if f"{c}_mm" in piv else piv[c]  # noqa: E731
+    unit = "mm" if "u_mm" in piv else "voxel"
+    if "z" in piv.dims:
+        kz, ky = piv.sizes["z"] // 2, piv.sizes["y"] // 2
+        sl_xy = {"z": kz}
+        sl_xz = {"y": ky}
+    else:  # 2-D result
+        sl_xy, sl_xz, kz = {}, None, None
+    u, v = get("u").where(valid), get("v").where(valid)
+    x, y = piv["x"].values, piv["y"].values
+    uxy = u.isel(sl_xy).transpose("y", "x").values
+    vxy = v.isel(sl_xy).transpose("y", "x").values
+    ax = axes[0]
+    ax.quiver(x, y, uxy, vxy, angles="xy")
+    ax.set_title("x–y slice" + (f" at z = {float(piv['z'][kz]):+.2f} mm" if kz is not None else ""), fontsize=9)
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("y [mm]")
+    ax.set_aspect("equal")
+    ax = axes[1]
+    if sl_xz is not None and "w" in piv:
+        w = get("w").where(valid)
+        ax.quiver(x, piv["z"].values, u.isel(sl_xz).transpose("z", "x").values,
+                  w.isel(sl_xz).transpose("z", "x").values, angles="xy")
+        ax.set_title(f"x–z slice at y = {float(piv['y'][ky]):+.2f} mm", fontsize=9)
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("z [mm] (+ away from camera)")
+    else:
+        ax.set_axis_off()
+    ax = axes[2]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        du, dv = uxy - np.nanmean(uxy), vxy - np.nanmean(vxy)
+    ax.quiver(x, y, du, dv, angles="xy", color="C3")
+    ax.set_title(f"x–y slice, mean subtracted ({unit})", fontsize=9)
+    ax.set_xlabel("x [mm]")
+    ax.set_aspect("equal")
+    return fig
+
+
+# ------------------------------------------------------------ comparative
+def _label(da: xr.DataArray) -> str:
+    ln = da.attrs.get("long_name", da.name)
+    u = da.attrs.get("units")
+    return f"{ln} [{u}]" if u and u != "1" else str(ln)
+
+
+def metrics_vs_parameter(study: xr.Dataset, metrics: Sequence[str], param: str,
+                         line_param: str | None = None, *, ncols: int = 4) -> Figure:
+    """Every metric against one swept parameter (the comparative figure).
+
+    One subplot per metric; x: the values of ``param``; one line per value of
+    ``line_param`` (colour) and per flow (line style). Other swept
+    parameters are averaged over the computed cases (NaN-aware), which is
+    stated in the axis label.
+    """
+    metrics = [m for m in metrics if m in study]
+    nrows = max(1, math.ceil(len(metrics) / ncols))
+    h = 2.7 * nrows + 1.2
+    fig = _fig(3.6 * ncols, h, left=0.06, right=0.98, top=1 - 0.8 / h, bottom=0.85 / h, hspace=0.6, wspace=0.3)
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    xs = study[param].values
+    numeric = np.issubdtype(np.asarray(xs).dtype, np.number)
+    xpos = xs.astype(float) if numeric else np.arange(len(xs))
+    flows = list(study["flow"].values) if "flow" in study.dims and param != "flow" else [None]
+    lines = list(study[line_param].values) if line_param else [None]
+    styles = ["-", "--", ":", "-."]
+    other = [d for d in study[metrics[0]].dims if d not in (param, line_param, "flow")] if metrics else []
+    for ax, m in zip(axes, metrics):
+        da = study[m]
+        for fi, fl in enumerate(flows):
+            for li, lv in enumerate(lines):
+                sub = da
+                if fl is not None:
+                    sub = sub.sel(flow=fl)
+                if lv is not None:
+                    sub = sub.sel({line_param: lv})
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    red = [d for d in other if d in sub.dims] + (["flow"] if param != "flow" and fl is None
+                                                                 and "flow" in sub.dims else [])
+                    y = sub.mean(red, skipna=True) if red else sub
+                y = np.asarray(y.transpose(param).values, float)
+                if not np.isfinite(y).any():
+                    continue
+                lab = ", ".join(s for s in (f"{line_param}={lv}" if lv is not None else "",
+                                            str(fl) if fl is not None and len(flows) > 1 else "") if s)
+                ax.plot(xpos, y, styles[fi % len(styles)], marker="o", color=f"C{li % 10}",
+                        label=lab or None)
+        if m.startswith("bias"):
+            ax.axhline(0.0, color="k", lw=0.5)
+        if param == "ppp" and numeric and np.all(xpos > 0) and len(xpos) > 1:
+            ax.set_xscale("log")
+        if not numeric:
+            ax.set_xticks(xpos, [str(v) for v in xs])
+        ax.set_title(_label(da), fontsize=8)
+        ax.set_xlabel(_label(study[param]), fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+    for ax in axes[len(metrics):]:
+        ax.set_axis_off()
+    handles, labels = axes[0].get_legend_handles_labels() if metrics else ([], [])
+    if labels:
+        fig.legend(handles, labels, loc="lower center", ncols=min(6, len(labels)), fontsize=8)
+    note = f"; mean over {', '.join(other)}" if other else ""
+    fig.suptitle(f"Error metrics against {param}{note}", y=1 - 0.2 / h)
+    return fig
