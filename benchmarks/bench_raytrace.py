@@ -97,12 +97,14 @@ def main() -> None:
     ref = None
     for nt in args.threads:
         numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         img = rt.render(cam, field, args.rays, 3)
-        dt = time.perf_counter() - t
+        dt, dc = time.perf_counter() - t, time.process_time() - c
         rays = img.attrs["rays_traced"]
-        print(f"threads={numba.get_num_threads()}: {rays:,} rays in {dt:.2f} s -> {rays / dt / 1e6:.1f} M rays/s; "
-              f"peak RSS so far {peak_gb():.2f} GB")
+        # CPU seconds / threads is the wall time the run would take on idle cores
+        # (a shared machine inflates the wall time, not the CPU time).
+        print(f"threads={numba.get_num_threads()}: {rays:,} rays in {dt:.2f} s wall -> {rays / dt / 1e6:.1f} M rays/s; "
+              f"CPU {dc:.2f} s -> {rays / dc / 1e6:.1f} M rays per CPU-second; peak RSS so far {peak_gb():.2f} GB")
         if ref is None:
             ref = img.values
         else:
@@ -112,16 +114,16 @@ def main() -> None:
     # NumPy reference on a small case (same physics, its own random streams).
     small = field.isel(particle=slice(0, args.numpy_particles))
     numba.set_num_threads(min(max(args.threads), numba.config.NUMBA_NUM_THREADS))
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     img = rt.render(cam, small, args.rays, 3)
-    t_nb = time.perf_counter() - t
-    t = time.perf_counter()
+    t_nb, c_nb = time.perf_counter() - t, time.process_time() - c
+    t, c = time.perf_counter(), time.process_time()
     ref_np = numpy_render(cam, small, args.rays, 3)
-    t_np = time.perf_counter() - t
+    t_np, c_np = time.perf_counter() - t, time.process_time() - c
     rays = img.attrs["rays_traced"]
-    print(f"small case, {small.sizes['particle']} particles: numba ({numba.get_num_threads()} threads) {t_nb:.2f} s "
-          f"({rays / t_nb / 1e6:.1f} M rays/s), NumPy {t_np:.2f} s ({rays / t_np / 1e6:.1f} M rays/s): "
-          f"ratio {t_np / t_nb:.1f}x")
+    print(f"small case, {small.sizes['particle']} particles, {rays:,} rays: numba ({numba.get_num_threads()} threads) "
+          f"{t_nb:.2f} s wall / {c_nb:.2f} s CPU, NumPy {t_np:.2f} s wall / {c_np:.2f} s CPU: "
+          f"ratio {t_np / t_nb:.1f}x wall, {c_np / c_nb:.1f}x CPU")
     print(f"  total signal numba {img.values.sum():.0f} vs NumPy {ref_np.sum():.0f} "
           f"(differ only by the random streams)")
     print(f"peak RSS (whole run): {peak_gb():.2f} GB")
