@@ -1,33 +1,231 @@
 # lfstudy: the parametric light-field PIV study.
+#
 #   snakemake --cores all --configfile config/demo.yaml
+#
+# Per case (results/<name>/<case id>/): camera -> particles -> displace ->
+# simulate (a, b) -> register -> refocus -> reconstruct -> piv -> errors.
+# The pinhole image and lenslet calibration are shared by all cases with the
+# same magnification and lenslet pitch (results/<name>/calib/...). The study
+# combines every case into study.zarr / study.csv and report.html.
+# Rule bodies live in lfstudy/workflow.py.
 from lfstudy.config import expand_cases, validate_config
+from lfstudy.workflow import calib_id, logged
 
 configfile: "config/demo.yaml"
 
 CFG = validate_config(config)           # one clear error on a bad config, defaults filled
 NAME = CFG["name"]
 CASES = [c.case_id for c in expand_cases(CFG)]
+CASE_OF_CALIB = {}
+for _c in CASES:
+    CASE_OF_CALIB.setdefault(calib_id(_c), _c)
 OUT = f"results/{NAME}"
+LOG = f"{OUT}/logs"
+BENCH = f"{OUT}/benchmarks"
 
 wildcard_constraints:
-    case="mag~[^/]+/fnum~[^/]+/pitch~[^/]+/ppp~[^/]+/flow~[^/]+",
+    case=r"mag~[^/]+/fnum~[^/]+/pitch~[^/]+/ppp~[^/]+/flow~[^/]+",
+    calib=r"mag~[^/]+/pitch~[^/]+",
+    frame=r"[ab]",
+
+
+def centers_of(wildcards):
+    """The shared calibration of a case (same magnification and pitch)."""
+    return f"{OUT}/calib/{calib_id(wildcards.case)}/centers.zarr"
+
+
+localrules: all
+
+
+# Every intermediate is a target too: Snakemake (>= 7.7) ignores a deleted
+# intermediate whose downstream outputs exist, but regenerates a missing
+# target, and the newer file then reruns exactly what depends on it.
+PER_CASE = ["camera.json", "focal_planes.zarr", "particles_a.zarr", "particles_b.zarr",
+            "raw_a.zarr", "raw_b.zarr", "raw_a.tif", "raw_b.tif", "lightfield_a.zarr",
+            "lightfield_b.zarr", "stack_a.zarr", "stack_b.zarr", "volume_a.zarr", "volume_b.zarr",
+            "piv.zarr", "errors.zarr"]
+PER_CALIB = ["pinhole.zarr", "pinhole.tif", "centers.zarr"]
 
 
 rule all:
     input:
-        expand(f"{OUT}/{{case}}/camera.json", case=CASES),
+        f"{OUT}/study.zarr",
+        f"{OUT}/study.csv",
+        expand(f"{OUT}/{{case}}/{{name}}", case=CASES, name=PER_CASE),
+        expand(f"{OUT}/calib/{{calib}}/{{name}}", calib=sorted(CASE_OF_CALIB), name=PER_CALIB),
 
 
 rule camera:
     output:
         json=f"{OUT}/{{case}}/camera.json",
         planes=directory(f"{OUT}/{{case}}/focal_planes.zarr"),
-    log:
-        f"{OUT}/logs/camera/{{case}}.log",
-    benchmark:
-        f"{OUT}/benchmarks/camera/{{case}}.tsv"
+    log: f"{LOG}/camera/{{case}}.log"
+    benchmark: f"{BENCH}/camera/{{case}}.tsv"
     threads: 1
     run:
-        from lfstudy.workflow import run_optics, set_threads
-        set_threads(threads)
-        run_optics(CFG, wildcards.case, output.json, output.planes)
+        with logged(log[0]):
+            from lfstudy.workflow import run_optics, set_threads
+            set_threads(threads)
+            run_optics(CFG, wildcards.case, output.json, output.planes)
+
+
+rule particles:
+    input: rules.camera.output.json
+    output: directory(f"{OUT}/{{case}}/particles_a.zarr")
+    log: f"{LOG}/particles/{{case}}.log"
+    benchmark: f"{BENCH}/particles/{{case}}.tsv"
+    threads: 1
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_particles
+            run_particles(CFG, wildcards.case, output[0])
+
+
+rule displace:
+    input: f"{OUT}/{{case}}/particles_a.zarr"
+    output: directory(f"{OUT}/{{case}}/particles_b.zarr")
+    log: f"{LOG}/displace/{{case}}.log"
+    benchmark: f"{BENCH}/displace/{{case}}.tsv"
+    threads: 1
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_displace
+            run_displace(CFG, wildcards.case, input[0], output[0])
+
+
+rule simulate:
+    input: f"{OUT}/{{case}}/particles_{{frame}}.zarr"
+    output:
+        zarr=directory(f"{OUT}/{{case}}/raw_{{frame}}.zarr"),
+        tiff=f"{OUT}/{{case}}/raw_{{frame}}.tif",
+    log: f"{LOG}/simulate/{{case}}_{{frame}}.log"
+    benchmark: f"{BENCH}/simulate/{{case}}_{{frame}}.tsv"
+    threads: workflow.cores
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_simulate, set_threads
+            set_threads(threads)
+            run_simulate(CFG, wildcards.case, wildcards.frame, input[0], output.zarr, output.tiff)
+
+
+rule pinhole:
+    output:
+        zarr=directory(f"{OUT}/calib/{{calib}}/pinhole.zarr"),
+        tiff=f"{OUT}/calib/{{calib}}/pinhole.tif",
+    log: f"{LOG}/pinhole/{{calib}}.log"
+    benchmark: f"{BENCH}/pinhole/{{calib}}.tsv"
+    threads: workflow.cores
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_pinhole, set_threads
+            set_threads(threads)
+            run_pinhole(CFG, CASE_OF_CALIB[wildcards.calib], output.zarr, output.tiff)
+
+
+rule calibrate:
+    input: f"{OUT}/calib/{{calib}}/pinhole.zarr"
+    output: directory(f"{OUT}/calib/{{calib}}/centers.zarr")
+    log: f"{LOG}/calibrate/{{calib}}.log"
+    benchmark: f"{BENCH}/calibrate/{{calib}}.tsv"
+    threads: workflow.cores
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_calibrate, set_threads
+            set_threads(threads)
+            run_calibrate(CFG, CASE_OF_CALIB[wildcards.calib], input[0], output[0])
+
+
+rule register:
+    input:
+        raw=f"{OUT}/{{case}}/raw_{{frame}}.zarr",
+        centers=centers_of,
+    output: directory(f"{OUT}/{{case}}/lightfield_{{frame}}.zarr")
+    log: f"{LOG}/register/{{case}}_{{frame}}.log"
+    benchmark: f"{BENCH}/register/{{case}}_{{frame}}.tsv"
+    threads: 1
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_register
+            run_register(CFG, wildcards.case, input.raw, input.centers, output[0])
+
+
+rule refocus:
+    input: f"{OUT}/{{case}}/lightfield_{{frame}}.zarr"
+    output: directory(f"{OUT}/{{case}}/stack_{{frame}}.zarr")
+    log: f"{LOG}/refocus/{{case}}_{{frame}}.log"
+    benchmark: f"{BENCH}/refocus/{{case}}_{{frame}}.tsv"
+    threads: workflow.cores
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_refocus, set_threads
+            set_threads(threads)
+            run_refocus(CFG, wildcards.case, input[0], output[0])
+
+
+rule reconstruct:
+    input: f"{OUT}/{{case}}/stack_{{frame}}.zarr"
+    output: directory(f"{OUT}/{{case}}/volume_{{frame}}.zarr")
+    log: f"{LOG}/reconstruct/{{case}}_{{frame}}.log"
+    benchmark: f"{BENCH}/reconstruct/{{case}}_{{frame}}.tsv"
+    threads: 1
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_reconstruct, set_threads
+            set_threads(threads)
+            run_reconstruct(CFG, wildcards.case, input[0], output[0])
+
+
+rule piv:
+    input:
+        a=f"{OUT}/{{case}}/volume_a.zarr",
+        b=f"{OUT}/{{case}}/volume_b.zarr",
+    output: directory(f"{OUT}/{{case}}/piv.zarr")
+    log: f"{LOG}/piv/{{case}}.log"
+    benchmark: f"{BENCH}/piv/{{case}}.tsv"
+    threads: workflow.cores
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_piv, set_threads
+            set_threads(threads)
+            run_piv(CFG, wildcards.case, input.a, input.b, output[0])
+
+
+rule errors:
+    input:
+        piv=f"{OUT}/{{case}}/piv.zarr",
+        volume=f"{OUT}/{{case}}/volume_a.zarr",
+        particles=f"{OUT}/{{case}}/particles_a.zarr",
+    output: directory(f"{OUT}/{{case}}/errors.zarr")
+    log: f"{LOG}/errors/{{case}}.log"
+    benchmark: f"{BENCH}/errors/{{case}}.tsv"
+    threads: 1
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_errors
+            run_errors(CFG, wildcards.case, input.piv, input.volume, input.particles, output[0])
+
+
+rule study:
+    input: expand(f"{OUT}/{{case}}/errors.zarr", case=CASES)
+    output:
+        zarr=directory(f"{OUT}/study.zarr"),
+        csv=f"{OUT}/study.csv",
+    log: f"{LOG}/study.log"
+    threads: 1
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_study
+            run_study(CFG, CASES, list(input), BENCH, output.zarr, output.csv)
+
+
+rule report:
+    input:
+        study=f"{OUT}/study.zarr",
+        errors=expand(f"{OUT}/{{case}}/errors.zarr", case=CASES),
+    output: report(f"{OUT}/report.html", caption="reports/report.rst", category="Study")
+    log: f"{LOG}/report.log"
+    threads: 1
+    run:
+        with logged(log[0]):
+            from lfstudy.workflow import run_report
+            run_report(CFG, CASES, OUT, input.study, output[0])

@@ -1,20 +1,74 @@
-"""Helpers the Snakefile calls: one function per rule, I/O at the edges.
+"""Rule bodies of the Snakefile: one function per rule, I/O at the edges.
 
-Keeping rule bodies here (not in the Snakefile) makes them importable,
-testable and usable from a notebook.
+Keeping the rule bodies here (not in the Snakefile) makes them importable,
+testable and usable from a notebook. Every output is written atomically
+(``lfstudy.io``), so an interrupted job leaves no half-written store.
+
+Seeds are derived, never drawn from the clock: the particle field depends on
+(study seed, magnification, ppp) only, so every f-number and lenslet pitch of
+a sweep images the *same* particles (sec. 4.3.2 keeps the particle field
+apart from the optics for exactly this reason); ray-tracing streams depend on
+the full case id and the frame.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
+import sys
+import time
+import traceback
+import zlib
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 from lfstudy import io
-from lfstudy.config import case_config
+from lfstudy.config import Case, case_config
 from lfstudy.optics import PlenopticCamera
 
-__all__ = ["set_threads", "run_optics"]
+__all__ = [
+    "logged",
+    "set_threads",
+    "derive_seed",
+    "calib_id",
+    "run_optics",
+    "run_particles",
+    "run_displace",
+    "run_simulate",
+    "run_pinhole",
+    "run_calibrate",
+    "run_register",
+    "run_refocus",
+    "run_reconstruct",
+    "run_piv",
+    "run_errors",
+    "run_study",
+    "run_report",
+]
+
+
+@contextlib.contextmanager
+def logged(path: str | Path) -> Iterator[None]:
+    """Send a rule's prints, warnings, progress bars and traceback to its log file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(path, "w") as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
+        handler = logging.StreamHandler(fh)
+        logging.getLogger().addHandler(handler)
+        print(f"started {time.strftime('%Y-%m-%d %H:%M:%S')}", flush=True)
+        try:
+            yield
+        except BaseException:
+            traceback.print_exc(file=fh)
+            fh.flush()
+            # Snakemake shows stderr of the failing job: say where the details are.
+            print(f"lfstudy: rule failed, see {path}", file=sys.__stderr__)
+            raise
+        finally:
+            print(f"finished in {time.perf_counter() - t0:.2f} s", flush=True)
+            logging.getLogger().removeHandler(handler)
 
 
 def set_threads(n: int) -> None:
@@ -27,14 +81,202 @@ def set_threads(n: int) -> None:
     dask.config.set(scheduler="threads", num_workers=n)
 
 
+def derive_seed(base: int, *parts: Any) -> int:
+    """A stable 32-bit seed from the study seed and labels (crc32, not ``hash``)."""
+    text = "/".join(str(p) for p in (base, *parts))
+    return zlib.crc32(text.encode()) & 0x7FFFFFFF
+
+
+def calib_id(case: Case | str) -> str:
+    """Calibration is shared by all cases with the same magnification and pitch
+    (the pinhole image is taken at f/16 whatever the working f-number)."""
+    case = Case.from_id(case) if isinstance(case, str) else case
+    return case.case_id.split("/fnum~")[0] + "/pitch~" + case.case_id.split("/pitch~")[1].split("/")[0]
+
+
+def _case(cfg: Mapping[str, Any], case_id: str) -> tuple[dict[str, Any], PlenopticCamera]:
+    ccfg = case_config(cfg, case_id)
+    return ccfg, PlenopticCamera.from_config(ccfg)
+
+
+def _write_json(obj: Mapping[str, Any], path: str | Path) -> None:
+    with io.atomic_path(Path(path)) as tmp:
+        tmp.write_text(json.dumps(obj, indent=2, default=str))
+
+
+# ----------------------------------------------------------------- stages
 def run_optics(cfg: Mapping[str, Any], case_id: str, out_json: str | Path, out_planes: str | Path) -> None:
     """Camera stage: derived parameters (JSON) and the refocus-plane table (zarr)."""
-    ccfg = case_config(cfg, case_id)
-    cam = PlenopticCamera.from_config(ccfg)
+    ccfg, cam = _case(cfg, case_id)
     r = ccfg["refocus"]
     planes = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
     planes.attrs.update(io.provenance(ccfg, ccfg["seed"]))
     io.write_zarr(planes, out_planes)
-    out_json = Path(out_json)
-    with io.atomic_path(out_json) as tmp:
-        tmp.write_text(json.dumps({"case_id": case_id, **{k: str(v) for k, v in cam.summary().items()}}, indent=2))
+    _write_json({"case_id": case_id, **{k: str(v) for k, v in cam.summary().items()}}, out_json)
+
+
+def run_particles(cfg: Mapping[str, Any], case_id: str, out: str | Path) -> None:
+    """Seed the first-exposure particle field."""
+    from lfstudy.particles import seed_particles
+
+    ccfg, cam = _case(cfg, case_id)
+    p = ccfg["particles"]
+    case = Case.from_id(case_id)
+    seed = derive_seed(ccfg["seed"], "particles", case.magnification, case.ppp)
+    kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
+    field = seed_particles(cam, **kw, x_span=p["x_span"], y_span=p["y_span"], z_span=p["z_span"],
+                           intensity=tuple(p["intensity"]), seed=seed)
+    field.attrs.update(io.provenance(ccfg, seed))
+    io.write_zarr(field, out)
+
+
+def run_displace(cfg: Mapping[str, Any], case_id: str, particles: str | Path, out: str | Path) -> None:
+    """Second-exposure particle field: the first one advected by the case's flow."""
+    from lfstudy.flows import displace, flow_from_config
+
+    ccfg, _ = _case(cfg, case_id)
+    spec = ccfg["flow"]
+    field = io.open_zarr(particles).load()
+    moved = displace(field, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
+    moved.attrs.update(io.provenance(ccfg, field.attrs.get("seed")), flow=spec["name"])
+    io.write_zarr(moved, out)
+
+
+def run_simulate(cfg: Mapping[str, Any], case_id: str, frame: str, particles: str | Path,
+                 out_zarr: str | Path, out_tiff: str | Path) -> None:
+    """Ray-trace one raw plenoptic image (frame ``a`` or ``b``)."""
+    from lfstudy.raytrace import render
+
+    ccfg, cam = _case(cfg, case_id)
+    rt = ccfg["raytrace"]
+    seed = derive_seed(ccfg["seed"], "raytrace", case_id, frame)
+    field = io.open_zarr(particles).load()
+    img = render(cam, field, rt["rays_per_particle"], seed, diffraction=rt["diffraction"],
+                 max_image_bytes=rt["max_image_bytes"])
+    img.attrs.update(io.provenance(ccfg, seed), frame=frame)
+    io.write_zarr(img, out_zarr, name="intensity")
+    io.write_tiff(img, out_tiff, dtype="float32")
+
+
+def run_pinhole(cfg: Mapping[str, Any], case_id: str, out_zarr: str | Path, out_tiff: str | Path) -> None:
+    """Ray-trace the calibration pinhole image (sec. 5.1)."""
+    from lfstudy.raytrace import render_pinhole
+
+    ccfg, cam = _case(cfg, case_id)
+    ph = ccfg["pinhole"]
+    seed = derive_seed(ccfg["seed"], "pinhole", calib_id(case_id))
+    img = render_pinhole(cam, fnumber=ph["fnumber"], count=ph["count"], rays_per_point=ph["rays_per_point"],
+                         seed=seed)
+    img.attrs.update(io.provenance(ccfg, seed))
+    io.write_zarr(img, out_zarr, name="intensity")
+    io.write_tiff(img, out_tiff, dtype="float32")
+
+
+def run_calibrate(cfg: Mapping[str, Any], case_id: str, pinhole: str | Path, out: str | Path) -> None:
+    """Find every lenslet centre in the pinhole image (automatic grid detection)."""
+    from lfstudy.calibrate import find_lenslet_centers
+
+    ccfg, cam = _case(cfg, case_id)
+    img = io.open_zarr(pinhole, name="intensity").load()
+    centers = find_lenslet_centers(img, cam)
+    centers.attrs.update(io.provenance(ccfg, None))
+    io.write_zarr(centers, out)
+
+
+def run_register(cfg: Mapping[str, Any], case_id: str, raw: str | Path, centers: str | Path,
+                 out: str | Path) -> None:
+    """Raw image → 4-D light field (eqs 5.2–5.9)."""
+    from lfstudy.lightfield import register
+
+    ccfg, cam = _case(cfg, case_id)
+    lf = register(io.open_zarr(raw, name="intensity").load(), io.open_zarr(centers).load(), cam)
+    lf.attrs.update(io.provenance(ccfg, None))
+    io.write_zarr(lf, out, name=lf.name or "radiance")
+
+
+def run_refocus(cfg: Mapping[str, Any], case_id: str, lightfield: str | Path, out: str | Path) -> None:
+    """Light field → focal stack (z, y, x), resized to constant magnification."""
+    from lfstudy.refocus import focal_stack
+
+    ccfg, cam = _case(cfg, case_id)
+    r = ccfg["refocus"]
+    planes = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
+    ds = io.open_zarr(lightfield)
+    lf = ds[list(ds.data_vars)[0]].load()
+    stack = focal_stack(lf, cam, planes, resize=r["resize"])
+    stack.attrs.update(io.provenance(ccfg, None))
+    io.write_zarr(stack, out, name=stack.name or "intensity", progress=False)
+
+
+def run_reconstruct(cfg: Mapping[str, Any], case_id: str, stack: str | Path, out: str | Path) -> None:
+    """Focal stack → particle volume (threshold + dilation by default, sec. 5.5)."""
+    from lfstudy.reconstruct import reconstruct
+
+    ccfg, _ = _case(cfg, case_id)
+    r = dict(ccfg["reconstruct"])
+    method = r.pop("method")
+    ds = io.open_zarr(stack)
+    vol = reconstruct(ds[list(ds.data_vars)[0]], method=method, **r)
+    vol.attrs.update(io.provenance(ccfg, None))
+    io.write_zarr(vol, out, name=vol.name or "intensity")
+
+
+def run_piv(cfg: Mapping[str, Any], case_id: str, vol_a: str | Path, vol_b: str | Path, out: str | Path) -> None:
+    """3-D WIDIM PIV between the two reconstructed volumes."""
+    from lfstudy.piv import widim
+
+    ccfg, _ = _case(cfg, case_id)
+    p = ccfg["piv"]
+    a = io.open_zarr(vol_a)
+    b = io.open_zarr(vol_b)
+    a = a[list(a.data_vars)[0]].load()
+    b = b[list(b.data_vars)[0]].load()
+    t0 = time.perf_counter()
+    res = widim(a, b, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"])
+    res.attrs.update(io.provenance(ccfg, None), piv_seconds=time.perf_counter() - t0)
+    io.write_zarr(res, out)
+
+
+def run_errors(cfg: Mapping[str, Any], case_id: str, piv: str | Path, volume: str | Path,
+               particles: str | Path, out: str | Path) -> None:
+    """Errors of one case against the known flow (+ reconstruction quality Q)."""
+    from lfstudy.flows import flow_from_config
+    from lfstudy.metrics import case_errors, reconstruction_quality
+
+    ccfg, _ = _case(cfg, case_id)
+    spec = ccfg["flow"]
+    res = io.open_zarr(piv).load()
+    err = case_errors(res, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
+    vds = io.open_zarr(volume)
+    q = reconstruction_quality(vds[list(vds.data_vars)[0]], io.open_zarr(particles).load())
+    err["Q"] = ((), float(q), {"units": "1", "long_name": "reconstruction quality Q"})
+    err.attrs.update(io.provenance(ccfg, None), case_id=case_id)
+    io.write_zarr(err, out)
+
+
+def run_study(cfg: Mapping[str, Any], case_ids: list[str], error_paths: list[str | Path],
+              benchmark_dir: str | Path, out_zarr: str | Path, out_csv: str | Path) -> None:
+    """Combine every case's scalar errors into one Dataset over the swept parameters."""
+    from lfstudy.metrics import combine_cases, stage_times, to_csv
+
+    rows = []
+    for cid, path in zip(case_ids, error_paths):
+        err = io.open_zarr(path).load()
+        scalars = err[[v for v in err.data_vars if err[v].ndim == 0]]
+        for stage, secs in stage_times(benchmark_dir, cid).items():
+            scalars[f"time_{stage}"] = ((), float(secs), {"units": "s", "long_name": f"{stage} run time"})
+        rows.append((Case.from_id(cid).params, scalars))
+    study = combine_cases(rows)
+    study.attrs.update(io.provenance(dict(cfg), cfg.get("seed")))
+    io.write_zarr(study, out_zarr)
+    to_csv(study, out_csv)
+
+
+
+def run_report(cfg: Mapping[str, Any], case_ids: list[str], out_dir: str | Path, study: str | Path,
+               out_html: str | Path) -> None:
+    """The self-contained HTML report of the study."""
+    from lfstudy.report import write_report
+
+    case_dirs = {cid: Path(out_dir) / cid for cid in case_ids}
+    write_report(io.open_zarr(study).load(), case_dirs, dict(cfg), Path(out_html))
