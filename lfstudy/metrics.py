@@ -575,8 +575,10 @@ def combine_cases(per_case: Iterable[tuple[Mapping[str, Any], xr.Dataset]]) -> x
                 data[name][at] = float(var.values)
             except (TypeError, ValueError):
                 pass
+    # Stable, readable variable order: headline metrics first, then by name.
+    order = [m for m in METRIC_LABELS if m in data] + sorted(n for n in data if n not in METRIC_LABELS)
     ds = xr.Dataset(
-        {n: (SWEEP_KEYS, a, attrs[n]) for n, a in data.items()},
+        {n: (SWEEP_KEYS, data[n], attrs[n]) for n in order},
         # Object (variable-length) strings: zarr v3 stores them as vlen-utf8,
         # fixed-width '<U' has no v3 specification yet.
         coords={k: (k, np.asarray(coords[k], dtype=object if k in ("fnumber", "flow") else float),

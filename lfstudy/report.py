@@ -441,7 +441,9 @@ def write_report(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[
     toc = "".join(f'<li><a href="#{s}">{html.escape(t)}</a></li>' for s, t in SECTIONS.items())
     body = "".join(f'<section id="{s}"><h2>{html.escape(SECTIONS[s])}</h2>{"".join(parts[s])}</section>'
                    for s in SECTIONS)
-    ver = html.escape(str(study.attrs.get("lfstudy_version", "")))
+    from lfstudy import __version__
+
+    ver = html.escape(str(study.attrs.get("lfstudy_version", __version__)))
     doc = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
            f'<meta name="viewport" content="width=device-width,initial-scale=1">'
            f"<title>lfstudy report: {name}</title><style>{_CSS}</style></head><body>"
