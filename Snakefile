@@ -22,6 +22,8 @@ for _c in CASES:
 OUT = f"results/{NAME}"
 LOG = f"{OUT}/logs"
 BENCH = f"{OUT}/benchmarks"
+# threads of the multi-threaded rules: all cores unless the config caps them
+HEAVY = min(workflow.cores, CFG["workflow"]["threads_per_job"] or workflow.cores)
 
 wildcard_constraints:
     case=r"mag~[^/]+/fnum~[^/]+/pitch~[^/]+/ppp~[^/]+/flow~[^/]+",
@@ -51,6 +53,7 @@ rule all:
     input:
         f"{OUT}/study.zarr",
         f"{OUT}/study.csv",
+        f"{OUT}/report.html",
         expand(f"{OUT}/{{case}}/{{name}}", case=CASES, name=PER_CASE),
         expand(f"{OUT}/calib/{{calib}}/{{name}}", calib=sorted(CASE_OF_CALIB), name=PER_CALIB),
 
@@ -100,7 +103,7 @@ rule simulate:
         tiff=f"{OUT}/{{case}}/raw_{{frame}}.tif",
     log: f"{LOG}/simulate/{{case}}_{{frame}}.log"
     benchmark: f"{BENCH}/simulate/{{case}}_{{frame}}.tsv"
-    threads: workflow.cores
+    threads: HEAVY
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_simulate, set_threads
@@ -114,7 +117,7 @@ rule pinhole:
         tiff=f"{OUT}/calib/{{calib}}/pinhole.tif",
     log: f"{LOG}/pinhole/{{calib}}.log"
     benchmark: f"{BENCH}/pinhole/{{calib}}.tsv"
-    threads: workflow.cores
+    threads: HEAVY
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_pinhole, set_threads
@@ -127,7 +130,7 @@ rule calibrate:
     output: directory(f"{OUT}/calib/{{calib}}/centers.zarr")
     log: f"{LOG}/calibrate/{{calib}}.log"
     benchmark: f"{BENCH}/calibrate/{{calib}}.tsv"
-    threads: workflow.cores
+    threads: HEAVY
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_calibrate, set_threads
@@ -154,7 +157,7 @@ rule refocus:
     output: directory(f"{OUT}/{{case}}/stack_{{frame}}.zarr")
     log: f"{LOG}/refocus/{{case}}_{{frame}}.log"
     benchmark: f"{BENCH}/refocus/{{case}}_{{frame}}.tsv"
-    threads: workflow.cores
+    threads: HEAVY
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_refocus, set_threads
@@ -182,7 +185,7 @@ rule piv:
     output: directory(f"{OUT}/{{case}}/piv.zarr")
     log: f"{LOG}/piv/{{case}}.log"
     benchmark: f"{BENCH}/piv/{{case}}.tsv"
-    threads: workflow.cores
+    threads: HEAVY
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_piv, set_threads

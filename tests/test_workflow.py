@@ -59,6 +59,10 @@ def test_study_runs_end_to_end(study_dir):
     assert 0 < float(sel["valid_percent"]) <= 100
     assert np.isfinite(float(sel["rms_x"])) and float(sel["rms_x"]) < 2.0
     assert (out / "study.csv").read_text().count("\n") == 1 + len(expand_cases(cfg))
+    # The report is self-contained: figures embedded, nothing fetched from the network.
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 5
+    assert 'src="http' not in html and "<script src" not in html
 
 
 def test_second_run_does_nothing(study_dir):
@@ -69,7 +73,7 @@ def test_deleting_intermediate_reruns_only_dependents(study_dir):
     case = expand_cases(load_config(TINY))[0].case_id
     shutil.rmtree(study_dir / "results" / "tiny" / case / "volume_b.zarr")
     jobs = _planned_jobs(study_dir)
-    assert set(jobs) == {"reconstruct", "piv", "errors", "study"}
+    assert set(jobs) == {"reconstruct", "piv", "errors", "study", "report"}
     assert jobs["reconstruct"] == 1 and jobs["piv"] == 1
     r = _snakemake(study_dir)
     assert r.returncode == 0, r.stderr[-3000:]
