@@ -31,6 +31,7 @@ import numpy as np
 import scipy.fft as sfft
 import xarray as xr
 from scipy import ndimage
+from tqdm.auto import tqdm
 
 from lfstudy.piv_deform import deform, dense_predictor, spline_coefficients
 
@@ -442,6 +443,7 @@ def widim(
     nmt_threshold: float = 2.0,
     chunk_windows: int | None = None,
     workers: int | None = None,
+    progress: bool = False,
 ) -> xr.Dataset:
     """Multi-pass, multi-grid PIV of two images or volumes (WIDIM, thesis ch. 6).
 
@@ -484,6 +486,8 @@ def widim(
         read at once). Default: about 2**25 correlation-plane voxels per batch.
     workers : int, optional
         Threads for ``scipy.fft``; results do not depend on it.
+    progress : bool
+        Show a tqdm bar over the passes (level, corrector RMS and valid % as it goes).
 
     Returns
     -------
@@ -552,6 +556,9 @@ def widim(
     cache: dict = {}
     centres_prev: list[np.ndarray] | None = None
     rec_rms, rec_valid, rec_level = [], [], []
+    # the bar's total is the pass budget; levels that converge early finish it sooner
+    bar = tqdm(total=levels * max_passes, desc="PIV passes", unit="pass", disable=not progress,
+               mininterval=1.0)
     for level, (w, s) in enumerate(sizes, start=1):  # grid refinement (sec. 6.1.5)
         nodes = [grid_nodes(shape[ax], w[ax], s[ax]) for ax in range(nd)]
         centres = [n + (w[ax] - 1) / 2.0 for ax, n in enumerate(nodes)]
@@ -576,10 +583,13 @@ def widim(
             rec_rms.append(rms)
             rec_valid.append(100.0 * float(valid.mean()))
             rec_level.append(level)
+            bar.update(1)
+            bar.set_postfix(level=level, corrector_rms=f"{rms:.3f}", valid=f"{rec_valid[-1]:.1f}%")
             if rms < tol or (rms_old is not None and abs(rms - rms_old) < tol):
                 break
             rms_old = rms
         centres_prev = centres
+    bar.close()
 
     return _to_dataset(field, valid, peak, centres, ia, dims, shape, sizes, rec_rms, rec_valid,
                        rec_level, dict(window=window_t, spacing=spacing_t, levels=levels, mode=mode,

@@ -60,6 +60,7 @@ import numba
 import numpy as np
 import xarray as xr
 from numba import njit, prange
+from tqdm.auto import tqdm
 
 from lfstudy.optics import PlenopticCamera
 
@@ -81,6 +82,7 @@ __all__ = [
 #: Particle chunks (= image buffers) of the kernel. Fixed so that the image is
 #: the same whatever the thread count; more threads than chunks gain nothing.
 DEFAULT_CHUNKS = 8
+_PIECES = 16  # kernel calls per render (progress granularity; fixed, part of the summation order)
 
 
 class RaytraceError(ValueError):
@@ -158,11 +160,13 @@ _G_SIZE = 22
 
 
 @njit(parallel=True, fastmath=False, cache=True)
-def _trace(px, py, pz, pint, nrays, bounds, seed, g, buffers, stats, lost, hist, amax):  # pragma: no cover - jitted
-    """Trace every ray of every particle; one chunk of particles per buffer.
+def _trace(px, py, pz, pint, nrays, starts, ends, seed, g, buffers, stats, lost, hist, amax):  # pragma: no cover - jitted
+    """Trace particles ``starts[k]:ends[k]`` of chunk k into buffer k; chunks in parallel.
 
-    stats[k] = (rays traced, rays missing the lenslet array, rays off the sensor,
-    rays recorded); lost[k] = intensity not recorded; hist[k, 0|1, :] = θ|φ
+    Everything accumulates, so a chunk traced in consecutive pieces (one call
+    per piece, for progress) sums in the same order as in one piece.
+    stats[k] += (rays traced, rays missing the lenslet array, rays off the sensor,
+    rays recorded); lost[k] += intensity not recorded; hist[k, 0|1, :] = θ|φ
     histograms of recorded rays (if hist has bins); amax[k] = max |θ|, |φ|, γ.
     """
     so, si, fm, fl, rad = g[_G_SO], g[_G_SI], g[_G_FM], g[_G_FL], g[_G_R]
@@ -178,14 +182,14 @@ def _trace(px, py, pz, pint, nrays, bounds, seed, g, buffers, stats, lost, hist,
     nrow, ncol = g[_G_NROW], g[_G_NCOL]
     nbins = hist.shape[2]
     key0 = _mix64(seed)
-    for k in prange(bounds.shape[0] - 1):
+    for k in prange(starts.shape[0]):
         buf = buffers[k]
         n_traced = 0
         n_miss = 0
         n_off = 0
         n_rec = 0
         lost_k = 0.0
-        for i in range(bounds[k], bounds[k + 1]):
+        for i in range(starts[k], ends[k]):
             inv_d = 1.0 / (so + pz[i])
             x0, y0, inten = px[i], py[i], pint[i]
             key = _mix64(key0 ^ (np.uint64(i) * _GAMMA))
@@ -256,11 +260,11 @@ def _trace(px, py, pz, pint, nrays, bounds, seed, g, buffers, stats, lost, hist,
                     b = math.floor((ph + hmax) / (2.0 * hmax) * nbins)
                     if 0.0 <= b < nbins:
                         hist[k, 1, int(b)] += 1
-        stats[k, 0] = n_traced
-        stats[k, 1] = n_miss
-        stats[k, 2] = n_off
-        stats[k, 3] = n_rec
-        lost[k] = lost_k
+        stats[k, 0] += n_traced
+        stats[k, 1] += n_miss
+        stats[k, 2] += n_off
+        stats[k, 3] += n_rec
+        lost[k] += lost_k
 
 
 # ------------------------------------------------------------------ inputs
@@ -378,7 +382,7 @@ def memory_estimate(camera: PlenopticCamera, n_particles: int, n_chunks: int = D
 
 
 def _run_kernel(camera, x, y, z, inten, nrays, seed, *, diffraction, n_chunks, record=True,
-                nbins=0, hmax=1.0):
+                nbins=0, hmax=1.0, progress=False):
     bounds = _chunk_bounds(x.size, n_chunks)
     k = bounds.size - 1
     shape = (k, camera.n_pixels_y, camera.n_pixels_x) if record else (k, 1, 1)
@@ -388,7 +392,16 @@ def _run_kernel(camera, x, y, z, inten, nrays, seed, *, diffraction, n_chunks, r
     hist = np.zeros((k, 2, nbins), dtype=np.int64)
     amax = np.zeros((k, 3), dtype=np.float64)
     g = _geometry(camera, diffraction, record, hmax)
-    _trace(x, y, z, inten, nrays, bounds, seed, g, buffers, stats, lost, hist, amax)
+    # Each chunk is traced in _PIECES consecutive pieces (a fixed count, so the
+    # bytes never depend on the progress bar or the threads); one bar step per piece.
+    cum = np.concatenate([[0], np.cumsum(nrays, dtype=np.int64)])
+    with tqdm(total=int(cum[-1]), desc="ray tracing", unit="ray", unit_scale=True,
+              disable=not progress, mininterval=1.0) as bar:
+        for p in range(_PIECES):
+            starts = bounds[:-1] + (bounds[1:] - bounds[:-1]) * p // _PIECES
+            ends = bounds[:-1] + (bounds[1:] - bounds[:-1]) * (p + 1) // _PIECES
+            _trace(x, y, z, inten, nrays, starts, ends, seed, g, buffers, stats, lost, hist, amax)
+            bar.update(int((cum[ends] - cum[starts]).sum()))
     return buffers, stats, lost, hist, amax
 
 
@@ -415,6 +428,7 @@ def render(
     bit_depth: int | None = None,
     n_chunks: int = DEFAULT_CHUNKS,
     max_image_bytes: float = 4e9,
+    progress: bool = False,
 ) -> xr.DataArray:
     """Ray-trace a raw plenoptic image of a particle field (sec. 4.3).
 
@@ -451,6 +465,8 @@ def render(
         definition (summation order), not a tuning knob for threads.
     max_image_bytes : float
         Refuse (ValueError) if the estimated allocation exceeds this.
+    progress : bool
+        Show a tqdm bar of the rays traced (it does not change the result).
 
     Returns
     -------
@@ -479,7 +495,7 @@ def render(
         )
     nrays = ray_counts(camera, particles, n, solid_angle_correction=solid_angle_correction)
     buffers, stats, lost, _, _ = _run_kernel(camera, x, y, z, inten, nrays, seed64,
-                                             diffraction=diffraction, n_chunks=n_chunks)
+                                             diffraction=diffraction, n_chunks=n_chunks, progress=progress)
     # Fixed-order sum of the chunk buffers (deterministic whatever the threads).
     image = np.zeros(buffers.shape[1:], dtype=np.float64)
     for b in buffers:
@@ -657,7 +673,7 @@ def angle_histograms(
 
 
 # ------------------------------------------------------------ config -> images
-def simulate_case(case_cfg: Mapping[str, Any]) -> dict[str, xr.DataArray | xr.Dataset]:
+def simulate_case(case_cfg: Mapping[str, Any], *, progress: bool = False) -> dict[str, xr.DataArray | xr.Dataset]:
     """Everything the simulate stage produces for one case config (from :func:`lfstudy.config.case_config`).
 
     Seeds the first particle field, displaces it with the case's flow
@@ -665,7 +681,7 @@ def simulate_case(case_cfg: Mapping[str, Any]) -> dict[str, xr.DataArray | xr.Da
     exposures and the f/16 pinhole calibration image. Seeds are derived as
     in :mod:`lfstudy.workflow` (particle field from the study seed,
     magnification and ppp; ray streams from the case id and frame), so this
-    reproduces the Snakemake outputs.
+    reproduces the Snakemake outputs. ``progress`` shows a bar per ray-traced image.
 
     Returns
     -------
@@ -698,13 +714,13 @@ def simulate_case(case_cfg: Mapping[str, Any]) -> dict[str, xr.DataArray | xr.Da
     for frame, field in (("a", field_a), ("b", field_b)):
         seed = derive_seed(base, "raytrace", case_id, frame) if case_id else derive_seed(base, "raytrace", frame)
         img = render(cam, field, int(rt["rays_per_particle"]), seed, diffraction=rt.get("diffraction", True),
-                     max_image_bytes=rt.get("max_image_bytes", 4e9))
+                     max_image_bytes=rt.get("max_image_bytes", 4e9), progress=progress)
         img.attrs.update(io.provenance(case_cfg, seed), frame=frame)
         out[f"image_{frame}"] = img
     ph = case_cfg["pinhole"]
     seed = derive_seed(base, "pinhole", calib_id(case_id)) if case_id else derive_seed(base, "pinhole")
     pin = render_pinhole(cam, fnumber=ph["fnumber"], count=int(ph["count"]), rays_per_point=int(ph["rays_per_point"]),
-                         seed=seed, max_image_bytes=rt.get("max_image_bytes", 4e9))
+                         seed=seed, max_image_bytes=rt.get("max_image_bytes", 4e9), progress=progress)
     pin.attrs.update(io.provenance(case_cfg, seed))
     out["pinhole"] = pin
     return out

@@ -152,7 +152,7 @@ def run_simulate(cfg: Mapping[str, Any], case_id: str, frame: str, particles: st
     seed = derive_seed(ccfg["seed"], "raytrace", case_id, frame)
     field = io.open_zarr(particles).load()
     img = render(cam, field, rt["rays_per_particle"], seed, diffraction=rt["diffraction"],
-                 max_image_bytes=rt["max_image_bytes"])
+                 max_image_bytes=rt["max_image_bytes"], progress=True)
     img.attrs.update(io.provenance(ccfg, seed), frame=frame)
     io.write_zarr(img, out_zarr, name="intensity")
     io.write_tiff(img, out_tiff, dtype="float32")
@@ -205,7 +205,7 @@ def run_refocus(cfg: Mapping[str, Any], case_id: str, lightfield: str | Path, ou
     lf = ds[list(ds.data_vars)[0]].load()
     stack = focal_stack(lf, cam, planes, resize=r["resize"])
     stack.attrs.update(io.provenance(ccfg, None))
-    io.write_zarr(stack, out, name=stack.name or "intensity", progress=False)
+    io.write_zarr(stack, out, name=stack.name or "intensity", progress=True)  # one task per plane
 
 
 def run_reconstruct(cfg: Mapping[str, Any], case_id: str, stack: str | Path, out: str | Path) -> None:
@@ -232,7 +232,8 @@ def run_piv(cfg: Mapping[str, Any], case_id: str, vol_a: str | Path, vol_b: str 
     a = a[list(a.data_vars)[0]].load()
     b = b[list(b.data_vars)[0]].load()
     t0 = time.perf_counter()
-    res = widim(a, b, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"])
+    res = widim(a, b, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"],
+                progress=True)
     res.attrs.update(io.provenance(ccfg, None), piv_seconds=time.perf_counter() - t0)
     io.write_zarr(res, out)
 

@@ -257,3 +257,13 @@ def test_deterministic_across_threads() -> None:
     two = widim(a, b, window=16, spacing=8, workers=2)
     for c in ("u", "v", "w", "peak"):
         assert one[c].values.tobytes() == two[c].values.tobytes()
+
+
+def test_progress_bar_over_passes(capsys) -> None:
+    a, b = particle_pair(SHAPE2, (0.4, -1.2), density=0.02, seed=5)
+    quiet = widim(a, b, window=32, spacing=16, levels=2)
+    capsys.readouterr()
+    shown = widim(a, b, window=32, spacing=16, levels=2, progress=True)
+    err = capsys.readouterr().err
+    assert "PIV passes" in err and "corrector_rms" in err
+    np.testing.assert_array_equal(quiet.u.values, shown.u.values)

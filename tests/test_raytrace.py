@@ -112,6 +112,17 @@ def test_bit_identical_across_threads_and_seeds_differ():
     assert other.sum() == pytest.approx(one.sum(), rel=0.02)
 
 
+def test_progress_bar_reports_rays_and_leaves_image_unchanged(capsys):
+    field = seed_particles(CAM, count=40, z_span=3.0, seed=9)
+    quiet = rt.render(CAM, field, 2000, 11)
+    capsys.readouterr()
+    shown = rt.render(CAM, field, 2000, 11, progress=True)
+    err = capsys.readouterr().err
+    assert "ray tracing" in err and "100%" in err
+    assert np.array_equal(quiet.values, shown.values)
+    assert quiet.attrs["intensity_lost"] == shown.attrs["intensity_lost"]
+
+
 def test_diffraction_sigmas_at_the_right_planes():
     """Main lens at f/16, lenslets at f/2: sigma at the lenslet plane 7.7 um, at the sensor 0.48 um.
 

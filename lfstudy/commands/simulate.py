@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     case_id = args.case or expand_cases(cfg)[0].case_id
     ccfg = case_config(cfg, case_id)
     t0 = time.perf_counter()
-    res = simulate_case(ccfg)
+    res = simulate_case(ccfg, progress=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for name in ("particles_a", "particles_b"):
