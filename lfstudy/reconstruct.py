@@ -85,6 +85,21 @@ def disk(radius: int, ndim: int = 2) -> np.ndarray:
     return (g**2).sum(0) <= radius**2
 
 
+@register_method("none")
+def focal_stack_as_is(stack: xr.DataArray) -> xr.DataArray:
+    """No reconstruction: correlate the refocused planes themselves.
+
+    The hard threshold of sec. 5.5 cuts particle images off at the mask edge; on
+    the thesis' uniform-x case (0.001 ppp) PIV of the plain stack spreads less in
+    y and z (benchmarks/bench_study_thesis.py). Out-of-focus blur stays in.
+    """
+    res = stack.chunk({stack.dims[0]: 1})
+    res.name = stack.name or "intensity"
+    res.attrs = dict(stack.attrs)
+    res.attrs.update(long_name="focal stack used as the volume (no reconstruction)", method="none")
+    return res
+
+
 @register_method("threshold")
 def threshold_dilate(
     stack: xr.DataArray,

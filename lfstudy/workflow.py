@@ -215,6 +215,8 @@ def run_reconstruct(cfg: Mapping[str, Any], case_id: str, stack: str | Path, out
     ccfg, _ = _case(cfg, case_id)
     r = dict(ccfg["reconstruct"])
     method = r.pop("method")
+    if method == "none":  # k and dilation_radius belong to the threshold method
+        r = {}
     ds = io.open_zarr(stack)
     vol = reconstruct(ds[list(ds.data_vars)[0]], method=method, **r)
     vol.attrs.update(io.provenance(ccfg, None))

@@ -46,6 +46,22 @@ def test_threshold_dilation_hand_computed():
     assert reconstruct(_stack(v3), dilation_ndim=3).values[1, 2, 2] == 3.0
 
 
+def test_none_method_keeps_the_stack():
+    v = np.random.default_rng(0).random((3, 4, 5))
+    st = _stack(v)
+    out = reconstruct(st, method="none")
+    np.testing.assert_array_equal(out.values, v)
+    assert out.attrs["method"] == "none" and out.chunks[0] == (1, 1, 1)
+    xr.testing.assert_identical(out["z"], st["z"])
+
+
+def test_config_rejects_unknown_method():
+    from lfstudy.config import ConfigError, validate_config
+
+    with pytest.raises(ConfigError, match=r"reconstruct\.method.*mart"):
+        validate_config({"camera": {}, "reconstruct": {"method": "mart"}})
+
+
 def test_disk_footprints():
     assert disk(1).sum() == 5 and disk(2).sum() == 13 and disk(1, 3).sum() == 7
 
