@@ -566,15 +566,12 @@ def combine_cases(per_case: Iterable[tuple[Mapping[str, Any], xr.Dataset]]) -> x
         at = tuple(pos[k][params[k]] for k in SWEEP_KEYS)
         computed[at] = True
         for name, var in s.data_vars.items():
-            if var.ndim != 0:
+            if var.ndim != 0 or var.dtype.kind not in "biuf":  # numeric scalars only
                 continue
             if name not in data:
                 data[name] = np.full(shape, np.nan)
                 attrs[name] = dict(var.attrs)
-            try:
-                data[name][at] = float(var.values)
-            except (TypeError, ValueError):
-                pass
+            data[name][at] = float(var.values)
     # Stable, readable variable order: headline metrics first, then by name.
     order = [m for m in METRIC_LABELS if m in data] + sorted(n for n in data if n not in METRIC_LABELS)
     ds = xr.Dataset(

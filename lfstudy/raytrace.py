@@ -689,41 +689,14 @@ def simulate_case(case_cfg: Mapping[str, Any], *, progress: bool = False) -> dic
         ``particles_a``, ``particles_b`` (Datasets) and ``image_a``,
         ``image_b``, ``pinhole`` (DataArrays named ``intensity``).
     """
-    from lfstudy import io
-    from lfstudy.config import Case
-    from lfstudy.flows import displace, flow_from_config
-    from lfstudy.particles import seed_particles
-    from lfstudy.workflow import calib_id, derive_seed
+    from lfstudy.workflow import case_displaced, case_image, case_particles, case_pinhole
 
-    cam = PlenopticCamera.from_config(case_cfg)
-    base = int(case_cfg.get("seed", 0))
-    case_id = case_cfg.get("case_id")
-    case = Case.from_id(case_id) if case_id else None
-    p = case_cfg["particles"]
-    pseed = derive_seed(base, "particles", case.magnification, case.ppp) if case else base
-    kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
-    field_a = seed_particles(cam, **kw, x_span=p.get("x_span"), y_span=p.get("y_span"),
-                             z_span=p.get("z_span", 0.0), intensity=tuple(p.get("intensity", (1.0, 1.0))),
-                             seed=pseed)
-    field_a.attrs.update(io.provenance(case_cfg, pseed))
-    spec = case_cfg["flow"]
-    field_b = displace(field_a, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
-    field_b.attrs.update(flow=spec.get("name", spec["kind"]))
-    rt = case_cfg["raytrace"]
-    out: dict[str, xr.DataArray | xr.Dataset] = {"particles_a": field_a, "particles_b": field_b}
-    for frame, field in (("a", field_a), ("b", field_b)):
-        seed = derive_seed(base, "raytrace", case_id, frame) if case_id else derive_seed(base, "raytrace", frame)
-        img = render(cam, field, int(rt["rays_per_particle"]), seed, diffraction=rt.get("diffraction", True),
-                     max_image_bytes=rt.get("max_image_bytes", 4e9), progress=progress)
-        img.attrs.update(io.provenance(case_cfg, seed), frame=frame)
-        out[f"image_{frame}"] = img
-    ph = case_cfg["pinhole"]
-    seed = derive_seed(base, "pinhole", calib_id(case_id)) if case_id else derive_seed(base, "pinhole")
-    pin = render_pinhole(cam, fnumber=ph["fnumber"], count=int(ph["count"]), rays_per_point=int(ph["rays_per_point"]),
-                         seed=seed, max_image_bytes=rt.get("max_image_bytes", 4e9), progress=progress)
-    pin.attrs.update(io.provenance(case_cfg, seed))
-    out["pinhole"] = pin
-    return out
+    field_a = case_particles(case_cfg)
+    field_b = case_displaced(case_cfg, field_a)
+    return {"particles_a": field_a, "particles_b": field_b,
+            "image_a": case_image(case_cfg, field_a, "a", progress=progress),
+            "image_b": case_image(case_cfg, field_b, "b", progress=progress),
+            "pinhole": case_pinhole(case_cfg, progress=progress)}
 
 
 def write_image(image: xr.DataArray, stem: str | Path) -> tuple[Path, Path]:

@@ -32,6 +32,10 @@ __all__ = [
     "set_threads",
     "derive_seed",
     "calib_id",
+    "case_particles",
+    "case_displaced",
+    "case_image",
+    "case_pinhole",
     "run_optics",
     "run_particles",
     "run_displace",
@@ -115,59 +119,77 @@ def run_optics(cfg: Mapping[str, Any], case_id: str, out_json: str | Path, out_p
     _write_json({"case_id": case_id, **{k: str(v) for k, v in cam.summary().items()}}, out_json)
 
 
-def run_particles(cfg: Mapping[str, Any], case_id: str, out: str | Path) -> None:
-    """Seed the first-exposure particle field."""
+def case_particles(ccfg: Mapping[str, Any]) -> Any:
+    """The first-exposure particle field of a case config (:func:`lfstudy.config.case_config`)."""
     from lfstudy.particles import seed_particles
 
-    ccfg, cam = _case(cfg, case_id)
+    cam = PlenopticCamera.from_config(ccfg)
     p = ccfg["particles"]
-    case = Case.from_id(case_id)
+    case = Case.from_id(ccfg["case_id"])
     seed = derive_seed(ccfg["seed"], "particles", case.magnification, case.ppp)
     kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
     field = seed_particles(cam, **kw, x_span=p["x_span"], y_span=p["y_span"], z_span=p["z_span"],
                            intensity=tuple(p["intensity"]), seed=seed)
     field.attrs.update(io.provenance(ccfg, seed))
-    io.write_zarr(field, out)
+    return field
+
+
+def case_displaced(ccfg: Mapping[str, Any], field: Any) -> Any:
+    """The second-exposure field: ``field`` advected by the case's flow."""
+    from lfstudy.flows import displace, flow_from_config
+
+    spec = ccfg["flow"]
+    moved = displace(field, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
+    moved.attrs.update(io.provenance(ccfg, field.attrs.get("seed")), flow=spec["name"])
+    return moved
+
+
+def case_image(ccfg: Mapping[str, Any], field: Any, frame: str, *, progress: bool = False) -> Any:
+    """Ray-trace the raw image of exposure ``frame`` ("a" or "b") of a case."""
+    from lfstudy.raytrace import render
+
+    rt = ccfg["raytrace"]
+    seed = derive_seed(ccfg["seed"], "raytrace", ccfg["case_id"], frame)
+    img = render(PlenopticCamera.from_config(ccfg), field, rt["rays_per_particle"], seed,
+                 diffraction=rt["diffraction"], max_image_bytes=rt["max_image_bytes"], progress=progress)
+    img.attrs.update(io.provenance(ccfg, seed), frame=frame)
+    return img
+
+
+def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> Any:
+    """Ray-trace the calibration pinhole image (sec. 5.1), shared by the case's calibration group."""
+    from lfstudy.raytrace import render_pinhole
+
+    ph = ccfg["pinhole"]
+    seed = derive_seed(ccfg["seed"], "pinhole", calib_id(ccfg["case_id"]))
+    img = render_pinhole(PlenopticCamera.from_config(ccfg), fnumber=ph["fnumber"], count=ph["count"],
+                         rays_per_point=ph["rays_per_point"], seed=seed,
+                         max_image_bytes=ccfg["raytrace"]["max_image_bytes"], progress=progress)
+    img.attrs.update(io.provenance(ccfg, seed))
+    return img
+
+
+def run_particles(cfg: Mapping[str, Any], case_id: str, out: str | Path) -> None:
+    """Seed the first-exposure particle field."""
+    io.write_zarr(case_particles(case_config(cfg, case_id)), out)
 
 
 def run_displace(cfg: Mapping[str, Any], case_id: str, particles: str | Path, out: str | Path) -> None:
     """Second-exposure particle field: the first one advected by the case's flow."""
-    from lfstudy.flows import displace, flow_from_config
-
-    ccfg, _ = _case(cfg, case_id)
-    spec = ccfg["flow"]
-    field = io.open_zarr(particles).load()
-    moved = displace(field, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
-    moved.attrs.update(io.provenance(ccfg, field.attrs.get("seed")), flow=spec["name"])
-    io.write_zarr(moved, out)
+    io.write_zarr(case_displaced(case_config(cfg, case_id), io.open_zarr(particles).load()), out)
 
 
 def run_simulate(cfg: Mapping[str, Any], case_id: str, frame: str, particles: str | Path,
                  out_zarr: str | Path, out_tiff: str | Path) -> None:
     """Ray-trace one raw plenoptic image (frame ``a`` or ``b``)."""
-    from lfstudy.raytrace import render
-
-    ccfg, cam = _case(cfg, case_id)
-    rt = ccfg["raytrace"]
-    seed = derive_seed(ccfg["seed"], "raytrace", case_id, frame)
-    field = io.open_zarr(particles).load()
-    img = render(cam, field, rt["rays_per_particle"], seed, diffraction=rt["diffraction"],
-                 max_image_bytes=rt["max_image_bytes"], progress=True)
-    img.attrs.update(io.provenance(ccfg, seed), frame=frame)
+    img = case_image(case_config(cfg, case_id), io.open_zarr(particles).load(), frame, progress=True)
     io.write_zarr(img, out_zarr, name="intensity")
     io.write_tiff(img, out_tiff, dtype="float32")
 
 
 def run_pinhole(cfg: Mapping[str, Any], case_id: str, out_zarr: str | Path, out_tiff: str | Path) -> None:
     """Ray-trace the calibration pinhole image (sec. 5.1)."""
-    from lfstudy.raytrace import render_pinhole
-
-    ccfg, cam = _case(cfg, case_id)
-    ph = ccfg["pinhole"]
-    seed = derive_seed(ccfg["seed"], "pinhole", calib_id(case_id))
-    img = render_pinhole(cam, fnumber=ph["fnumber"], count=ph["count"], rays_per_point=ph["rays_per_point"],
-                         seed=seed)
-    img.attrs.update(io.provenance(ccfg, seed))
+    img = case_pinhole(case_config(cfg, case_id), progress=True)
     io.write_zarr(img, out_zarr, name="intensity")
     io.write_tiff(img, out_tiff, dtype="float32")
 
