@@ -107,16 +107,25 @@ def test_killed_run_restarts_cleanly(study_dir):
            "--cores", "1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 120
-    # Wait until a refocus job has started (its log appears), then kill everything hard.
-    logs = out / "logs" / "refocus"
-    while time.time() < deadline and not any(logs.rglob("*_a.log")):
-        time.sleep(0.05)
+    # Wait until a refocus job is writing its store (its hidden temporary store exists), then
+    # kill everything hard, so the kill lands in the middle of a write.
+    writing = False
+    while time.time() < deadline and proc.poll() is None:
+        if any(out.rglob(".stack_a.zarr.tmp-*")):
+            writing = True
+            break
+        time.sleep(0.01)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
+    assert writing, "the kill did not land while a focal stack was being written"
     # A killed writer may leave its hidden temporary store, but never an incomplete store under
     # the real name: every visible zarr store opens.
     for store in out.rglob("*.zarr"):
         io.open_zarr(store)
+    # A SIGKILLed snakemake cannot release its lock: the documented restart is
+    # --unlock, then the same command with --rerun-incomplete.
+    r = _snakemake(study_dir, "--unlock")
+    assert r.returncode == 0, r.stderr[-3000:]
     r = _snakemake(study_dir, "--rerun-incomplete")
     assert r.returncode == 0, r.stderr[-3000:]
     assert _planned_jobs(study_dir) == {}
