@@ -589,6 +589,8 @@ def widim(
                 break
             rms_old = rms
         centres_prev = centres
+    bar.total = bar.n  # converged early: the bar ends full, at the passes actually run
+    bar.refresh()
     bar.close()
 
     return _to_dataset(field, valid, peak, centres, ia, dims, shape, sizes, rec_rms, rec_valid,
