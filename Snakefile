@@ -7,9 +7,19 @@
 # The pinhole image and lenslet calibration are shared by all cases with the
 # same magnification and lenslet pitch (results/<name>/calib/...). The study
 # combines every case into study.zarr / study.csv and report.html.
-# Rule bodies live in lfstudy/workflow.py.
+# Rule bodies live in lfstudy/workflow.py. Per-case rules are shell commands
+# (python -m lfstudy.workflow STAGE ...): far cheaper to start than a run:
+# block, which Snakemake executes by spawning a whole new Snakemake. Each gets
+# the config sections its stage reads as params, so editing the config reruns
+# exactly the stages that depend on the change.
+import json
+import os
+import sys
+
+from snakemake.exceptions import WorkflowError
+
 from lfstudy.config import expand_cases, validate_config
-from lfstudy.workflow import calib_id, logged
+from lfstudy.workflow import calib_id, logged, stage_config
 
 configfile: "config/demo.yaml"
 
@@ -23,12 +33,32 @@ OUT = f"results/{NAME}"
 LOG = f"{OUT}/logs"
 BENCH = f"{OUT}/benchmarks"
 # threads of the multi-threaded rules: all cores unless the config caps them
-HEAVY = min(workflow.cores, CFG["workflow"]["threads_per_job"] or workflow.cores)
+try:
+    CORES = workflow.cores
+except WorkflowError:  # no --cores: 'snakemake --report', --lint; no job runs
+    CORES = 1
+HEAVY = min(CORES, CFG["workflow"]["threads_per_job"] or CORES)
 
 wildcard_constraints:
     case=r"mag~[^/]+/fnum~[^/]+/pitch~[^/]+/ppp~[^/]+/flow~[^/]+",
     calib=r"mag~[^/]+/pitch~[^/]+",
     frame=r"[ab]",
+
+
+# Jobs run 'python' from PATH: put this interpreter's directory first, so a
+# venv's snakemake works without activating the venv. (Not the interpreter's
+# path in the command itself: Snakemake would see changed code, and rerun
+# everything, whenever it is started through another path or symlink.)
+os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
+STAGE = "python -m lfstudy.workflow --config {params.cfg:q} --log {log:q} --threads {threads}"
+
+
+def stage_params(stage, calib=False):
+    """params.cfg of a per-case rule: the stage's config sections as JSON."""
+    def cfg(wildcards):
+        case = CASE_OF_CALIB[wildcards.calib] if calib else wildcards.case
+        return json.dumps(stage_config(CFG, case, stage), sort_keys=True)
+    return cfg
 
 
 def centers_of(wildcards):
@@ -65,11 +95,8 @@ rule camera:
     log: f"{LOG}/camera/{{case}}.log"
     benchmark: f"{BENCH}/camera/{{case}}.tsv"
     threads: 1
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_optics, set_threads
-            set_threads(threads)
-            run_optics(CFG, wildcards.case, output.json, output.planes)
+    params: cfg=stage_params("camera")
+    shell: STAGE + " camera {output.json:q} {output.planes:q}"
 
 
 rule particles:
@@ -78,10 +105,8 @@ rule particles:
     log: f"{LOG}/particles/{{case}}.log"
     benchmark: f"{BENCH}/particles/{{case}}.tsv"
     threads: 1
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_particles
-            run_particles(CFG, wildcards.case, output[0])
+    params: cfg=stage_params("particles")
+    shell: STAGE + " particles {output[0]:q}"
 
 
 rule displace:
@@ -90,10 +115,8 @@ rule displace:
     log: f"{LOG}/displace/{{case}}.log"
     benchmark: f"{BENCH}/displace/{{case}}.tsv"
     threads: 1
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_displace
-            run_displace(CFG, wildcards.case, input[0], output[0])
+    params: cfg=stage_params("displace")
+    shell: STAGE + " displace {input[0]:q} {output[0]:q}"
 
 
 rule simulate:
@@ -104,11 +127,8 @@ rule simulate:
     log: f"{LOG}/simulate/{{case}}_{{frame}}.log"
     benchmark: f"{BENCH}/simulate/{{case}}_{{frame}}.tsv"
     threads: HEAVY
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_simulate, set_threads
-            set_threads(threads)
-            run_simulate(CFG, wildcards.case, wildcards.frame, input[0], output.zarr, output.tiff)
+    params: cfg=stage_params("simulate")
+    shell: STAGE + " simulate {wildcards.frame} {input[0]:q} {output.zarr:q} {output.tiff:q}"
 
 
 rule pinhole:
@@ -118,11 +138,8 @@ rule pinhole:
     log: f"{LOG}/pinhole/{{calib}}.log"
     benchmark: f"{BENCH}/pinhole/{{calib}}.tsv"
     threads: HEAVY
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_pinhole, set_threads
-            set_threads(threads)
-            run_pinhole(CFG, CASE_OF_CALIB[wildcards.calib], output.zarr, output.tiff)
+    params: cfg=stage_params("pinhole", calib=True)
+    shell: STAGE + " pinhole {output.zarr:q} {output.tiff:q}"
 
 
 rule calibrate:
@@ -131,11 +148,8 @@ rule calibrate:
     log: f"{LOG}/calibrate/{{calib}}.log"
     benchmark: f"{BENCH}/calibrate/{{calib}}.tsv"
     threads: HEAVY
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_calibrate, set_threads
-            set_threads(threads)
-            run_calibrate(CFG, CASE_OF_CALIB[wildcards.calib], input[0], output[0])
+    params: cfg=stage_params("calibrate", calib=True)
+    shell: STAGE + " calibrate {input[0]:q} {output[0]:q}"
 
 
 rule register:
@@ -146,10 +160,8 @@ rule register:
     log: f"{LOG}/register/{{case}}_{{frame}}.log"
     benchmark: f"{BENCH}/register/{{case}}_{{frame}}.tsv"
     threads: 1
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_register
-            run_register(CFG, wildcards.case, input.raw, input.centers, output[0])
+    params: cfg=stage_params("register")
+    shell: STAGE + " register {input.raw:q} {input.centers:q} {output[0]:q}"
 
 
 rule refocus:
@@ -158,11 +170,8 @@ rule refocus:
     log: f"{LOG}/refocus/{{case}}_{{frame}}.log"
     benchmark: f"{BENCH}/refocus/{{case}}_{{frame}}.tsv"
     threads: HEAVY
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_refocus, set_threads
-            set_threads(threads)
-            run_refocus(CFG, wildcards.case, input[0], output[0])
+    params: cfg=stage_params("refocus")
+    shell: STAGE + " refocus {input[0]:q} {output[0]:q}"
 
 
 rule reconstruct:
@@ -171,11 +180,8 @@ rule reconstruct:
     log: f"{LOG}/reconstruct/{{case}}_{{frame}}.log"
     benchmark: f"{BENCH}/reconstruct/{{case}}_{{frame}}.tsv"
     threads: 1
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_reconstruct, set_threads
-            set_threads(threads)
-            run_reconstruct(CFG, wildcards.case, input[0], output[0])
+    params: cfg=stage_params("reconstruct")
+    shell: STAGE + " reconstruct {input[0]:q} {output[0]:q}"
 
 
 rule piv:
@@ -186,11 +192,8 @@ rule piv:
     log: f"{LOG}/piv/{{case}}.log"
     benchmark: f"{BENCH}/piv/{{case}}.tsv"
     threads: HEAVY
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_piv, set_threads
-            set_threads(threads)
-            run_piv(CFG, wildcards.case, input.a, input.b, output[0])
+    params: cfg=stage_params("piv")
+    shell: STAGE + " piv {input.a:q} {input.b:q} {output[0]:q}"
 
 
 rule errors:
@@ -202,10 +205,8 @@ rule errors:
     log: f"{LOG}/errors/{{case}}.log"
     benchmark: f"{BENCH}/errors/{{case}}.tsv"
     threads: 1
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_errors
-            run_errors(CFG, wildcards.case, input.piv, input.volume, input.particles, output[0])
+    params: cfg=stage_params("errors")
+    shell: STAGE + " errors {input.piv:q} {input.volume:q} {input.particles:q} {output[0]:q}"
 
 
 rule study:
@@ -215,6 +216,7 @@ rule study:
         csv=f"{OUT}/study.csv",
     log: f"{LOG}/study.log"
     threads: 1
+    params: cfg=json.dumps(CFG, sort_keys=True, default=str)  # rerun on any config change
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_study
@@ -228,6 +230,7 @@ rule report:
     output: report(f"{OUT}/report.html", caption="reports/report.rst", category="Study")
     log: f"{LOG}/report.log"
     threads: 1
+    params: cfg=json.dumps(CFG, sort_keys=True, default=str)
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_report

@@ -31,6 +31,9 @@ __all__ = [
     "logged",
     "set_threads",
     "derive_seed",
+    "STAGE_SECTIONS",
+    "stage_config",
+    "main",
     "calib_id",
     "case_particles",
     "case_displaced",
@@ -98,9 +101,29 @@ def calib_id(case: Case | str) -> str:
     return case.case_id.split("/fnum~")[0] + "/pitch~" + case.case_id.split("/pitch~")[1].split("/")[0]
 
 
-def _case(cfg: Mapping[str, Any], case_id: str) -> tuple[dict[str, Any], PlenopticCamera]:
+#: The config sections each per-case stage reads. The Snakefile passes a
+#: stage only these (``stage_config``) and declares them as the rule's
+#: ``params``, so Snakemake reruns a stage exactly when a section it depends
+#: on changes; a stage reading anything else fails loudly (KeyError).
+STAGE_SECTIONS: dict[str, tuple[str, ...]] = {
+    "camera": ("camera", "refocus"),
+    "particles": ("seed", "camera", "particles"),
+    "displace": ("flow",),
+    "simulate": ("seed", "camera", "raytrace"),
+    "pinhole": ("seed", "camera", "pinhole", "raytrace"),
+    "calibrate": ("camera",),
+    "register": ("camera",),
+    "refocus": ("camera", "refocus"),
+    "reconstruct": ("reconstruct",),
+    "piv": ("piv",),
+    "errors": ("flow",),
+}
+
+
+def stage_config(cfg: Mapping[str, Any], case_id: str, stage: str) -> dict[str, Any]:
+    """The part of case ``case_id``'s config that ``stage`` reads (plus ``case_id``)."""
     ccfg = case_config(cfg, case_id)
-    return ccfg, PlenopticCamera.from_config(ccfg)
+    return {"case_id": ccfg["case_id"], **{k: ccfg[k] for k in STAGE_SECTIONS[stage]}}
 
 
 def _write_json(obj: Mapping[str, Any], path: str | Path) -> None:
@@ -109,12 +132,13 @@ def _write_json(obj: Mapping[str, Any], path: str | Path) -> None:
 
 
 # ----------------------------------------------------------------- stages
-def run_optics(cfg: Mapping[str, Any], case_id: str, out_json: str | Path, out_planes: str | Path) -> None:
+def run_optics(ccfg: Mapping[str, Any], out_json: str | Path, out_planes: str | Path) -> None:
     """Camera stage: derived parameters (JSON) and the refocus-plane table (zarr)."""
-    ccfg, cam = _case(cfg, case_id)
+    cam = PlenopticCamera.from_config(ccfg)
+    case_id = ccfg["case_id"]
     r = ccfg["refocus"]
     planes = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
-    planes.attrs.update(io.provenance(ccfg, ccfg["seed"]))
+    planes.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(planes, out_planes)
     _write_json({"case_id": case_id, **{k: str(v) for k, v in cam.summary().items()}}, out_json)
 
@@ -169,58 +193,57 @@ def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> Any:
     return img
 
 
-def run_particles(cfg: Mapping[str, Any], case_id: str, out: str | Path) -> None:
+def run_particles(ccfg: Mapping[str, Any], out: str | Path) -> None:
     """Seed the first-exposure particle field."""
-    io.write_zarr(case_particles(case_config(cfg, case_id)), out)
+    io.write_zarr(case_particles(ccfg), out)
 
 
-def run_displace(cfg: Mapping[str, Any], case_id: str, particles: str | Path, out: str | Path) -> None:
+def run_displace(ccfg: Mapping[str, Any], particles: str | Path, out: str | Path) -> None:
     """Second-exposure particle field: the first one advected by the case's flow."""
-    io.write_zarr(case_displaced(case_config(cfg, case_id), io.open_zarr(particles).load()), out)
+    io.write_zarr(case_displaced(ccfg, io.open_zarr(particles).load()), out)
 
 
-def run_simulate(cfg: Mapping[str, Any], case_id: str, frame: str, particles: str | Path,
+def run_simulate(ccfg: Mapping[str, Any], frame: str, particles: str | Path,
                  out_zarr: str | Path, out_tiff: str | Path) -> None:
     """Ray-trace one raw plenoptic image (frame ``a`` or ``b``)."""
-    img = case_image(case_config(cfg, case_id), io.open_zarr(particles).load(), frame, progress=True)
+    img = case_image(ccfg, io.open_zarr(particles).load(), frame, progress=True)
     io.write_zarr(img, out_zarr, name="intensity")
     io.write_tiff(img, out_tiff, dtype="float32")
 
 
-def run_pinhole(cfg: Mapping[str, Any], case_id: str, out_zarr: str | Path, out_tiff: str | Path) -> None:
+def run_pinhole(ccfg: Mapping[str, Any], out_zarr: str | Path, out_tiff: str | Path) -> None:
     """Ray-trace the calibration pinhole image (sec. 5.1)."""
-    img = case_pinhole(case_config(cfg, case_id), progress=True)
+    img = case_pinhole(ccfg, progress=True)
     io.write_zarr(img, out_zarr, name="intensity")
     io.write_tiff(img, out_tiff, dtype="float32")
 
 
-def run_calibrate(cfg: Mapping[str, Any], case_id: str, pinhole: str | Path, out: str | Path) -> None:
+def run_calibrate(ccfg: Mapping[str, Any], pinhole: str | Path, out: str | Path) -> None:
     """Find every lenslet centre in the pinhole image (automatic grid detection)."""
     from lfstudy.calibrate import find_lenslet_centers
 
-    ccfg, cam = _case(cfg, case_id)
+    cam = PlenopticCamera.from_config(ccfg)
     img = io.open_zarr(pinhole, name="intensity").load()
     centers = find_lenslet_centers(img, cam)
     centers.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(centers, out)
 
 
-def run_register(cfg: Mapping[str, Any], case_id: str, raw: str | Path, centers: str | Path,
-                 out: str | Path) -> None:
+def run_register(ccfg: Mapping[str, Any], raw: str | Path, centers: str | Path, out: str | Path) -> None:
     """Raw image → 4-D light field (eqs 5.2–5.9)."""
     from lfstudy.lightfield import register
 
-    ccfg, cam = _case(cfg, case_id)
+    cam = PlenopticCamera.from_config(ccfg)
     lf = register(io.open_zarr(raw, name="intensity").load(), io.open_zarr(centers).load(), cam)
     lf.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(lf, out, name=lf.name or "radiance")
 
 
-def run_refocus(cfg: Mapping[str, Any], case_id: str, lightfield: str | Path, out: str | Path) -> None:
+def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path) -> None:
     """Light field → focal stack (z, y, x), resized to constant magnification."""
     from lfstudy.refocus import focal_stack
 
-    ccfg, cam = _case(cfg, case_id)
+    cam = PlenopticCamera.from_config(ccfg)
     r = ccfg["refocus"]
     planes = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
     ds = io.open_zarr(lightfield)
@@ -230,11 +253,10 @@ def run_refocus(cfg: Mapping[str, Any], case_id: str, lightfield: str | Path, ou
     io.write_zarr(stack, out, name=stack.name or "intensity", progress=True)  # one task per plane
 
 
-def run_reconstruct(cfg: Mapping[str, Any], case_id: str, stack: str | Path, out: str | Path) -> None:
+def run_reconstruct(ccfg: Mapping[str, Any], stack: str | Path, out: str | Path) -> None:
     """Focal stack → particle volume (threshold + dilation by default, sec. 5.5)."""
     from lfstudy.reconstruct import reconstruct
 
-    ccfg, _ = _case(cfg, case_id)
     r = dict(ccfg["reconstruct"])
     method = r.pop("method")
     if method == "none":  # k and dilation_radius belong to the threshold method
@@ -245,11 +267,10 @@ def run_reconstruct(cfg: Mapping[str, Any], case_id: str, stack: str | Path, out
     io.write_zarr(vol, out, name=vol.name or "intensity")
 
 
-def run_piv(cfg: Mapping[str, Any], case_id: str, vol_a: str | Path, vol_b: str | Path, out: str | Path) -> None:
+def run_piv(ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: str | Path) -> None:
     """3-D WIDIM PIV between the two reconstructed volumes."""
     from lfstudy.piv import widim
 
-    ccfg, _ = _case(cfg, case_id)
     p = ccfg["piv"]
     a = io.open_zarr(vol_a)
     b = io.open_zarr(vol_b)
@@ -262,20 +283,19 @@ def run_piv(cfg: Mapping[str, Any], case_id: str, vol_a: str | Path, vol_b: str 
     io.write_zarr(res, out)
 
 
-def run_errors(cfg: Mapping[str, Any], case_id: str, piv: str | Path, volume: str | Path,
-               particles: str | Path, out: str | Path) -> None:
+def run_errors(ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, particles: str | Path,
+               out: str | Path) -> None:
     """Errors of one case against the known flow (+ reconstruction quality Q)."""
     from lfstudy.flows import flow_from_config
     from lfstudy.metrics import case_errors, reconstruction_quality
 
-    ccfg, _ = _case(cfg, case_id)
     spec = ccfg["flow"]
     res = io.open_zarr(piv).load()
     err = case_errors(res, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
     vds = io.open_zarr(volume)
     q = reconstruction_quality(vds[list(vds.data_vars)[0]], io.open_zarr(particles).load())
     err["Q"] = ((), float(q), {"units": "1", "long_name": "reconstruction quality Q"})
-    err.attrs.update(io.provenance(ccfg, None), case_id=case_id)
+    err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
     io.write_zarr(err, out)
 
 
@@ -305,3 +325,49 @@ def run_report(cfg: Mapping[str, Any], case_ids: list[str], out_dir: str | Path,
 
     case_dirs = {cid: Path(out_dir) / cid for cid in case_ids}
     write_report(io.open_zarr(study).load(), case_dirs, dict(cfg), Path(out_html))
+
+
+_RUNNERS = {
+    "camera": run_optics,
+    "particles": run_particles,
+    "displace": run_displace,
+    "simulate": run_simulate,
+    "pinhole": run_pinhole,
+    "calibrate": run_calibrate,
+    "register": run_register,
+    "refocus": run_refocus,
+    "reconstruct": run_reconstruct,
+    "piv": run_piv,
+    "errors": run_errors,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one per-case stage: ``python -m lfstudy.workflow STAGE --config JSON --log F --threads N ARGS...``.
+
+    The Snakefile's shell rules call this: a plain interpreter start is
+    several times cheaper than Snakemake spawning itself for a ``run:`` job,
+    which matters for sweeps of many small cases. ``--config`` is the
+    stage's JSON config (:func:`stage_config`); ARGS are the stage function's
+    remaining arguments (frame and paths) in order.
+    """
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m lfstudy.workflow", description=main.__doc__)
+    ap.add_argument("stage", choices=sorted(_RUNNERS))
+    ap.add_argument("--config", required=True, help="the stage's config as JSON")
+    ap.add_argument("--log", required=True, help="log file (stdout, stderr, traceback)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("args", nargs="*")
+    ns = ap.parse_args(argv)
+    try:
+        with logged(ns.log):
+            set_threads(ns.threads)
+            _RUNNERS[ns.stage](json.loads(ns.config), *ns.args)
+    except Exception:  # the traceback is in the log; logged() said where
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

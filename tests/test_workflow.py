@@ -21,15 +21,15 @@ TINY = ROOT / "tests" / "data" / "tiny.yaml"
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
 
-def _snakemake(workdir: Path, *extra: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(workdir), "--configfile", str(TINY),
+def _snakemake(workdir: Path, *extra: str, timeout: float = 600, config: Path = TINY) -> subprocess.CompletedProcess:
+    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(workdir), "--configfile", str(config),
            "--cores", "2", *extra]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
 
 
-def _planned_jobs(workdir: Path) -> dict[str, int]:
+def _planned_jobs(workdir: Path, config: Path = TINY) -> dict[str, int]:
     """Rule -> job count of a dry run (empty when there is nothing to do)."""
-    r = _snakemake(workdir, "-n", "--quiet", "rules")
+    r = _snakemake(workdir, "-n", "--quiet", "rules", config=config)
     assert r.returncode == 0, r.stderr
     jobs: dict[str, int] = {}
     for line in (r.stdout + r.stderr).splitlines():
@@ -82,8 +82,31 @@ def test_simulate_case_reproduces_the_workflow(study_dir):
     assert np.array_equal(res["particles_b"]["x"].values, parts["x"].values)
 
 
+def test_snakemake_report(study_dir):
+    """`snakemake --report` (no --cores needed) packs the study report with its caption."""
+    import zipfile
+
+    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(study_dir), "--configfile", str(TINY),
+           "--report", str(study_dir / "smk_report.zip")]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    names = zipfile.ZipFile(study_dir / "smk_report.zip").namelist()
+    assert any("/data/raw/" in n and n.endswith("/report.html") for n in names), names  # the study report
+
+
 def test_second_run_does_nothing(study_dir):
     assert _planned_jobs(study_dir) == {}
+
+
+def test_config_change_reruns_only_dependent_stages(study_dir, tmp_path):
+    """Each stage's config sections are its params: a PIV setting reruns PIV onward only."""
+    text = TINY.read_text()
+    assert "spacing: [4, 8, 8]" in text
+    changed = tmp_path / "tiny.yaml"
+    changed.write_text(text.replace("spacing: [4, 8, 8]", "spacing: [4, 6, 6]"))
+    jobs = _planned_jobs(study_dir, config=changed)
+    assert set(jobs) == {"piv", "errors", "study", "report"}
+    assert jobs["piv"] == jobs["errors"] == len(expand_cases(load_config(TINY)))
 
 
 def test_deleting_intermediate_reruns_only_dependents(study_dir):
