@@ -44,22 +44,26 @@ def main() -> None:
     cal = out / "calib" / workflow.calib_id(cid)
     workflow.set_threads(args.threads)
 
+    def sc(stage: str) -> dict:
+        """What the Snakefile passes the stage: the config sections it reads."""
+        return workflow.stage_config(cfg, cid, stage)
+
     steps = [
-        ("camera", lambda: workflow.run_optics(cfg, cid, d / "camera.json", d / "focal_planes.zarr")),
-        ("particles", lambda: workflow.run_particles(cfg, cid, d / "particles_a.zarr")),
-        ("displace", lambda: workflow.run_displace(cfg, cid, d / "particles_a.zarr", d / "particles_b.zarr")),
-        ("simulate a", lambda: workflow.run_simulate(cfg, cid, "a", d / "particles_a.zarr", d / "raw_a.zarr", d / "raw_a.tif")),
-        ("simulate b", lambda: workflow.run_simulate(cfg, cid, "b", d / "particles_b.zarr", d / "raw_b.zarr", d / "raw_b.tif")),
-        ("pinhole", lambda: workflow.run_pinhole(cfg, cid, cal / "pinhole.zarr", cal / "pinhole.tif")),
-        ("calibrate", lambda: workflow.run_calibrate(cfg, cid, cal / "pinhole.zarr", cal / "centers.zarr")),
-        ("register a", lambda: workflow.run_register(cfg, cid, d / "raw_a.zarr", cal / "centers.zarr", d / "lightfield_a.zarr")),
-        ("register b", lambda: workflow.run_register(cfg, cid, d / "raw_b.zarr", cal / "centers.zarr", d / "lightfield_b.zarr")),
-        ("refocus a", lambda: workflow.run_refocus(cfg, cid, d / "lightfield_a.zarr", d / "stack_a.zarr")),
-        ("refocus b", lambda: workflow.run_refocus(cfg, cid, d / "lightfield_b.zarr", d / "stack_b.zarr")),
-        ("reconstruct a", lambda: workflow.run_reconstruct(cfg, cid, d / "stack_a.zarr", d / "volume_a.zarr")),
-        ("reconstruct b", lambda: workflow.run_reconstruct(cfg, cid, d / "stack_b.zarr", d / "volume_b.zarr")),
-        ("piv", lambda: workflow.run_piv(cfg, cid, d / "volume_a.zarr", d / "volume_b.zarr", d / "piv.zarr")),
-        ("errors", lambda: workflow.run_errors(cfg, cid, d / "piv.zarr", d / "volume_a.zarr", d / "particles_a.zarr", d / "errors.zarr")),
+        ("camera", lambda: workflow.run_optics(sc("camera"), d / "camera.json", d / "focal_planes.zarr")),
+        ("particles", lambda: workflow.run_particles(sc("particles"), d / "particles_a.zarr")),
+        ("displace", lambda: workflow.run_displace(sc("displace"), d / "particles_a.zarr", d / "particles_b.zarr")),
+        ("simulate a", lambda: workflow.run_simulate(sc("simulate"), "a", d / "particles_a.zarr", d / "raw_a.zarr", d / "raw_a.tif")),
+        ("simulate b", lambda: workflow.run_simulate(sc("simulate"), "b", d / "particles_b.zarr", d / "raw_b.zarr", d / "raw_b.tif")),
+        ("pinhole", lambda: workflow.run_pinhole(sc("pinhole"), cal / "pinhole.zarr", cal / "pinhole.tif")),
+        ("calibrate", lambda: workflow.run_calibrate(sc("calibrate"), cal / "pinhole.zarr", cal / "centers.zarr")),
+        ("register a", lambda: workflow.run_register(sc("register"), d / "raw_a.zarr", cal / "centers.zarr", d / "lightfield_a.zarr")),
+        ("register b", lambda: workflow.run_register(sc("register"), d / "raw_b.zarr", cal / "centers.zarr", d / "lightfield_b.zarr")),
+        ("refocus a", lambda: workflow.run_refocus(sc("refocus"), d / "lightfield_a.zarr", d / "stack_a.zarr")),
+        ("refocus b", lambda: workflow.run_refocus(sc("refocus"), d / "lightfield_b.zarr", d / "stack_b.zarr")),
+        ("reconstruct a", lambda: workflow.run_reconstruct(sc("reconstruct"), d / "stack_a.zarr", d / "volume_a.zarr")),
+        ("reconstruct b", lambda: workflow.run_reconstruct(sc("reconstruct"), d / "stack_b.zarr", d / "volume_b.zarr")),
+        ("piv", lambda: workflow.run_piv(sc("piv"), d / "volume_a.zarr", d / "volume_b.zarr", d / "piv.zarr")),
+        ("errors", lambda: workflow.run_errors(sc("errors"), d / "piv.zarr", d / "volume_a.zarr", d / "particles_a.zarr", d / "errors.zarr")),
     ]
     print(f"case {cid}  ({args.rays} rays/particle, {args.threads} threads)  in {out}")
     total = 0.0
