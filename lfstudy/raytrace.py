@@ -130,32 +130,25 @@ def _unit_bits(h32):
 
 
 @njit(inline="always", cache=True)
+def _lift_octaves(t, e, below, factor, octaves):
+    """One branch-free range-reduction step: if t < below, scale t by factor and count octaves."""
+    c = t < below
+    return t * (factor if c else 1.0), e + (octaves if c else 0.0)
+
+
+@njit(inline="always", cache=True)
 def _log01(u):
     """Natural log of u in [2⁻³³, 1), branch-free so that it vectorises.
 
     Binary range reduction to t in [√½, √2) by compare-and-select, then the
     atanh series log t = 2·atanh((t−1)/(t+1)); |error| < 1e-12.
     """
-    e = 0.0
-    t = u
-    c = t < 2.0**-32
-    t = t * (2.0**32 if c else 1.0)
-    e += 32.0 if c else 0.0
-    c = t < 2.0**-16
-    t = t * (2.0**16 if c else 1.0)
-    e += 16.0 if c else 0.0
-    c = t < 2.0**-8
-    t = t * (2.0**8 if c else 1.0)
-    e += 8.0 if c else 0.0
-    c = t < 2.0**-4
-    t = t * (2.0**4 if c else 1.0)
-    e += 4.0 if c else 0.0
-    c = t < 2.0**-2
-    t = t * (2.0**2 if c else 1.0)
-    e += 2.0 if c else 0.0
-    c = t < 0.5
-    t = t * (2.0 if c else 1.0)
-    e += 1.0 if c else 0.0
+    t, e = _lift_octaves(u, 0.0, 2.0**-32, 2.0**32, 32.0)
+    t, e = _lift_octaves(t, e, 2.0**-16, 2.0**16, 16.0)
+    t, e = _lift_octaves(t, e, 2.0**-8, 2.0**8, 8.0)
+    t, e = _lift_octaves(t, e, 2.0**-4, 2.0**4, 4.0)
+    t, e = _lift_octaves(t, e, 0.25, 4.0, 2.0)
+    t, e = _lift_octaves(t, e, 0.5, 2.0, 1.0)
     c = t < _SQRT_HALF  # t in [½, 1) -> [√½, √2)
     t = t * (2.0 if c else 1.0)
     e += 1.0 if c else 0.0
