@@ -98,8 +98,6 @@ _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
 _S30, _S27, _S31, _S32 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(32)
 _LOW32 = np.uint64(0xFFFFFFFF)
-_TWO_M32 = 2.0**-32
-_TWO_PI = 2.0 * math.pi
 
 
 @njit(inline="always", cache=True)
