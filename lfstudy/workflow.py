@@ -359,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--log", required=True, help="log file (stdout, stderr, traceback)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("args", nargs="*")
-    ns = ap.parse_args(argv)
+    ns = ap.parse_intermixed_args(argv)  # options before, between or after the positionals
     try:
         with logged(ns.log):
             set_threads(ns.threads)

@@ -156,3 +156,30 @@ def test_killed_run_restarts_cleanly(study_dir):
         io.open_zarr(store)
     # The rerun cleaned the killed writer's temporary output.
     assert not list(out.rglob(".*.tmp-*"))
+
+
+def test_stage_entry_point(tmp_path):
+    """`python -m lfstudy.workflow STAGE` (what the rules run): outputs on success; on failure
+    exit 1, the traceback in the log and no output left behind."""
+    import json
+
+    from lfstudy.workflow import stage_config
+
+    cfg = load_config(TINY)
+    cid = expand_cases(cfg)[0].case_id
+    entry = [sys.executable, "-m", "lfstudy.workflow"]
+    ok = json.dumps(stage_config(cfg, cid, "camera"))
+    r = subprocess.run([*entry, "camera", "--config", ok, "--log", str(tmp_path / "ok.log"),
+                        str(tmp_path / "camera.json"), str(tmp_path / "planes.zarr")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, (tmp_path / "ok.log").read_text()
+    assert json.loads((tmp_path / "camera.json").read_text())["case_id"] == cid
+    assert io.open_zarr(tmp_path / "planes.zarr").sizes
+    # A stage given less config than it reads fails loudly, points at its log, writes nothing.
+    too_little = json.dumps(stage_config(cfg, cid, "calibrate"))  # the camera section, no refocus
+    r = subprocess.run([*entry, "--config", too_little, "--log", str(tmp_path / "bad.log"),
+                        "camera", str(tmp_path / "c2.json"), str(tmp_path / "p2.zarr")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    assert "KeyError: 'refocus'" in (tmp_path / "bad.log").read_text() and "bad.log" in r.stderr
+    assert not (tmp_path / "c2.json").exists() and not (tmp_path / "p2.zarr").exists()
