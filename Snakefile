@@ -53,6 +53,10 @@ os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.g
 STAGE = "python -m lfstudy.workflow --config {params.cfg:q} --log {log:q} --threads {threads}"
 
 
+# study and report read the whole config: they rerun on any change to it
+STUDY_CFG = json.dumps(CFG, sort_keys=True, default=str)
+
+
 def stage_params(stage, calib=False):
     """params.cfg of a per-case rule: the stage's config sections as JSON."""
     def cfg(wildcards):
@@ -216,7 +220,7 @@ rule study:
         csv=f"{OUT}/study.csv",
     log: f"{LOG}/study.log"
     threads: 1
-    params: cfg=json.dumps(CFG, sort_keys=True, default=str)  # rerun on any config change
+    params: cfg=STUDY_CFG
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_study
@@ -230,7 +234,7 @@ rule report:
     output: report(f"{OUT}/report.html", caption="reports/report.rst", category="Study")
     log: f"{LOG}/report.log"
     threads: 1
-    params: cfg=json.dumps(CFG, sort_keys=True, default=str)
+    params: cfg=STUDY_CFG
     run:
         with logged(log[0]):
             from lfstudy.workflow import run_report

@@ -147,9 +147,7 @@ def _log01(u):
     t, e = _lift_octaves(t, e, 2.0**-4, 2.0**4, 4.0)
     t, e = _lift_octaves(t, e, 0.25, 4.0, 2.0)
     t, e = _lift_octaves(t, e, 0.5, 2.0, 1.0)
-    c = t < _SQRT_HALF  # t in [½, 1) -> [√½, √2)
-    t = t * (2.0 if c else 1.0)
-    e += 1.0 if c else 0.0
+    t, e = _lift_octaves(t, e, _SQRT_HALF, 2.0, 1.0)  # t in [½, 1) -> [√½, √2)
     s = (t - 1.0) / (t + 1.0)
     s2 = s * s
     poly = 1.0 + s2 * (1.0 / 3 + s2 * (1.0 / 5 + s2 * (1.0 / 7 + s2 * (1.0 / 9 + s2 * (1.0 / 11 + s2 * (1.0 / 13))))))
