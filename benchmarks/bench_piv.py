@@ -21,7 +21,7 @@ import tracemalloc
 import numpy as np
 
 from lfstudy.piv import peak_locking_index, widim
-from lfstudy.piv_synthetic import particle_pair
+from lfstudy.piv.synthetic import particle_pair
 
 SHAPE = (32, 193, 289)
 SHIFT = (0.8, -1.35, 2.45)  # (z, y, x) voxels

@@ -20,14 +20,14 @@ import time
 import numba
 import numpy as np
 
-from lfstudy import raytrace as rt
+from lfstudy.simulate import raytrace as rt
 from lfstudy.optics import PlenopticCamera
-from lfstudy.particles import seed_particles
+from lfstudy.simulate.particles import seed_particles
 
 
 def numpy_render(camera: PlenopticCamera, particles, rays_per_particle: int, seed: int,
                  block: int = 2_000_000) -> np.ndarray:
-    """The same physics as :func:`lfstudy.raytrace.render`, vectorised in NumPy (PCG64 streams).
+    """The same physics as :func:`lfstudy.simulate.raytrace.render`, vectorised in NumPy (PCG64 streams).
 
     Solid-angle ray counts, uniform aperture sampling, main lens, diffraction at
     the lenslet plane, lenslet (lens + prism), diffraction at the sensor,

@@ -34,10 +34,10 @@ def main() -> None:
         pass
     import dask
 
-    from lfstudy.calibrate import expected_centers, find_lenslet_centers, synthetic_pinhole
-    from lfstudy.lightfield import register
+    from lfstudy.lightfield.calibrate import expected_centers, find_lenslet_centers, synthetic_pinhole
+    from lfstudy.lightfield.registration import register
     from lfstudy.optics import PlenopticCamera
-    from lfstudy.refocus import focal_stack
+    from lfstudy.lightfield.refocus import focal_stack
 
     cam = PlenopticCamera(4872, 3248, 0.0074, 0.125, 0.5, 50.0, -1.0,
                           lenslet_rotation=0.002, lenslet_offset_x=0.01, lenslet_offset_y=-0.004)

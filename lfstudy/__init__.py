@@ -1,7 +1,7 @@
 """lfstudy: parametric studies of single-camera light-field (plenoptic) 3-D PIV.
 
 Stages are pure functions over numpy/xarray objects (see ``lfstudy.optics``,
-``lfstudy.particles``, ``lfstudy.flows`` ...); I/O lives in ``lfstudy.io`` and
+``lfstudy.simulate.particles``, ``lfstudy.simulate.flows`` ...); I/O lives in ``lfstudy.io`` and
 the sweep in the top-level ``Snakefile``.
 """
 

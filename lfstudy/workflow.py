@@ -145,7 +145,7 @@ def run_optics(ccfg: Mapping[str, Any], out_json: str | Path, out_planes: str | 
 
 def case_particles(ccfg: Mapping[str, Any]) -> Any:
     """The first-exposure particle field of a case config (:func:`lfstudy.config.case_config`)."""
-    from lfstudy.particles import seed_particles
+    from lfstudy.simulate.particles import seed_particles
 
     cam = PlenopticCamera.from_config(ccfg)
     p = ccfg["particles"]
@@ -160,7 +160,7 @@ def case_particles(ccfg: Mapping[str, Any]) -> Any:
 
 def case_displaced(ccfg: Mapping[str, Any], field: Any) -> Any:
     """The second-exposure field: ``field`` advected by the case's flow."""
-    from lfstudy.flows import displace, flow_from_config
+    from lfstudy.simulate.flows import displace, flow_from_config
 
     spec = ccfg["flow"]
     moved = displace(field, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
@@ -170,7 +170,7 @@ def case_displaced(ccfg: Mapping[str, Any], field: Any) -> Any:
 
 def case_image(ccfg: Mapping[str, Any], field: Any, frame: str, *, progress: bool = False) -> Any:
     """Ray-trace the raw image of exposure ``frame`` ("a" or "b") of a case."""
-    from lfstudy.raytrace import render
+    from lfstudy.simulate.raytrace import render
 
     rt = ccfg["raytrace"]
     seed = derive_seed(ccfg["seed"], "raytrace", ccfg["case_id"], frame)
@@ -182,7 +182,7 @@ def case_image(ccfg: Mapping[str, Any], field: Any, frame: str, *, progress: boo
 
 def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> Any:
     """Ray-trace the calibration pinhole image (sec. 5.1), shared by the case's calibration group."""
-    from lfstudy.raytrace import render_pinhole
+    from lfstudy.simulate.raytrace import render_pinhole
 
     ph = ccfg["pinhole"]
     seed = derive_seed(ccfg["seed"], "pinhole", calib_id(ccfg["case_id"]))
@@ -220,7 +220,7 @@ def run_pinhole(ccfg: Mapping[str, Any], out_zarr: str | Path, out_tiff: str | P
 
 def run_calibrate(ccfg: Mapping[str, Any], pinhole: str | Path, out: str | Path) -> None:
     """Find every lenslet centre in the pinhole image (automatic grid detection)."""
-    from lfstudy.calibrate import find_lenslet_centers
+    from lfstudy.lightfield.calibrate import find_lenslet_centers
 
     cam = PlenopticCamera.from_config(ccfg)
     img = io.open_zarr(pinhole, name="intensity").load()
@@ -231,7 +231,7 @@ def run_calibrate(ccfg: Mapping[str, Any], pinhole: str | Path, out: str | Path)
 
 def run_register(ccfg: Mapping[str, Any], raw: str | Path, centers: str | Path, out: str | Path) -> None:
     """Raw image → 4-D light field (eqs 5.2–5.9)."""
-    from lfstudy.lightfield import register
+    from lfstudy.lightfield.registration import register
 
     cam = PlenopticCamera.from_config(ccfg)
     lf = register(io.open_zarr(raw, name="intensity").load(), io.open_zarr(centers).load(), cam)
@@ -241,7 +241,7 @@ def run_register(ccfg: Mapping[str, Any], raw: str | Path, centers: str | Path, 
 
 def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path) -> None:
     """Light field → focal stack (z, y, x), resized to constant magnification."""
-    from lfstudy.refocus import focal_stack
+    from lfstudy.lightfield.refocus import focal_stack
 
     cam = PlenopticCamera.from_config(ccfg)
     r = ccfg["refocus"]
@@ -286,8 +286,8 @@ def run_piv(ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: 
 def run_errors(ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, particles: str | Path,
                out: str | Path) -> None:
     """Errors of one case against the known flow (+ reconstruction quality Q)."""
-    from lfstudy.flows import flow_from_config
-    from lfstudy.metrics import case_errors, reconstruction_quality
+    from lfstudy.simulate.flows import flow_from_config
+    from lfstudy.study.metrics import case_errors, reconstruction_quality
 
     spec = ccfg["flow"]
     res = io.open_zarr(piv).load()
@@ -302,7 +302,7 @@ def run_errors(ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, par
 def run_study(cfg: Mapping[str, Any], case_ids: list[str], error_paths: list[str | Path],
               benchmark_dir: str | Path, out_zarr: str | Path, out_csv: str | Path) -> None:
     """Combine every case's scalar errors into one Dataset over the swept parameters."""
-    from lfstudy.metrics import combine_cases, stage_times, to_csv
+    from lfstudy.study.metrics import combine_cases, stage_times, to_csv
 
     rows = []
     for cid, path in zip(case_ids, error_paths):
@@ -321,7 +321,7 @@ def run_study(cfg: Mapping[str, Any], case_ids: list[str], error_paths: list[str
 def run_report(cfg: Mapping[str, Any], case_ids: list[str], out_dir: str | Path, study: str | Path,
                out_html: str | Path) -> None:
     """The self-contained HTML report of the study."""
-    from lfstudy.report import write_report
+    from lfstudy.study.report import write_report
 
     case_dirs = {cid: Path(out_dir) / cid for cid in case_ids}
     write_report(io.open_zarr(study).load(), case_dirs, dict(cfg), Path(out_html))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lfstudy import io
-from lfstudy.calibrate import (
+from lfstudy.lightfield.calibrate import (
     CalibrationError,
     expected_centers,
     find_lenslet_centers,

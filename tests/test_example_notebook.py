@@ -11,7 +11,7 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.config import Case
-from lfstudy.metrics import combine_cases
+from lfstudy.study.metrics import combine_cases
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "explore_results.ipynb"
 

@@ -2,7 +2,7 @@
 
 ``_simulate`` is a minimal forward model of the thesis' ray tracer (thin main
 lens, uniform aperture, thin lenslets focused at infinity, no diffraction);
-the end-to-end test with :mod:`lfstudy.raytrace` runs when that module exists.
+the end-to-end test with :mod:`lfstudy.simulate.raytrace` runs when that module exists.
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import pytest
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.calibrate import find_lenslet_centers, synthetic_pinhole
-from lfstudy.lightfield import RegistrationError, register
+from lfstudy.lightfield.calibrate import find_lenslet_centers, synthetic_pinhole
+from lfstudy.lightfield.registration import RegistrationError, register
 from lfstudy.optics import PlenopticCamera
-from lfstudy.refocus import focal_stack, render_volume
+from lfstudy.lightfield.refocus import focal_stack, render_volume
 
 CAM = PlenopticCamera(420, 340, 0.0074, 0.125, 0.5, 50.0, -1.0)  # Table 4.3 optics, small sensor
 HALF_VOXEL = CAM.lenslet_pitch / abs(CAM.magnification) / 2
@@ -185,9 +185,9 @@ def test_render_volume_config_chain(centers):
 
 
 def test_single_particle_with_raytrace(centers):
-    """End to end with the project's ray tracer (skipped until lfstudy.raytrace exists)."""
-    raytrace = pytest.importorskip("lfstudy.raytrace")
-    from lfstudy.particles import make_field
+    """End to end with the project's ray tracer (skipped until lfstudy.simulate.raytrace exists)."""
+    raytrace = pytest.importorskip("lfstudy.simulate.raytrace")
+    from lfstudy.simulate.particles import make_field
 
     planes = CAM.focal_planes()
     z = float(planes["z"].sel(plane=6))

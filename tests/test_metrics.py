@@ -1,4 +1,4 @@
-"""Tests of lfstudy.metrics: errors against the truth, Q, run times, the sweep Dataset."""
+"""Tests of lfstudy.study.metrics: errors against the truth, Q, run times, the sweep Dataset."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.config import Case
-from lfstudy.flows import HillVortex, UniformFlow
-from lfstudy.metrics import (
+from lfstudy.simulate.flows import HillVortex, UniformFlow
+from lfstudy.study.metrics import (
     case_errors,
     combine_cases,
     from_csv,
@@ -229,7 +229,7 @@ def test_combine_cases_dims_sel_and_csv(tmp_path):
 def test_on_real_widim_result():
     """The contract end to end: widim on a +4.5 voxel x-shift, physical coords in mm."""
     from lfstudy.piv import widim
-    from lfstudy.piv_synthetic import particle_pair
+    from lfstudy.piv.synthetic import particle_pair
 
     a, b = particle_pair((24, 48, 48), (0.0, 0.0, 4.5), density=0.02, seed=1)
     co = {d: (np.arange(n) - (n - 1) / 2) * VOX for d, n in zip("zyx", a.shape)}

@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lfstudy.flows import FlowError, HillVortex, UniformFlow, displace, integrate, true_displacement
-from lfstudy.particles import ParticleError, particle_count, pinhole_field, seed_particles
+from lfstudy.simulate.flows import FlowError, HillVortex, UniformFlow, displace, integrate, true_displacement
+from lfstudy.simulate.particles import ParticleError, particle_count, pinhole_field, seed_particles
 
 
 def test_ppp_counts_sensor_pixels(table43_camera):

@@ -11,7 +11,7 @@ import pytest
 import xarray as xr
 
 from lfstudy.piv import peak_locking_index, widim
-from lfstudy.piv_synthetic import particle_pair
+from lfstudy.piv.synthetic import particle_pair
 
 SHAPE3 = (32, 64, 64)
 SHAPE2 = (128, 128)

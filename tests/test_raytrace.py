@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from lfstudy.optics import PlenopticCamera
-from lfstudy.particles import make_field, seed_particles
-from lfstudy import raytrace as rt
+from lfstudy.simulate.particles import make_field, seed_particles
+from lfstudy.simulate import raytrace as rt
 
 #: Table 4.3 optics on a small sensor with an odd lenslet count (9 x 7), so a
 #: lenslet sits on the optical axis as in Fig. 4.17.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lfstudy import raytrace1d as r1
+from lfstudy.simulate import raytrace1d as r1
 
 CAM = r1.table41_camera()
 

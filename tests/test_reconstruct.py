@@ -81,7 +81,7 @@ def test_registry_and_unknown_method():
 
 def test_cli_render(tmp_path, capsys):
     from lfstudy import io
-    from lfstudy.calibrate import synthetic_pinhole
+    from lfstudy.lightfield.calibrate import synthetic_pinhole
     from lfstudy.cli import main
     from lfstudy.optics import PlenopticCamera
 

@@ -1,4 +1,4 @@
-"""Tests of lfstudy.report: one self-contained HTML file from synthetic case artefacts."""
+"""Tests of lfstudy.study.report: one self-contained HTML file from synthetic case artefacts."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.config import expand_cases, load_config
-from lfstudy.flows import flow_from_config
-from lfstudy.metrics import case_errors, combine_cases
-from lfstudy.report import SECTIONS, best_designs, write_figures, write_report
+from lfstudy.simulate.flows import flow_from_config
+from lfstudy.study.metrics import case_errors, combine_cases
+from lfstudy.study.report import SECTIONS, best_designs, write_figures, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 VOX = 0.0888  # demo lenslet pitch at M = -1

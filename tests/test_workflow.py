@@ -67,7 +67,7 @@ def test_study_runs_end_to_end(study_dir):
 
 def test_simulate_case_reproduces_the_workflow(study_dir):
     """`lfstudy simulate` (simulate_case) gives the same bytes as the Snakemake rules."""
-    from lfstudy.raytrace import simulate_case
+    from lfstudy.simulate.raytrace import simulate_case
     from lfstudy.workflow import calib_id
 
     out = study_dir / "results" / "tiny"

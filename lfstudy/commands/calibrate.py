@@ -20,7 +20,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from lfstudy import io
-    from lfstudy.calibrate import expected_centers, find_lenslet_centers
+    from lfstudy.lightfield.calibrate import expected_centers, find_lenslet_centers
 
     cam = None
     params = None

@@ -21,7 +21,7 @@ def run(args: argparse.Namespace) -> int:
 
     from lfstudy import io
     from lfstudy.config import case_config, load_config
-    from lfstudy.refocus import render_volume
+    from lfstudy.lightfield.refocus import render_volume
 
     cfg = load_config(args.config)
     if args.case:

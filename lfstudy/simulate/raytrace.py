@@ -500,7 +500,7 @@ def render(
         The camera (geometry, lenslet grid, diffraction sigmas).
     particles : xarray.Dataset
         Particle field over ``particle`` with ``x``, ``y``, ``z`` (object frame,
-        mm) and ``intensity`` (>= 0), as from :mod:`lfstudy.particles`.
+        mm) and ``intensity`` (>= 0), as from :mod:`lfstudy.simulate.particles`.
     rays_per_particle : int
         Rays per particle at the reference solid angle (eq. 4.14).
     seed : int
@@ -627,14 +627,14 @@ def render_pinhole(camera: PlenopticCamera, *, fnumber: float = 16, count: int =
                    rays_per_point: int = 100, seed: int = 0, **kwargs: Any) -> xr.DataArray:
     """Calibration "pinhole" image (sec. 5.1).
 
-    Many points on the object focal plane (:func:`lfstudy.particles.pinhole_field`)
+    Many points on the object focal plane (:func:`lfstudy.simulate.particles.pinhole_field`)
     imaged with the main lens stopped down to ``fnumber``: each lenslet then
     images a small spot of the aperture at its projected centre. The camera's
     diffraction sigmas follow the new f-number automatically.
 
     Extra keyword arguments go to :func:`render`.
     """
-    from lfstudy.particles import pinhole_field
+    from lfstudy.simulate.particles import pinhole_field
 
     _check_rays(rays_per_point, "rays_per_point")
     cam = camera.with_(fnumber=float(fnumber))

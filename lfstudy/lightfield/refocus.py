@@ -219,7 +219,7 @@ def render_volume(
     raw : DataArray or ndarray
         Raw plenoptic image.
     centers : xarray.Dataset
-        Lenslet calibration (:func:`lfstudy.calibrate.find_lenslet_centers`).
+        Lenslet calibration (:func:`lfstudy.lightfield.calibrate.find_lenslet_centers`).
     case_cfg : mapping
         One case's config: ``camera`` section, ``refocus`` (n_planes,
         depth_scale, cubic, resize) and ``reconstruct`` (method, k,
@@ -233,7 +233,7 @@ def render_volume(
         The stack (rendered once, persisted) and volume are dask-backed, one
         chunk per plane.
     """
-    from lfstudy.lightfield import register
+    from lfstudy.lightfield.registration import register
     from lfstudy.reconstruct import reconstruct
 
     cam = camera if camera is not None else PlenopticCamera.from_config(case_cfg)

@@ -1,6 +1,6 @@
 """Figures of the study report: pure functions from data to a matplotlib Figure.
 
-No file I/O here (``lfstudy.report`` reads the artefacts and embeds or saves
+No file I/O here (``lfstudy.study.report`` reads the artefacts and embeds or saves
 the figures). Figures are created with :class:`matplotlib.figure.Figure`
 directly, never through ``pyplot``'s global state, so they work on the Agg
 backend in a Snakemake job and are garbage-collected when dropped.

@@ -554,7 +554,7 @@ def synthetic_pinhole(
     Spots sit at :func:`expected_centers` (``c·(si+fl)/si``); the image has
     Poisson shot noise plus Gaussian read noise. ``dim_fraction`` of the
     lenslets get 5-30 % of the amplitude (tests the dim-lenslet flag).
-    A stand-in for :func:`lfstudy.raytrace.render_pinhole` in tests and benchmarks.
+    A stand-in for :func:`lfstudy.simulate.raytrace.render_pinhole` in tests and benchmarks.
     """
     from scipy.special import erf
 

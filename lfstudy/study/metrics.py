@@ -30,7 +30,7 @@ import xarray as xr
 from scipy.special import ndtr
 
 from lfstudy.config import SWEEP_KEYS
-from lfstudy.flows import Flow, true_displacement
+from lfstudy.simulate.flows import Flow, true_displacement
 
 __all__ = [
     "AXES",
@@ -228,7 +228,7 @@ def case_errors(
         centres with coords in mm (object frame), ``u, v, w`` [voxel] and/or
         ``u_mm, v_mm, w_mm`` [mm], ``valid`` (bool).
     flow : Flow
-        The imposed flow (``lfstudy.flows.flow_from_config``).
+        The imposed flow (``lfstudy.simulate.flows.flow_from_config``).
     dt, n_steps : float, int
         Time separation and RK4 sub-steps of the true displacement.
     voxel_size : float, (dx, dy, dz) or mapping, optional

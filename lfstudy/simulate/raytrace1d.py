@@ -9,7 +9,7 @@ rounding (eqs 4.10–4.11) and the pixel by eq. 4.15. Diffraction, optional,
 is a Gaussian shift with the camera's σ at the lenslet plane (main-lens
 f-number) and at the sensor (lenslet f-number), sec. 4.2.3.
 
-Conventions are those of :mod:`lfstudy.raytrace`: object +dy up, +dz away
+Conventions are those of :mod:`lfstudy.simulate.raytrace`: object +dy up, +dz away
 from the camera; sensor y up, row 0 at the top; no flip after tracing.
 The thesis' Table 4.1 camera is ``PlenopticCamera(75, 75, 0.0074, 0.125, 0.5, 1.5, -1.0)``.
 """

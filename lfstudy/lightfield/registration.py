@@ -82,7 +82,7 @@ def register(
     raw : DataArray or ndarray, shape (rows, cols)
         Raw sensor image, row 0 at the top.
     centers : xarray.Dataset
-        Output of :func:`lfstudy.calibrate.find_lenslet_centers` (``cx``,
+        Output of :func:`lfstudy.lightfield.calibrate.find_lenslet_centers` (``cx``,
         ``cy`` in px over ``lenslet_row``/``lenslet_col``; ``valid``).
     camera : PlenopticCamera
         Supplies pixel pitch, si and fl; its sensor must match ``raw``.
@@ -112,7 +112,7 @@ def register(
         raise RegistrationError(f"raw image has {int((~np.isfinite(img)).sum())} non-finite pixels")
     for k in ("cx", "cy"):
         if k not in centers:
-            raise RegistrationError(f"centres dataset lacks {k!r} (use lfstudy.calibrate.find_lenslet_centers)")
+            raise RegistrationError(f"centres dataset lacks {k!r} (use lfstudy.lightfield.calibrate.find_lenslet_centers)")
     if "image_rows" in centers.attrs and (int(centers.attrs["image_rows"]), int(centers.attrs["image_cols"])) != (ny, nx):
         raise RegistrationError(
             f"centres were calibrated on a {centers.attrs['image_cols']} x {centers.attrs['image_rows']} px "

@@ -1,6 +1,6 @@
 """The comparative study report: one self-contained HTML file (and the same figures as PNGs).
 
-:func:`write_report` reads the study Dataset (``lfstudy.metrics.combine_cases``)
+:func:`write_report` reads the study Dataset (``lfstudy.study.metrics.combine_cases``)
 and each case's artefacts, and writes one HTML file with inline CSS and every
 figure embedded as a base64 PNG: it opens offline and can be mailed as is.
 :func:`write_figures` writes the same figures as separate PNG files (for
@@ -30,7 +30,7 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.config import SWEEP_KEYS, Case, case_config
-from lfstudy.metrics import METRIC_LABELS, format_param
+from lfstudy.study.metrics import METRIC_LABELS, format_param
 from lfstudy.optics import PlenopticCamera
 
 __all__ = ["write_report", "write_figures", "report_blocks", "best_designs", "case_table", "SECTIONS"]
@@ -223,7 +223,7 @@ def report_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping
     progress : bool
         Show a tqdm progress bar over the per-case figures.
     """
-    from lfstudy import report_figures as rf
+    from lfstudy.study import figures as rf
 
     cfg = dict(cfg)
     # ---------------------------------------------------------- overview
@@ -340,7 +340,7 @@ def _case_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[
                  max_cases: int, progress: bool) -> Iterator[Block]:
     from tqdm.auto import tqdm
 
-    from lfstudy import report_figures as rf
+    from lfstudy.study import figures as rf
 
     k = float(cfg.get("reconstruct", {}).get("k", 3.0))
     items = list(case_dirs.items())
@@ -408,7 +408,7 @@ def write_report(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[
     Parameters
     ----------
     study : xarray.Dataset
-        Output of :func:`lfstudy.metrics.combine_cases` (dims = swept parameters).
+        Output of :func:`lfstudy.study.metrics.combine_cases` (dims = swept parameters).
     case_dirs : mapping case id -> Path
         Per-case result directories; missing artefacts are reported as "not
         available".

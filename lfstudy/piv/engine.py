@@ -33,7 +33,7 @@ import xarray as xr
 from scipy import ndimage
 from tqdm.auto import tqdm
 
-from lfstudy.piv_deform import deform, dense_predictor, spline_coefficients
+from lfstudy.piv.deform import deform, dense_predictor, spline_coefficients
 
 __all__ = ["widim", "peak_locking_index", "grid_nodes"]
 

@@ -1,0 +1,44 @@
+"""Simulation (thesis ch. 4): seeded particle fields, known flows and the plenoptic ray tracer.
+
+Modules: :mod:`~lfstudy.simulate.particles` (sec. 4.3.2, 5.1),
+:mod:`~lfstudy.simulate.flows` (sec. 4.4), :mod:`~lfstudy.simulate.raytrace`
+(sec. 4.1–4.3, App. A) and the 1-D teaching simulator
+:mod:`~lfstudy.simulate.raytrace1d` (sec. 4.2). Import from this package:
+the modules behind it may move.
+"""
+
+from __future__ import annotations
+
+from lfstudy.simulate.flows import (
+    Flow,
+    FlowError,
+    HillVortex,
+    UniformFlow,
+    displace,
+    flow_from_config,
+    integrate,
+    true_displacement,
+)
+from lfstudy.simulate.particles import ParticleError, make_field, particle_count, pinhole_field, seed_particles
+from lfstudy.simulate.raytrace import (
+    DEFAULT_CHUNKS,
+    RaytraceError,
+    angle_histograms,
+    incidence_angle_bound,
+    memory_estimate,
+    quantize,
+    ray_counts,
+    render,
+    render_pinhole,
+    simulate_case,
+    solid_angle,
+    write_image,
+)
+
+__all__ = [
+    "ParticleError", "particle_count", "seed_particles", "pinhole_field", "make_field",
+    "FlowError", "Flow", "UniformFlow", "HillVortex", "flow_from_config", "integrate", "displace",
+    "true_displacement",
+    "RaytraceError", "DEFAULT_CHUNKS", "solid_angle", "ray_counts", "memory_estimate", "render",
+    "render_pinhole", "quantize", "angle_histograms", "incidence_angle_bound", "simulate_case", "write_image",
+]

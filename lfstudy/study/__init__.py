@@ -1,0 +1,42 @@
+"""The study (thesis ch. 7): errors against the truth, the sweep table and the report.
+
+Modules: :mod:`~lfstudy.study.metrics` (per-case errors, Q, the sweep
+Dataset), :mod:`~lfstudy.study.report` and :mod:`~lfstudy.study.figures`
+(the HTML report). The report (matplotlib) is imported on first use, so the
+per-case stages that only need the metrics start fast.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from lfstudy.study.metrics import (
+    AXES,
+    METRIC_LABELS,
+    case_errors,
+    combine_cases,
+    error_statistics,
+    format_param,
+    from_csv,
+    locking_excess,
+    peak_locking_c1,
+    reconstruction_quality,
+    stage_times,
+    to_csv,
+)
+
+_REPORT = ("write_report", "write_figures", "report_blocks", "best_designs", "case_table")
+
+__all__ = [
+    "AXES", "METRIC_LABELS", "case_errors", "error_statistics", "peak_locking_c1", "locking_excess",
+    "reconstruction_quality", "stage_times", "combine_cases", "to_csv", "from_csv", "format_param",
+    *_REPORT,
+]
+
+
+def __getattr__(name: str) -> Any:  # PEP 562: the report's names load matplotlib lazily
+    if name in _REPORT:
+        from lfstudy.study import report
+
+        return getattr(report, name)
+    raise AttributeError(f"module 'lfstudy.study' has no attribute {name!r}")
