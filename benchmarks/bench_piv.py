@@ -38,7 +38,7 @@ def _errors(ds, shift) -> str:
 
 
 def bench_full(a, b, threads: int) -> None:
-    kw = dict(window=(16, 48, 48), spacing=(8, 24, 24), levels=3, workers=threads)
+    kw = {"window": (16, 48, 48), "spacing": (8, 24, 24), "levels": 3, "workers": threads}
     for mode, order in (("deform", 5), ("deform", 3), ("offset", 5)):
         tracemalloc.start()
         t0 = time.perf_counter()
@@ -49,9 +49,11 @@ def bench_full(a, b, threads: int) -> None:
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
         grid = "x".join(str(n) for n in ds.u.shape)
-        print(f"[{mode}] 3 levels, final window {ds.attrs['final_window']}, grid {grid}, "
-              f"{ds.sizes['pass']} passes: {dt:.2f} s (target <= 15 s), "
-              f"peak traced memory {peak / 2**20:.0f} MiB")
+        print(
+            f"[{mode}] 3 levels, final window {ds.attrs['final_window']}, grid {grid}, "
+            f"{ds.sizes['pass']} passes: {dt:.2f} s (target <= 15 s), "
+            f"peak traced memory {peak / 2**20:.0f} MiB"
+        )
         print(f"[{mode}]   valid {100 * float(ds.valid.mean()):.1f} %; {_errors(ds, SHIFT)}")
         print(f"[{mode}]   corrector RMS per pass: {np.round(ds.corrector_rms.values, 3).tolist()}")
 
@@ -69,8 +71,10 @@ def bench_peak_locking(threads: int) -> None:
     for (mode, order), (m, t) in res.items():
         m, t = np.concatenate(m), np.concatenate(t)
         mode = f"deform o{order}" if mode == "deform" else mode
-        print(f"[{mode}] 3-D x-shift sweep 1.0..1.9: peak-locking index "
-              f"{peak_locking_index(m, t):.4f} vox, total rms {np.sqrt(np.mean((m - t) ** 2)):.4f} vox")
+        print(
+            f"[{mode}] 3-D x-shift sweep 1.0..1.9: peak-locking index "
+            f"{peak_locking_index(m, t):.4f} vox, total rms {np.sqrt(np.mean((m - t) ** 2)):.4f} vox"
+        )
 
 
 def bench_throughput(a, b, threads: int) -> None:
@@ -80,8 +84,7 @@ def bench_throughput(a, b, threads: int) -> None:
     ours = time.perf_counter() - t0
     n = ds.u.size
     rate = n / ours
-    print(f"single pass, window {window} spacing {spacing}: lfstudy {n} windows in {ours:.3f} s "
-          f"= {rate:.0f} windows/s")
+    print(f"single pass, window {window} spacing {spacing}: lfstudy {n} windows in {ours:.3f} s = {rate:.0f} windows/s")
     try:
         from openpiv import pyprocess3D
     except ImportError:
@@ -90,9 +93,14 @@ def bench_throughput(a, b, threads: int) -> None:
     overlap = tuple(w - s for w, s in zip(window, spacing))
     t0 = time.perf_counter()
     with contextlib.redirect_stderr(io.StringIO()):  # silence its tqdm bar
-        u, v, w = pyprocess3D.extended_search_area_piv3D(
-            a.astype(np.float64), b.astype(np.float64), window_size=window, overlap=overlap,
-            search_area_size=window, subpixel_method="gaussian")
+        u, _v, _w = pyprocess3D.extended_search_area_piv3D(
+            a.astype(np.float64),
+            b.astype(np.float64),
+            window_size=window,
+            overlap=overlap,
+            search_area_size=window,
+            subpixel_method="gaussian",
+        )
     theirs = time.perf_counter() - t0
     m = u.size
     rate_o = m / theirs

@@ -20,13 +20,14 @@ import time
 import numba
 import numpy as np
 
-from lfstudy.simulate import raytrace as rt
 from lfstudy.optics import PlenopticCamera
+from lfstudy.simulate import raytrace as rt
 from lfstudy.simulate.particles import seed_particles
 
 
-def numpy_render(camera: PlenopticCamera, particles, rays_per_particle: int, seed: int,
-                 block: int = 2_000_000) -> np.ndarray:
+def numpy_render(
+    camera: PlenopticCamera, particles, rays_per_particle: int, seed: int, block: int = 2_000_000
+) -> np.ndarray:
     """The same physics as :func:`lfstudy.simulate.raytrace.render`, vectorised in NumPy (PCG64 streams).
 
     Solid-angle ray counts, uniform aperture sampling, main lens, diffraction at
@@ -45,7 +46,7 @@ def numpy_render(camera: PlenopticCamera, particles, rays_per_particle: int, see
     ny, nx = camera.n_pixels_y, camera.n_pixels_x
     image = np.zeros(ny * nx)
     for b in range(0, pid.size, block):
-        p = pid[b:b + block]
+        p = pid[b : b + block]
         n = p.size
         r = rad * np.sqrt(rng.random(n))
         a = 2 * np.pi * rng.random(n)
@@ -86,8 +87,10 @@ def main() -> None:
     cam = PlenopticCamera(4872, 3248, 0.0074, 0.125, 0.5, 50.0, -1.0)  # Table 4.3
     field = seed_particles(cam, ppp=args.ppp, z_span=args.z_span, seed=1)
     n = field.sizes["particle"]
-    print(f"Table 4.3 sensor {cam.n_pixels_x} x {cam.n_pixels_y}, {n:,} particles ({args.ppp} ppp), "
-          f"{args.rays:,} rays/particle, z span {args.z_span} mm, {rt.DEFAULT_CHUNKS} chunk buffers")
+    print(
+        f"Table 4.3 sensor {cam.n_pixels_x} x {cam.n_pixels_y}, {n:,} particles ({args.ppp} ppp), "
+        f"{args.rays:,} rays/particle, z span {args.z_span} mm, {rt.DEFAULT_CHUNKS} chunk buffers"
+    )
     print(f"estimated render memory {rt.memory_estimate(cam, n) / 1e9:.2f} GB")
     t = time.perf_counter()
     rt.render(cam, field.isel(particle=slice(0, 4)), 10, 0)  # JIT (or cache load), excluded below
@@ -103,8 +106,10 @@ def main() -> None:
         rays = img.attrs["rays_traced"]
         # CPU seconds / threads is the wall time the run would take on idle cores
         # (a shared machine inflates the wall time, not the CPU time).
-        print(f"threads={numba.get_num_threads()}: {rays:,} rays in {dt:.2f} s wall -> {rays / dt / 1e6:.1f} M rays/s; "
-              f"CPU {dc:.2f} s -> {rays / dc / 1e6:.1f} M rays per CPU-second; peak RSS so far {peak_gb():.2f} GB")
+        print(
+            f"threads={numba.get_num_threads()}: {rays:,} rays in {dt:.2f} s wall -> {rays / dt / 1e6:.1f} M rays/s; "
+            f"CPU {dc:.2f} s -> {rays / dc / 1e6:.1f} M rays per CPU-second; peak RSS so far {peak_gb():.2f} GB"
+        )
         if ref is None:
             ref = img.values
         else:
@@ -121,11 +126,14 @@ def main() -> None:
     ref_np = numpy_render(cam, small, args.rays, 3)
     t_np, c_np = time.perf_counter() - t, time.process_time() - c
     rays = img.attrs["rays_traced"]
-    print(f"small case, {small.sizes['particle']} particles, {rays:,} rays: numba ({numba.get_num_threads()} threads) "
-          f"{t_nb:.2f} s wall / {c_nb:.2f} s CPU, NumPy {t_np:.2f} s wall / {c_np:.2f} s CPU: "
-          f"ratio {t_np / t_nb:.1f}x wall, {c_np / c_nb:.1f}x CPU")
-    print(f"  total signal numba {img.values.sum():.0f} vs NumPy {ref_np.sum():.0f} "
-          f"(differ only by the random streams)")
+    print(
+        f"small case, {small.sizes['particle']} particles, {rays:,} rays: numba ({numba.get_num_threads()} threads) "
+        f"{t_nb:.2f} s wall / {c_nb:.2f} s CPU, NumPy {t_np:.2f} s wall / {c_np:.2f} s CPU: "
+        f"ratio {t_np / t_nb:.1f}x wall, {c_np / c_nb:.1f}x CPU"
+    )
+    print(
+        f"  total signal numba {img.values.sum():.0f} vs NumPy {ref_np.sum():.0f} (differ only by the random streams)"
+    )
     print(f"peak RSS (whole run): {peak_gb():.2f} GB")
 
 

@@ -11,6 +11,7 @@ Run: ``python benchmarks/bench_refocus.py [--threads 2]``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import resource
 import time
@@ -28,22 +29,32 @@ def main() -> None:
     ap.add_argument("--planes", type=int, default=32)
     args = ap.parse_args()
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
-    try:
+    with contextlib.suppress(AttributeError, OSError):
         os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[: args.threads]))
-    except (AttributeError, OSError):
-        pass
     import dask
 
     from lfstudy.lightfield.calibrate import expected_centers, find_lenslet_centers, synthetic_pinhole
+    from lfstudy.lightfield.refocus import focal_stack
     from lfstudy.lightfield.registration import register
     from lfstudy.optics import PlenopticCamera
-    from lfstudy.lightfield.refocus import focal_stack
 
-    cam = PlenopticCamera(4872, 3248, 0.0074, 0.125, 0.5, 50.0, -1.0,
-                          lenslet_rotation=0.002, lenslet_offset_x=0.01, lenslet_offset_y=-0.004)
-    print(f"camera: {cam.n_pixels_x} x {cam.n_pixels_y} px, {cam.n_lenslets_x} x {cam.n_lenslets_y} lenslets, "
-          f"rotation {cam.lenslet_rotation} rad, offset ({cam.lenslet_offset_x}, {cam.lenslet_offset_y}) mm; "
-          f"{args.threads} threads")
+    cam = PlenopticCamera(
+        4872,
+        3248,
+        0.0074,
+        0.125,
+        0.5,
+        50.0,
+        -1.0,
+        lenslet_rotation=0.002,
+        lenslet_offset_x=0.01,
+        lenslet_offset_y=-0.004,
+    )
+    print(
+        f"camera: {cam.n_pixels_x} x {cam.n_pixels_y} px, {cam.n_lenslets_x} x {cam.n_lenslets_y} lenslets, "
+        f"rotation {cam.lenslet_rotation} rad, offset ({cam.lenslet_offset_x}, {cam.lenslet_offset_y}) mm; "
+        f"{args.threads} threads"
+    )
 
     # --- calibration -----------------------------------------------------------
     pin = synthetic_pinhole(cam, amplitude=3000, background=20, read_noise=5, dim_fraction=0.01, seed=1)
@@ -55,9 +66,11 @@ def main() -> None:
     v = centers["valid"].values
     dx, dy = (centers["cx"].values - ex)[v], (centers["cy"].values - ey)[v]
     rms = float(np.sqrt(np.mean(dx**2 + dy**2)))
-    print(f"calibration: {t_cal:.2f} s (target <= 30 s), {int(v.sum())} valid centres of {v.size}; "
-          f"error {rms:.4f} px RMS radial ({dx.std():.4f} x, {dy.std():.4f} y; max {np.hypot(dx, dy).max():.3f}) "
-          f"(target <= 0.05 px)")
+    print(
+        f"calibration: {t_cal:.2f} s (target <= 30 s), {int(v.sum())} valid centres of {v.size}; "
+        f"error {rms:.4f} px RMS radial ({dx.std():.4f} x, {dy.std():.4f} y; max {np.hypot(dx, dy).max():.3f}) "
+        f"(target <= 0.05 px)"
+    )
     del pin
 
     # --- synthetic raw image: blurred particle spots of random size/brightness -----
@@ -85,8 +98,10 @@ def main() -> None:
         vol = st.compute()
     t_ref = time.perf_counter() - t0
     print(f"registration: {t_reg:.2f} s -> light field {dict(lf.sizes)} ({lf.nbytes / 1e6:.0f} MB)")
-    print(f"refocus: {t_ref:.2f} s for {vol.sizes['z']} resized planes of {vol.sizes['y']} x {vol.sizes['x']} "
-          f"(target <= 10 s); {lf.size * vol.sizes['z'] / t_ref / 1e6:.0f} M ray-splats/s")
+    print(
+        f"refocus: {t_ref:.2f} s for {vol.sizes['z']} resized planes of {vol.sizes['y']} x {vol.sizes['x']} "
+        f"(target <= 10 s); {lf.size * vol.sizes['z'] / t_ref / 1e6:.0f} M ray-splats/s"
+    )
     print(f"registration + refocus: {t_reg + t_ref:.2f} s")
     print(f"peak memory (process max RSS): {peak_rss_gb():.2f} GB (target <= 3 GB)")
 

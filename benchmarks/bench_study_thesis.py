@@ -52,18 +52,43 @@ def main() -> None:
         ("camera", lambda: workflow.run_optics(sc("camera"), d / "camera.json", d / "focal_planes.zarr")),
         ("particles", lambda: workflow.run_particles(sc("particles"), d / "particles_a.zarr")),
         ("displace", lambda: workflow.run_displace(sc("displace"), d / "particles_a.zarr", d / "particles_b.zarr")),
-        ("simulate a", lambda: workflow.run_simulate(sc("simulate"), "a", d / "particles_a.zarr", d / "raw_a.zarr", d / "raw_a.tif")),
-        ("simulate b", lambda: workflow.run_simulate(sc("simulate"), "b", d / "particles_b.zarr", d / "raw_b.zarr", d / "raw_b.tif")),
+        (
+            "simulate a",
+            lambda: workflow.run_simulate(
+                sc("simulate"), "a", d / "particles_a.zarr", d / "raw_a.zarr", d / "raw_a.tif"
+            ),
+        ),
+        (
+            "simulate b",
+            lambda: workflow.run_simulate(
+                sc("simulate"), "b", d / "particles_b.zarr", d / "raw_b.zarr", d / "raw_b.tif"
+            ),
+        ),
         ("pinhole", lambda: workflow.run_pinhole(sc("pinhole"), cal / "pinhole.zarr", cal / "pinhole.tif")),
         ("calibrate", lambda: workflow.run_calibrate(sc("calibrate"), cal / "pinhole.zarr", cal / "centers.zarr")),
-        ("register a", lambda: workflow.run_register(sc("register"), d / "raw_a.zarr", cal / "centers.zarr", d / "lightfield_a.zarr")),
-        ("register b", lambda: workflow.run_register(sc("register"), d / "raw_b.zarr", cal / "centers.zarr", d / "lightfield_b.zarr")),
+        (
+            "register a",
+            lambda: workflow.run_register(
+                sc("register"), d / "raw_a.zarr", cal / "centers.zarr", d / "lightfield_a.zarr"
+            ),
+        ),
+        (
+            "register b",
+            lambda: workflow.run_register(
+                sc("register"), d / "raw_b.zarr", cal / "centers.zarr", d / "lightfield_b.zarr"
+            ),
+        ),
         ("refocus a", lambda: workflow.run_refocus(sc("refocus"), d / "lightfield_a.zarr", d / "stack_a.zarr")),
         ("refocus b", lambda: workflow.run_refocus(sc("refocus"), d / "lightfield_b.zarr", d / "stack_b.zarr")),
         ("reconstruct a", lambda: workflow.run_reconstruct(sc("reconstruct"), d / "stack_a.zarr", d / "volume_a.zarr")),
         ("reconstruct b", lambda: workflow.run_reconstruct(sc("reconstruct"), d / "stack_b.zarr", d / "volume_b.zarr")),
         ("piv", lambda: workflow.run_piv(sc("piv"), d / "volume_a.zarr", d / "volume_b.zarr", d / "piv.zarr")),
-        ("errors", lambda: workflow.run_errors(sc("errors"), d / "piv.zarr", d / "volume_a.zarr", d / "particles_a.zarr", d / "errors.zarr")),
+        (
+            "errors",
+            lambda: workflow.run_errors(
+                sc("errors"), d / "piv.zarr", d / "volume_a.zarr", d / "particles_a.zarr", d / "errors.zarr"
+            ),
+        ),
     ]
     print(f"case {cid}  ({args.rays} rays/particle, {args.threads} threads)  in {out}")
     total = 0.0
@@ -82,8 +107,10 @@ def main() -> None:
     for comp, ax in (("u", "x"), ("v", "y"), ("w", "z")):
         vals = piv[comp].values[ok]
         print(f"  {ax}: mean {np.mean(vals):+.3f} vox, sigma {np.std(vals):.3f} vox over {ok.sum()} valid vectors")
-    print("thesis sec. 7.1: x mean -4.45 px (bias 0.05) sigma 0.07; y sigma 0.03; z sigma 0.05 "
-          "(image-frame sign; ours is object frame, so +4.5 is exact)")
+    print(
+        "thesis sec. 7.1: x mean -4.45 px (bias 0.05) sigma 0.07; y sigma 0.03; z sigma 0.05 "
+        "(image-frame sign; ours is object frame, so +4.5 is exact)"
+    )
     for v in sorted(err.data_vars):
         if err[v].ndim == 0:
             print(f"  {v:<28} {float(err[v]):.4f} {err[v].attrs.get('units', '')}")
@@ -94,14 +121,15 @@ def main() -> None:
 
     p = cfg["piv"]
     stacks = [io.open_zarr(d / f"stack_{f}.zarr") for f in "ab"]
-    stacks = [s[list(s.data_vars)[0]].load() for s in stacks]
+    stacks = [s[next(iter(s.data_vars))].load() for s in stacks]
     print("same stacks, other reconstructions (x / y / z sigma, vox):")
-    for label, kw in (("threshold k=3 (thesis)", dict(method="threshold", k=3.0)),
-                      ("threshold k=2", dict(method="threshold", k=2.0)),
-                      ("none (the focal stack)", dict(method="none"))):
+    for label, kw in (
+        ("threshold k=3 (thesis)", {"method": "threshold", "k": 3.0}),
+        ("threshold k=2", {"method": "threshold", "k": 2.0}),
+        ("none (the focal stack)", {"method": "none"}),
+    ):
         vols = [reconstruct(s, **kw).load() for s in stacks]
-        r = widim(*vols, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"],
-                  mode=p["mode"])
+        r = widim(*vols, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"])
         ok = r["valid"].values
         sig = " / ".join(f"{np.std(r[c].values[ok]):.3f}" for c in ("u", "v", "w"))
         print(f"  {label:<24} x mean {np.mean(r['u'].values[ok]):+.3f}, sigma {sig} ({ok.sum()} valid)")

@@ -14,6 +14,6 @@ try:
 except PackageNotFoundError:  # running from a source tree without install
     __version__ = "0+unknown"
 
-from lfstudy.optics import PlenopticCamera  # noqa: E402
+from lfstudy.optics import PlenopticCamera
 
 __all__ = ["PlenopticCamera", "__version__"]

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import copy
 import itertools
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 import jsonschema
 import yaml
@@ -75,7 +76,7 @@ def _key(path) -> str:
 
 
 def _describe(err: jsonschema.ValidationError) -> str:
-    s, v = err.schema, err.instance
+    s, _v = err.schema, err.instance
     if err.validator in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum"):
         lo = s.get("minimum", s.get("exclusiveMinimum"))
         hi = s.get("maximum", s.get("exclusiveMaximum"))
@@ -205,7 +206,7 @@ class Case:
         return "/".join(f"{SHORT[k]}~{_fmt(getattr(self, k))}" for k in SWEEP_KEYS)
 
     @classmethod
-    def from_id(cls, case_id: str) -> "Case":
+    def from_id(cls, case_id: str) -> Case:
         """Parse a case id back (inverse of :attr:`case_id`)."""
         inv = {v: k for k, v in SHORT.items()}
         vals: dict[str, Any] = {}
@@ -266,11 +267,14 @@ def cases_table(cfg: Mapping[str, Any]):
     rows = []
     for case in expand_cases(cfg):
         cam = PlenopticCamera.from_config(case_config(cfg, case))
-        rows.append({
-            "case_id": case.case_id, **case.params,
-            "main_fnumber": cam.main_fnumber,
-            "lenslets": f"{cam.n_lenslets_x}x{cam.n_lenslets_y}",
-            "px_per_lenslet": round(cam.pixels_per_lenslet, 3),
-            "fill": round(cam.lenslet_image_fill, 3),
-        })
+        rows.append(
+            {
+                "case_id": case.case_id,
+                **case.params,
+                "main_fnumber": cam.main_fnumber,
+                "lenslets": f"{cam.n_lenslets_x}x{cam.n_lenslets_y}",
+                "px_per_lenslet": round(cam.pixels_per_lenslet, 3),
+                "fill": round(cam.lenslet_image_fill, 3),
+            }
+        )
     return pd.DataFrame(rows).set_index("case_id")

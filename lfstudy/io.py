@@ -12,9 +12,10 @@ import os
 import shutil
 import uuid
 import warnings
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 import xarray as xr
@@ -90,8 +91,14 @@ def _jsonable_attrs(attrs: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def write_zarr(obj: xr.DataArray | xr.Dataset, path: str | Path, *, name: str | None = None,
-               compressor_level: int = 3, progress: bool = False) -> Path:
+def write_zarr(
+    obj: xr.DataArray | xr.Dataset,
+    path: str | Path,
+    *,
+    name: str | None = None,
+    compressor_level: int = 3,
+    progress: bool = False,
+) -> Path:
     """Write a DataArray/Dataset to a zarr v3 store atomically.
 
     Compression uses zstd via ``encoding={var: {"compressors": [...]}}`` (the
@@ -133,8 +140,13 @@ def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.D
     return ds[name] if name is not None else ds
 
 
-def write_tiff(image: xr.DataArray | np.ndarray, path: str | Path, *,
-               metadata: Mapping[str, Any] | None = None, dtype: str | None = None) -> Path:
+def write_tiff(
+    image: xr.DataArray | np.ndarray,
+    path: str | Path,
+    *,
+    metadata: Mapping[str, Any] | None = None,
+    dtype: str | None = None,
+) -> Path:
     """Write a 2-D image (or stack) to TIFF atomically, with JSON metadata.
 
     The DataArray's attrs (camera parameters, seed...) go into the TIFF's

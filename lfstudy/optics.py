@@ -17,8 +17,9 @@ row index grows as y decreases. Lenslet rows follow the same rule.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import xarray as xr
@@ -36,7 +37,19 @@ __all__ = [
 #: Full-stop series of common lenses (sec. 4.3.1 rounds the matched f-number
 #: up to one of these so that lenslet images never overlap).
 STANDARD_F_STOPS: tuple[float, ...] = (
-    1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0, 11.0, 16.0, 22.0, 32.0, 45.0, 64.0,
+    1.0,
+    1.4,
+    2.0,
+    2.8,
+    4.0,
+    5.6,
+    8.0,
+    11.0,
+    16.0,
+    22.0,
+    32.0,
+    45.0,
+    64.0,
 )
 
 #: Gaussian fit to the Airy disk, Adrian & Westerweel p. 101 (eq. 4.23).
@@ -162,15 +175,20 @@ class PlenopticCamera:
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
                 raise OpticsError(f"{name} = {v!r}: must be an integer >= 1")
-        for name in ("pixel_pitch", "lenslet_pitch", "lenslet_focal_length",
-                     "main_focal_length", "wavelength", "particle_diameter",
-                     "min_fnumber", "max_fnumber"):
+        for name in (
+            "pixel_pitch",
+            "lenslet_pitch",
+            "lenslet_focal_length",
+            "main_focal_length",
+            "wavelength",
+            "particle_diameter",
+            "min_fnumber",
+            "max_fnumber",
+        ):
             _positive(name, getattr(self, name))
         m = self.magnification
         if not (math.isfinite(m) and m < 0):
-            raise OpticsError(
-                f"magnification = {m!r}: must be negative (a real, inverted image; eq. 4.5)"
-            )
+            raise OpticsError(f"magnification = {m!r}: must be negative (a real, inverted image; eq. 4.5)")
         if self.lenslet_pitch < 2 * self.pixel_pitch:
             raise OpticsError(
                 f"lenslet_pitch = {self.lenslet_pitch} mm: must be at least two pixels "
@@ -194,9 +212,7 @@ class PlenopticCamera:
                     "(at most one lenslet pitch)"
                 )
         if self.min_fnumber > self.max_fnumber:
-            raise OpticsError(
-                f"min_fnumber = {self.min_fnumber} > max_fnumber = {self.max_fnumber}"
-            )
+            raise OpticsError(f"min_fnumber = {self.min_fnumber} > max_fnumber = {self.max_fnumber}")
         n = self.main_fnumber  # validates the f-number policy
         if not (self.min_fnumber * (1 - 1e-9) <= n <= self.max_fnumber * (1 + 1e-9)):
             raise OpticsError(
@@ -205,7 +221,7 @@ class PlenopticCamera:
             )
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> "PlenopticCamera":
+    def from_config(cls, cfg: Mapping[str, Any]) -> PlenopticCamera:
         """Build a camera from the ``camera`` section of a config (or the whole config).
 
         Accepts the nested layout of ``config/schema.yaml``::
@@ -231,16 +247,16 @@ class PlenopticCamera:
                 fl = lens["fnumber"] * pitch
             else:
                 raise OpticsError("camera.lenslet: give either focal_length or fnumber")
-            kwargs = dict(
-                n_pixels_x=int(sensor["n_pixels_x"]),
-                n_pixels_y=int(sensor["n_pixels_y"]),
-                pixel_pitch=float(sensor["pixel_pitch"]),
-                lenslet_pitch=float(pitch),
-                lenslet_focal_length=float(fl),
-                main_focal_length=float(main["focal_length"]),
-                magnification=float(c["magnification"]),
-                fnumber=main.get("fnumber", "matched"),
-            )
+            kwargs = {
+                "n_pixels_x": int(sensor["n_pixels_x"]),
+                "n_pixels_y": int(sensor["n_pixels_y"]),
+                "pixel_pitch": float(sensor["pixel_pitch"]),
+                "lenslet_pitch": float(pitch),
+                "lenslet_focal_length": float(fl),
+                "main_focal_length": float(main["focal_length"]),
+                "magnification": float(c["magnification"]),
+                "fnumber": main.get("fnumber", "matched"),
+            }
         except KeyError as exc:
             raise OpticsError(f"camera config is missing the key {exc.args[0]!r}") from None
         for key, name in (("wavelength", "wavelength"), ("particle_diameter", "particle_diameter")):
@@ -261,7 +277,7 @@ class PlenopticCamera:
                 ) from None
         return cls(**kwargs)
 
-    def with_(self, **changes: Any) -> "PlenopticCamera":
+    def with_(self, **changes: Any) -> PlenopticCamera:
         """A copy with some parameters changed (validated again)."""
         return replace(self, **changes)
 
@@ -406,8 +422,7 @@ class PlenopticCamera:
     def grid_to_sensor(self, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map lenslet-grid frame coordinates to the sensor frame (rotate, then shift)."""
         c, s = math.cos(self.lenslet_rotation), math.sin(self.lenslet_rotation)
-        return (c * gx - s * gy + self.lenslet_offset_x,
-                s * gx + c * gy + self.lenslet_offset_y)
+        return (c * gx - s * gy + self.lenslet_offset_x, s * gx + c * gy + self.lenslet_offset_y)
 
     def pixel_centers(self) -> tuple[np.ndarray, np.ndarray]:
         """Pixel-centre coordinates (x per column, y per row) in the sensor frame [mm].
@@ -433,14 +448,12 @@ class PlenopticCamera:
     @property
     def spot_lenslet_plane(self) -> float:
         """Diffraction spot diameter at the lenslet array, ds,m (eq. 4.21, main f-number)."""
-        return diffraction_spot_diameter(self.lenslet_plane_magnification, self.main_fnumber,
-                                         self.wavelength)
+        return diffraction_spot_diameter(self.lenslet_plane_magnification, self.main_fnumber, self.wavelength)
 
     @property
     def spot_sensor_plane(self) -> float:
         """Diffraction spot diameter at the sensor, ds,l (eq. 4.21, lenslet f-number)."""
-        return diffraction_spot_diameter(self.sensor_plane_magnification, self.lenslet_fnumber,
-                                         self.wavelength)
+        return diffraction_spot_diameter(self.sensor_plane_magnification, self.lenslet_fnumber, self.wavelength)
 
     @property
     def sigma_lenslet_plane(self) -> float:
@@ -455,14 +468,14 @@ class PlenopticCamera:
     @property
     def particle_image_lenslet_plane(self) -> float:
         """Particle image diameter dτ at the lenslet plane, eq. 4.20 [mm]."""
-        return particle_image_diameter(self.lenslet_plane_magnification, self.particle_diameter,
-                                       self.spot_lenslet_plane)
+        return particle_image_diameter(
+            self.lenslet_plane_magnification, self.particle_diameter, self.spot_lenslet_plane
+        )
 
     @property
     def particle_image_sensor_plane(self) -> float:
         """Particle image diameter dτ at the sensor plane, eq. 4.20 [mm]."""
-        return particle_image_diameter(self.sensor_plane_magnification, self.particle_diameter,
-                                       self.spot_sensor_plane)
+        return particle_image_diameter(self.sensor_plane_magnification, self.particle_diameter, self.spot_sensor_plane)
 
     # ------------------------------------------------------- depth of field
     def depth_of_field(self, z: float | np.ndarray = 0.0) -> xr.Dataset:
@@ -488,8 +501,7 @@ class PlenopticCamera:
         s = self.so + z
         if np.any(s <= f):
             raise OpticsError(
-                f"z: depths must keep the particle beyond the main-lens focal length "
-                f"(z > {f - self.so:.4g} mm)"
+                f"z: depths must keep the particle beyond the main-lens focal length (z > {f - self.so:.4g} mm)"
             )
         denom_far = f**2 - c * (s - f) * n
         near = s * f**2 / (f**2 + c * (s - f) * n)  # eq. 4.16
@@ -502,8 +514,11 @@ class PlenopticCamera:
                 "z_near": ("z", near - self.so, {"units": "mm", "long_name": "near limit depth"}),
                 "z_far": ("z", far - self.so, {"units": "mm", "long_name": "far limit depth"}),
                 "depth_ambiguity": ("z", far - near, {"units": "mm", "long_name": "depth ambiguity ξz"}),  # eq. 4.18
-                "inplane_ambiguity": ("z", c / (2.0 * local_m),  # eq. 4.19
-                                      {"units": "mm", "long_name": "in-plane ambiguity ξy"}),
+                "inplane_ambiguity": (
+                    "z",
+                    c / (2.0 * local_m),  # eq. 4.19
+                    {"units": "mm", "long_name": "in-plane ambiguity ξy"},
+                ),
             },
             coords={"z": ("z", z, {"units": "mm", "long_name": "particle depth"})},
         )
@@ -520,7 +535,7 @@ class PlenopticCamera:
     def default_n_planes(self) -> int:
         """Unique refocus planes: one per pixel under a lenslet, symmetric about
         the focal plane (Levoy; Table 5.1: 16.9 px → 8 per side → 17 planes)."""
-        return 2 * (int(math.floor(self.pixels_per_lenslet + 1e-9)) // 2) + 1
+        return 2 * (math.floor(self.pixels_per_lenslet + 1e-9) // 2) + 1
 
     def focal_planes(
         self,
@@ -568,7 +583,7 @@ class PlenopticCamera:
             # into n cells of about one in-plane voxel (pl/|M|) each.
             span = float(base["z_far"].max() - base["z_near"].min())
             voxel = self.lenslet_pitch / abs(self.magnification)
-            n_planes = max(1, int(round(span / voxel)))
+            n_planes = max(1, round(span / voxel))
         if n_planes is None:
             n_planes = n0
         if not isinstance(n_planes, (int, np.integer)) or n_planes < 1 or n_planes > 4096:
@@ -598,8 +613,9 @@ class PlenopticCamera:
             return self.lenslet_pitch  # exactly Table 5.1's marching
         lo, hi = 0.0, 0.999 * self.main_focal_length / self.main_fnumber
         if self._image_span(n_planes, hi) < span:
-            raise OpticsError("focal planes: the requested depth cannot be covered; "
-                              "use a smaller depth_scale or more planes")
+            raise OpticsError(
+                "focal planes: the requested depth cannot be covered; use a smaller depth_scale or more planes"
+            )
         for _ in range(200):
             mid = 0.5 * (lo + hi)
             if self._image_span(n_planes, mid) < span:
@@ -610,7 +626,7 @@ class PlenopticCamera:
 
     def _march(self, n_planes: int, c: float) -> xr.Dataset:
         f, n = self.main_focal_length, self.main_fnumber
-        k = f / (f + n * c)   # D_N,i = k·Di  (eqs 5.16/5.18 with Di eliminated)
+        k = f / (f + n * c)  # D_N,i = k·Di  (eqs 5.16/5.18 with Di eliminated)
         kf = f / (f - n * c)  # D_F,i = kf·Di (eqs 5.17/5.19)
         if f - n * c <= 0:
             raise OpticsError(
@@ -626,11 +642,12 @@ class PlenopticCamera:
         near, far = di * k, di * kf
         with np.errstate(divide="ignore"):
             do = 1.0 / (1.0 / f - 1.0 / di)
-            do_near = 1.0 / (1.0 / f - 1.0 / far)   # far image bound ↔ near object bound
+            do_near = 1.0 / (1.0 / f - 1.0 / far)  # far image bound ↔ near object bound
             do_far = 1.0 / (1.0 / f - 1.0 / near)
         if np.any(di <= f) or np.any(near <= f):
-            raise OpticsError("focal planes: marching reached the main-lens focal length; "
-                              "use fewer planes or a smaller depth_scale")
+            raise OpticsError(
+                "focal planes: marching reached the main-lens focal length; use fewer planes or a smaller depth_scale"
+            )
         attrs = lambda u, ln: {"units": u, "long_name": ln}  # noqa: E731
         return xr.Dataset(
             {

@@ -20,8 +20,9 @@ import sys
 import time
 import traceback
 import zlib
+from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 from lfstudy import io
 from lfstudy.config import Case, case_config
@@ -152,8 +153,15 @@ def case_particles(ccfg: Mapping[str, Any]) -> Any:
     case = Case.from_id(ccfg["case_id"])
     seed = derive_seed(ccfg["seed"], "particles", case.magnification, case.ppp)
     kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
-    field = seed_particles(cam, **kw, x_span=p["x_span"], y_span=p["y_span"], z_span=p["z_span"],
-                           intensity=tuple(p["intensity"]), seed=seed)
+    field = seed_particles(
+        cam,
+        **kw,
+        x_span=p["x_span"],
+        y_span=p["y_span"],
+        z_span=p["z_span"],
+        intensity=tuple(p["intensity"]),
+        seed=seed,
+    )
     field.attrs.update(io.provenance(ccfg, seed))
     return field
 
@@ -174,8 +182,15 @@ def case_image(ccfg: Mapping[str, Any], field: Any, frame: str, *, progress: boo
 
     rt = ccfg["raytrace"]
     seed = derive_seed(ccfg["seed"], "raytrace", ccfg["case_id"], frame)
-    img = render(PlenopticCamera.from_config(ccfg), field, rt["rays_per_particle"], seed,
-                 diffraction=rt["diffraction"], max_image_bytes=rt["max_image_bytes"], progress=progress)
+    img = render(
+        PlenopticCamera.from_config(ccfg),
+        field,
+        rt["rays_per_particle"],
+        seed,
+        diffraction=rt["diffraction"],
+        max_image_bytes=rt["max_image_bytes"],
+        progress=progress,
+    )
     img.attrs.update(io.provenance(ccfg, seed), frame=frame)
     return img
 
@@ -186,9 +201,15 @@ def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> Any:
 
     ph = ccfg["pinhole"]
     seed = derive_seed(ccfg["seed"], "pinhole", calib_id(ccfg["case_id"]))
-    img = render_pinhole(PlenopticCamera.from_config(ccfg), fnumber=ph["fnumber"], count=ph["count"],
-                         rays_per_point=ph["rays_per_point"], seed=seed,
-                         max_image_bytes=ccfg["raytrace"]["max_image_bytes"], progress=progress)
+    img = render_pinhole(
+        PlenopticCamera.from_config(ccfg),
+        fnumber=ph["fnumber"],
+        count=ph["count"],
+        rays_per_point=ph["rays_per_point"],
+        seed=seed,
+        max_image_bytes=ccfg["raytrace"]["max_image_bytes"],
+        progress=progress,
+    )
     img.attrs.update(io.provenance(ccfg, seed))
     return img
 
@@ -203,8 +224,9 @@ def run_displace(ccfg: Mapping[str, Any], particles: str | Path, out: str | Path
     io.write_zarr(case_displaced(ccfg, io.open_zarr(particles).load()), out)
 
 
-def run_simulate(ccfg: Mapping[str, Any], frame: str, particles: str | Path,
-                 out_zarr: str | Path, out_tiff: str | Path) -> None:
+def run_simulate(
+    ccfg: Mapping[str, Any], frame: str, particles: str | Path, out_zarr: str | Path, out_tiff: str | Path
+) -> None:
     """Ray-trace one raw plenoptic image (frame ``a`` or ``b``)."""
     img = case_image(ccfg, io.open_zarr(particles).load(), frame, progress=True)
     io.write_zarr(img, out_zarr, name="intensity")
@@ -247,7 +269,7 @@ def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path
     r = ccfg["refocus"]
     planes = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
     ds = io.open_zarr(lightfield)
-    lf = ds[list(ds.data_vars)[0]].load()
+    lf = ds[next(iter(ds.data_vars))].load()
     stack = focal_stack(lf, cam, planes, resize=r["resize"])
     stack.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(stack, out, name=stack.name or "intensity", progress=True)  # one task per plane
@@ -262,7 +284,7 @@ def run_reconstruct(ccfg: Mapping[str, Any], stack: str | Path, out: str | Path)
     if method == "none":  # k and dilation_radius belong to the threshold method
         r = {}
     ds = io.open_zarr(stack)
-    vol = reconstruct(ds[list(ds.data_vars)[0]], method=method, **r)
+    vol = reconstruct(ds[next(iter(ds.data_vars))], method=method, **r)
     vol.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(vol, out, name=vol.name or "intensity")
 
@@ -274,17 +296,19 @@ def run_piv(ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: 
     p = ccfg["piv"]
     a = io.open_zarr(vol_a)
     b = io.open_zarr(vol_b)
-    a = a[list(a.data_vars)[0]].load()
-    b = b[list(b.data_vars)[0]].load()
+    a = a[next(iter(a.data_vars))].load()
+    b = b[next(iter(b.data_vars))].load()
     t0 = time.perf_counter()
-    res = widim(a, b, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"],
-                progress=True)
+    res = widim(
+        a, b, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"], progress=True
+    )
     res.attrs.update(io.provenance(ccfg, None), piv_seconds=time.perf_counter() - t0)
     io.write_zarr(res, out)
 
 
-def run_errors(ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, particles: str | Path,
-               out: str | Path) -> None:
+def run_errors(
+    ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, particles: str | Path, out: str | Path
+) -> None:
     """Errors of one case against the known flow (+ reconstruction quality Q)."""
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study.metrics import case_errors, reconstruction_quality
@@ -293,14 +317,20 @@ def run_errors(ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, par
     res = io.open_zarr(piv).load()
     err = case_errors(res, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
     vds = io.open_zarr(volume)
-    q = reconstruction_quality(vds[list(vds.data_vars)[0]], io.open_zarr(particles).load())
+    q = reconstruction_quality(vds[next(iter(vds.data_vars))], io.open_zarr(particles).load())
     err["Q"] = ((), float(q), {"units": "1", "long_name": "reconstruction quality Q"})
     err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
     io.write_zarr(err, out)
 
 
-def run_study(cfg: Mapping[str, Any], case_ids: list[str], error_paths: list[str | Path],
-              benchmark_dir: str | Path, out_zarr: str | Path, out_csv: str | Path) -> None:
+def run_study(
+    cfg: Mapping[str, Any],
+    case_ids: list[str],
+    error_paths: list[str | Path],
+    benchmark_dir: str | Path,
+    out_zarr: str | Path,
+    out_csv: str | Path,
+) -> None:
     """Combine every case's scalar errors into one Dataset over the swept parameters."""
     from lfstudy.study.metrics import combine_cases, stage_times, to_csv
 
@@ -317,9 +347,9 @@ def run_study(cfg: Mapping[str, Any], case_ids: list[str], error_paths: list[str
     to_csv(study, out_csv)
 
 
-
-def run_report(cfg: Mapping[str, Any], case_ids: list[str], out_dir: str | Path, study: str | Path,
-               out_html: str | Path) -> None:
+def run_report(
+    cfg: Mapping[str, Any], case_ids: list[str], out_dir: str | Path, study: str | Path, out_html: str | Path
+) -> None:
     """The self-contained HTML report of the study."""
     from lfstudy.study.report import write_report
 

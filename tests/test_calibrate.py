@@ -28,8 +28,14 @@ def _rms(ds, cam):
     return float(np.sqrt(np.mean(d**2)))
 
 
-@pytest.mark.parametrize("kw", [{}, {"lenslet_rotation": 0.005, "lenslet_offset_x": 0.01},
-                                {"lenslet_rotation": -0.004, "lenslet_offset_y": -0.03}])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {},
+        {"lenslet_rotation": 0.005, "lenslet_offset_x": 0.01},
+        {"lenslet_rotation": -0.004, "lenslet_offset_y": -0.03},
+    ],
+)
 def test_noisy_pinhole_centres_within_005_px(kw):
     cam = _camera(**kw)
     img = synthetic_pinhole(cam, amplitude=3000, background=20, read_noise=5, seed=3)

@@ -81,7 +81,9 @@ def test_cli_cases_and_errors(capsys, tmp_path):
     assert main(["cases", str(ROOT / "config" / "demo.yaml"), "--ids"]) == 0
     assert len(capsys.readouterr().out.split()) == 16
     bad = tmp_path / "bad.yaml"
-    bad.write_text("camera: {sensor: {n_pixels_x: 64, n_pixels_y: 64, pixel_pitch: 0.0074}, "
-                   "lenslet: {pitch: 0.1, focal_length: 0.4}, main_lens: {focal_length: 50}, magnification: 2}\n")
+    bad.write_text(
+        "camera: {sensor: {n_pixels_x: 64, n_pixels_y: 64, pixel_pitch: 0.0074}, "
+        "lenslet: {pitch: 0.1, focal_length: 0.4}, main_lens: {focal_length: 50}, magnification: 2}\n"
+    )
     assert main(["cases", str(bad)]) == 2
     assert "camera.magnification" in capsys.readouterr().err

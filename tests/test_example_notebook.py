@@ -17,18 +17,26 @@ NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "explore_results.i
 
 
 def _scalars(rms: float) -> xr.Dataset:
-    return xr.Dataset({
-        "rms_total": ((), rms, {"units": "voxel", "long_name": "total RMS error (all components)"}),
-        "valid_percent": ((), 98.0, {"units": "percent", "long_name": "valid vectors"}),
-    })
+    return xr.Dataset(
+        {
+            "rms_total": ((), rms, {"units": "voxel", "long_name": "total RMS error (all components)"}),
+            "valid_percent": ((), 98.0, {"units": "percent", "long_name": "valid vectors"}),
+        }
+    )
 
 
 @pytest.fixture
 def results(tmp_path):
     rows = []
     for i, (fn, pitch, ppp, flow) in enumerate(
-            [(f, p, s, fl) for f in ("matched", 4.0) for p in (0.0888, 0.1184)
-             for s in (0.001, 0.002) for fl in ("uniform_x", "hill")][:-1]):  # one case missing
+        [
+            (f, p, s, fl)
+            for f in ("matched", 4.0)
+            for p in (0.0888, 0.1184)
+            for s in (0.001, 0.002)
+            for fl in ("uniform_x", "hill")
+        ][:-1]
+    ):  # one case missing
         case = Case(-1.0, fn, pitch, ppp, flow)
         rms = 0.05 + 10 * ppp + 0.1 * pitch + 0.01 * i
         rows.append((case, _scalars(rms)))

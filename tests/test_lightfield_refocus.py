@@ -13,9 +13,9 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.lightfield.calibrate import find_lenslet_centers, synthetic_pinhole
+from lfstudy.lightfield.refocus import focal_stack, render_volume
 from lfstudy.lightfield.registration import RegistrationError, register
 from lfstudy.optics import PlenopticCamera
-from lfstudy.lightfield.refocus import focal_stack, render_volume
 
 CAM = PlenopticCamera(420, 340, 0.0074, 0.125, 0.5, 50.0, -1.0)  # Table 4.3 optics, small sensor
 HALF_VOXEL = CAM.lenslet_pitch / abs(CAM.magnification) / 2
@@ -60,14 +60,15 @@ def _measure(plane: xr.DataArray) -> tuple[float, float, float, float]:
     """Peak, effective diameter (participation ratio) and centroid near the peak."""
     w = plane.values.astype(float)
     iy, ix = np.unravel_index(np.argmax(w), w.shape)
-    sub = w[max(iy - 2, 0):iy + 3, max(ix - 2, 0):ix + 3]
-    ys, xs = plane["y"].values[max(iy - 2, 0):iy + 3], plane["x"].values[max(ix - 2, 0):ix + 3]
+    sub = w[max(iy - 2, 0) : iy + 3, max(ix - 2, 0) : ix + 3]
+    ys, xs = plane["y"].values[max(iy - 2, 0) : iy + 3], plane["x"].values[max(ix - 2, 0) : ix + 3]
     diam = np.sqrt(4 / np.pi * w.sum() ** 2 / (w**2).sum())
     return w.max(), diam, float((sub.sum(0) * xs).sum() / sub.sum()), float((sub.sum(1) * ys).sum() / sub.sum())
 
 
-@pytest.mark.parametrize("plane,x,y", [(9, 0.3, -0.2), (6, 0.5, 0.4), (12, -0.4, 0.3), (3, 0.2, 0.25),
-                                       (15, -0.3, -0.35)])
+@pytest.mark.parametrize(
+    "plane,x,y", [(9, 0.3, -0.2), (6, 0.5, 0.4), (12, -0.4, 0.3), (3, 0.2, 0.25), (15, -0.3, -0.35)]
+)
 def test_single_particle_sharpest_on_nearest_plane(centers, plane, x, y):
     planes = CAM.focal_planes()
     z = float(planes["z"].sel(plane=plane))
@@ -106,14 +107,14 @@ def test_registration_preserves_signal_and_layout(centers):
     # The assigned pixels: union of the blocks (they never overlap).
     mask = np.zeros(raw.shape, int)
     for r0, c0 in zip(lf["row0"].values.ravel(), lf["col0"].values.ravel()):  # test-side bookkeeping
-        mask[max(r0, 0):max(r0 + n, 0), max(c0, 0):max(c0 + n, 0)] += 1
+        mask[max(r0, 0) : max(r0 + n, 0), max(c0, 0) : max(c0 + n, 0)] += 1
     assert mask.max() == 1
     assert float(lf.sum()) == pytest.approx(float(raw[mask == 1].sum()), rel=1e-12)
     # Angles: theta grows with the pixel column, phi falls with the pixel row (y up), bulk ~ x/si.
     assert np.all(np.diff(lf["theta"].values, axis=-1) > 0)
     assert np.all(np.diff(lf["phi"].values, axis=-1) < 0)
     np.testing.assert_allclose(lf["theta_bulk"].values, np.arctan(lf["x"].values / CAM.si))
-    tx, ty = CAM.lenslet_centers()
+    tx, _ty = CAM.lenslet_centers()
     v = lf["valid"].values
     assert np.abs(lf["x"].values - tx)[v].max() < 0.01 * CAM.lenslet_pitch
     for c in ("x", "y", "theta", "phi", "theta_bulk", "phi_bulk"):
@@ -172,14 +173,17 @@ def test_unresized_stack_shows_the_magnification_bias(centers):
 
 def test_render_volume_config_chain(centers):
     cfg = {
-        "camera": {"sensor": {"n_pixels_x": 420, "n_pixels_y": 340, "pixel_pitch": 0.0074},
-                   "lenslet": {"pitch": 0.125, "focal_length": 0.5},
-                   "main_lens": {"focal_length": 50.0, "fnumber": "matched"}, "magnification": -1.0},
+        "camera": {
+            "sensor": {"n_pixels_x": 420, "n_pixels_y": 340, "pixel_pitch": 0.0074},
+            "lenslet": {"pitch": 0.125, "focal_length": 0.5},
+            "main_lens": {"focal_length": 50.0, "fnumber": "matched"},
+            "magnification": -1.0,
+        },
         "refocus": {"n_planes": 24, "depth_scale": 1.5, "cubic": False, "resize": True},
         "reconstruct": {"method": "threshold", "k": 3.0, "dilation_radius": 1},
     }
     raw = _simulate(CAM, [(0.2, 0.1, 1.0), (-0.6, -0.3, -3.0)], n_rays=30_000)
-    lf, st, vol = render_volume(raw, centers, cfg)
+    _lf, st, vol = render_volume(raw, centers, cfg)
     assert st.sizes["z"] == 24 and vol.sizes["z"] == 24 and vol.chunks[0] == (1,) * 24
     assert 0 < vol.attrs["kept_fraction"] < 0.2 and vol.attrs["k"] == 3.0
 

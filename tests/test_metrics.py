@@ -27,10 +27,11 @@ from lfstudy.study.metrics import (
 VOX = 0.125  # mm, the thesis' lenslet pitch at M = -1
 
 
-def synthetic_piv(u, v, w, *, valid=None, shape=(4, 5, 6), spacing=(8, 16, 16), vox=VOX,
-                  with_index=True, with_mm=True) -> xr.Dataset:
+def synthetic_piv(
+    u, v, w, *, valid=None, shape=(4, 5, 6), spacing=(8, 16, 16), vox=VOX, with_index=True, with_mm=True
+) -> xr.Dataset:
     """A WIDIM-like result on a (z, y, x) grid of window centres (voxels and mm)."""
-    nz, ny, nx = shape
+    _nz, _ny, _nx = shape
     idx = {d: (np.arange(n) + 0.5) * s for d, n, s in zip("zyx", shape, spacing)}
     coords = {d: (d, (idx[d] - idx[d].mean()) * vox, {"units": "mm"}) for d in "zyx"}
     if with_index:
@@ -68,13 +69,15 @@ def test_known_errors_exact(with_index, with_mm):
     rng = np.random.default_rng(0)
     shape = (4, 5, 6)
     noise = rng.normal(0.0, 0.07, shape)
-    u = 4.45 + noise                         # thesis' 0.05 voxel under-estimate
+    u = 4.45 + noise  # thesis' 0.05 voxel under-estimate
     valid = np.ones(shape, bool)
     valid[0, 0, :3] = False
-    u[0, 0, :3] = 1e6                         # outliers flagged invalid must not count
-    u[1, 1, 1] = np.nan                       # a NaN never leaks into the statistics
-    err = case_errors(synthetic_piv(u, 0.0, 0.25, valid=valid, with_index=with_index, with_mm=with_mm),
-                      UniformFlow((0.5625, 0.0, 0.0)))
+    u[0, 0, :3] = 1e6  # outliers flagged invalid must not count
+    u[1, 1, 1] = np.nan  # a NaN never leaks into the statistics
+    err = case_errors(
+        synthetic_piv(u, 0.0, 0.25, valid=valid, with_index=with_index, with_mm=with_mm),
+        UniformFlow((0.5625, 0.0, 0.0)),
+    )
     sel = valid & np.isfinite(u)
     e = u[sel] - 4.5
     assert float(err["bias_x"]) == pytest.approx(e.mean(), abs=1e-12)
@@ -141,12 +144,14 @@ def _volume(particles, shape=(10, 24, 28), vox=0.125):
 
 def _particles(n, seed):
     rng = np.random.default_rng(seed)
-    return xr.Dataset({
-        "x": ("particle", rng.uniform(-1.4, 1.4, n)),
-        "y": ("particle", rng.uniform(-1.2, 1.2, n)),
-        "z": ("particle", rng.uniform(-0.8, 0.5, n)),
-        "intensity": ("particle", rng.uniform(0.5, 1.0, n)),
-    })
+    return xr.Dataset(
+        {
+            "x": ("particle", rng.uniform(-1.4, 1.4, n)),
+            "y": ("particle", rng.uniform(-1.2, 1.2, n)),
+            "z": ("particle", rng.uniform(-0.8, 0.5, n)),
+            "intensity": ("particle", rng.uniform(0.5, 1.0, n)),
+        }
+    )
 
 
 def test_reconstruction_quality():
@@ -186,10 +191,12 @@ def test_stage_times(tmp_path):
 
 
 def _scalars(rms, q):
-    return xr.Dataset({
-        "rms_x": ((), rms, {"units": "voxel", "long_name": "RMS error x"}),
-        "Q": ((), q, {"units": "1", "long_name": "reconstruction quality Q"}),
-    })
+    return xr.Dataset(
+        {
+            "rms_x": ((), rms, {"units": "voxel", "long_name": "RMS error x"}),
+            "Q": ((), q, {"units": "1", "long_name": "reconstruction quality Q"}),
+        }
+    )
 
 
 def test_combine_cases_dims_sel_and_csv(tmp_path):
@@ -203,10 +210,12 @@ def test_combine_cases_dims_sel_and_csv(tmp_path):
     assert study["rms_x"].dims == ("magnification", "fnumber", "lenslet_pitch", "ppp", "flow")
     assert list(study["fnumber"].values) == ["matched", "4"]
     sub = study.sel(ppp=0.001)
-    assert float(sub["rms_x"].sel(magnification=-1.0, fnumber="4", lenslet_pitch=0.125,
-                                  flow="uniform_x")) == pytest.approx(0.09)
-    assert np.isnan(float(study["rms_x"].sel(magnification=-0.8, fnumber="4", lenslet_pitch=0.125,
-                                             ppp=0.005, flow="hill")))
+    assert float(
+        sub["rms_x"].sel(magnification=-1.0, fnumber="4", lenslet_pitch=0.125, flow="uniform_x")
+    ) == pytest.approx(0.09)
+    assert np.isnan(
+        float(study["rms_x"].sel(magnification=-0.8, fnumber="4", lenslet_pitch=0.125, ppp=0.005, flow="hill"))
+    )
     assert study["rms_x"].attrs["units"] == "voxel"
     assert int(study["computed"].sum()) == 4
     for v in study.variables.values():

@@ -8,10 +8,44 @@ import pytest
 from lfstudy.optics import OpticsError, PlenopticCamera, round_up_f_stop
 
 # Table 5.1 (t column) of the thesis, planes 1..17.
-TABLE_51_T = [-7.6884, -6.7607, -5.8236, -4.8771, -3.9211, -2.9555, -1.9801, -0.9950, 0.0,
-              1.0050, 2.0202, 3.0455, 4.0811, 5.1272, 6.1837, 7.2509, 8.3288]
-TABLE_51_NEAR = [91.8523, 92.7755, 93.7079, 94.6497, 95.6009, 96.5617, 97.5322, 98.5124, 99.5025,
-                 100.5025, 101.5126, 102.5328, 103.5633, 104.6041, 105.6554, 106.7173, 107.7898]
+TABLE_51_T = [
+    -7.6884,
+    -6.7607,
+    -5.8236,
+    -4.8771,
+    -3.9211,
+    -2.9555,
+    -1.9801,
+    -0.9950,
+    0.0,
+    1.0050,
+    2.0202,
+    3.0455,
+    4.0811,
+    5.1272,
+    6.1837,
+    7.2509,
+    8.3288,
+]
+TABLE_51_NEAR = [
+    91.8523,
+    92.7755,
+    93.7079,
+    94.6497,
+    95.6009,
+    96.5617,
+    97.5322,
+    98.5124,
+    99.5025,
+    100.5025,
+    101.5126,
+    102.5328,
+    103.5633,
+    104.6041,
+    105.6554,
+    106.7173,
+    107.7898,
+]
 
 
 def test_table41_depth_of_field(table41_camera):
@@ -97,17 +131,23 @@ def test_f_stop_rounding_and_fill():
     ],
 )
 def test_bad_camera(change, match):
-    kw = dict(n_pixels_x=100, n_pixels_y=100, pixel_pitch=0.0074, lenslet_pitch=0.125,
-              lenslet_focal_length=0.5, main_focal_length=50.0, magnification=-1.0)
+    kw = {
+        "n_pixels_x": 100,
+        "n_pixels_y": 100,
+        "pixel_pitch": 0.0074,
+        "lenslet_pitch": 0.125,
+        "lenslet_focal_length": 0.5,
+        "main_focal_length": 50.0,
+        "magnification": -1.0,
+    }
     kw.update(change)
     with pytest.raises(OpticsError, match=match):
         PlenopticCamera(**kw)
 
 
 def test_rotated_grid_covers_sensor():
-    cam = PlenopticCamera(300, 200, 0.0074, 0.125, 0.5, 50.0, -1.0,
-                          lenslet_rotation=0.02, lenslet_offset_x=0.03)
-    cx, cy = cam.lenslet_centers()
+    cam = PlenopticCamera(300, 200, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_rotation=0.02, lenslet_offset_x=0.03)
+    _cx, _cy = cam.lenslet_centers()
     # Every sensor corner lies inside the rotated grid's outline.
     c, s = math.cos(-0.02), math.sin(-0.02)
     for x in (-cam.sensor_width / 2, cam.sensor_width / 2):

@@ -81,10 +81,10 @@ def test_sign_convention(ndim: int, axis: int, mode: str) -> None:
     shift[axis] = 1.6
     a, b = particle_pair(shape, shift, density=0.01 if ndim == 3 else 0.03, seed=5)
     ds = widim(a, b, window=16, spacing=8, mode=mode)
-    comp = COMP3[3 - ndim:][axis]
+    comp = COMP3[3 - ndim :][axis]
     got = float(_interior(ds)[comp].median())
     assert got == pytest.approx(1.6, abs=0.1)
-    for other in COMP3[3 - ndim:]:
+    for other in COMP3[3 - ndim :]:
         if other != comp:
             assert abs(float(_interior(ds)[other].median())) < 0.1
 
@@ -109,8 +109,7 @@ def test_peak_locking_deform_vs_offset() -> None:
 def test_peak_locking_index_basics() -> None:
     t = np.linspace(0, 3, 301)
     assert peak_locking_index(t, t) == 0.0
-    assert peak_locking_index(np.round(t), t) == pytest.approx(np.sqrt(np.mean(
-        (np.round(t) - t) ** 2)), rel=0.2)
+    assert peak_locking_index(np.round(t), t) == pytest.approx(np.sqrt(np.mean((np.round(t) - t) ** 2)), rel=0.2)
     assert np.isnan(peak_locking_index([np.nan], [1.0]))
 
 
@@ -170,20 +169,23 @@ def test_nan_voxels_raise() -> None:
         widim(a, b)
 
 
-@pytest.mark.parametrize("kwargs,match", [
-    ({"window": 2}, "window"),
-    ({"window": (16, 16)}, "window"),
-    ({"spacing": 40}, "spacing"),
-    ({"spacing": 0}, "spacing"),
-    ({"mode": "sinc"}, "mode"),
-    ({"levels": 0}, "levels"),
-    ({"levels": 9}, "levels"),
-    ({"max_passes": 0}, "max_passes"),
-    ({"tol": -1.0}, "tol"),
-    ({"nmt_eps": 0}, "nmt_eps"),
-    ({"chunk_windows": 0}, "chunk_windows"),
-    ({"order": 7}, "order"),
-])
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"window": 2}, "window"),
+        ({"window": (16, 16)}, "window"),
+        ({"spacing": 40}, "spacing"),
+        ({"spacing": 0}, "spacing"),
+        ({"mode": "sinc"}, "mode"),
+        ({"levels": 0}, "levels"),
+        ({"levels": 9}, "levels"),
+        ({"max_passes": 0}, "max_passes"),
+        ({"tol": -1.0}, "tol"),
+        ({"nmt_eps": 0}, "nmt_eps"),
+        ({"chunk_windows": 0}, "chunk_windows"),
+        ({"order": 7}, "order"),
+    ],
+)
 def test_parameter_validation(kwargs: dict, match: str) -> None:
     a = np.random.default_rng(0).random((32, 64, 64))
     with pytest.raises(ValueError, match=match):
@@ -211,10 +213,15 @@ def test_empty_windows_flagged_not_nan() -> None:
 def _dataarray(arr: np.ndarray, flip_y: bool) -> xr.DataArray:
     nz, ny, nx = arr.shape
     y = np.arange(ny) * 0.05
-    return xr.DataArray(arr, dims=("z", "y", "x"), coords={
-        "z": ("z", np.arange(nz) * 0.1, {"units": "mm"}),
-        "y": ("y", y[::-1] if flip_y else y, {"units": "mm"}),
-        "x": ("x", 2.0 + np.arange(nx) * 0.05, {"units": "mm"})})
+    return xr.DataArray(
+        arr,
+        dims=("z", "y", "x"),
+        coords={
+            "z": ("z", np.arange(nz) * 0.1, {"units": "mm"}),
+            "y": ("y", y[::-1] if flip_y else y, {"units": "mm"}),
+            "x": ("x", 2.0 + np.arange(nx) * 0.05, {"units": "mm"}),
+        },
+    )
 
 
 @pytest.mark.parametrize("flip_y", [False, True])

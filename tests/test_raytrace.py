@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numba
 import numpy as np
 import pytest
 
 from lfstudy.optics import PlenopticCamera
-from lfstudy.simulate.particles import make_field, seed_particles
 from lfstudy.simulate import raytrace as rt
+from lfstudy.simulate.particles import make_field, seed_particles
 
 #: Table 4.3 optics on a small sensor with an odd lenslet count (9 x 7), so a
 #: lenslet sits on the optical axis as in Fig. 4.17.
@@ -65,7 +66,13 @@ def test_recorded_signal_equals_traced_less_lost():
     field = seed_particles(CAM, count=30, z_span=4.0, intensity=(0.5, 2.0), seed=4)
     img = rt.render(CAM, field, 3000, 5)
     a = img.attrs
-    assert a["rays_traced"] == a["rays_recorded"] + a["rays_dropped_outside_sensor"] + a["rays_dropped_lenslet_array"] + a["rays_dropped_aperture"]
+    assert (
+        a["rays_traced"]
+        == a["rays_recorded"]
+        + a["rays_dropped_outside_sensor"]
+        + a["rays_dropped_lenslet_array"]
+        + a["rays_dropped_aperture"]
+    )
     assert a["rays_dropped_outside_sensor"] > 0  # field edge particles spill off the sensor
     assert img.values.sum() == pytest.approx(a["intensity_traced"] - a["intensity_lost"], rel=1e-6)
     # Eq. 4.14 generalised: every particle traces about n rays, more when closer.
@@ -142,7 +149,7 @@ def test_diffraction_sigmas_at_the_right_planes():
     assert 0.05 < crossed < 0.2  # P(N(0,1) > 10/7.7) = 0.097
     # Spread of the spot within the own lenslet image (pixels): tight.
     ws = np.where(own, w, 0.0)
-    x, y = img["x"].values, img["y"].values
+    x, _y = img["x"].values, img["y"].values
     mx = (ws.sum(0) * x).sum() / ws.sum()
     sx = math.sqrt((ws.sum(0) * (x - mx) ** 2).sum() / ws.sum())
     assert sx / cam.pixel_pitch < 0.6
@@ -173,8 +180,16 @@ def test_output_layout_and_attrs():
     np.testing.assert_array_equal(img["y"].values, y)
     assert img["y"].values[0] > img["y"].values[-1]
     assert img["x"].attrs["units"] == "mm" and img.attrs["y_direction"] == "up; row 0 is the top"
-    for k in ("seed", "rays_per_particle", "rays_traced", "rays_recorded", "rays_dropped_aperture",
-              "rays_dropped_outside_sensor", "camera_lenslet_pitch", "camera_main_fnumber"):
+    for k in (
+        "seed",
+        "rays_per_particle",
+        "rays_traced",
+        "rays_recorded",
+        "rays_dropped_aperture",
+        "rays_dropped_outside_sensor",
+        "camera_lenslet_pitch",
+        "camera_main_fnumber",
+    ):
         assert k in img.attrs
 
 
@@ -237,7 +252,7 @@ def test_cli_simulate_writes_files(tmp_path):
     from lfstudy import io
     from lfstudy.cli import main
 
-    cfg = yaml.safe_load(open(__file__.rsplit("/tests/", 1)[0] + "/config/demo.yaml"))
+    cfg = yaml.safe_load((Path(__file__).parents[1] / "config" / "demo.yaml").read_text())
     cfg["camera"]["sensor"].update(n_pixels_x=160, n_pixels_y=120)
     cfg["particles"]["ppp"] = 0.002
     cfg["raytrace"]["rays_per_particle"] = 200
@@ -247,8 +262,16 @@ def test_cli_simulate_writes_files(tmp_path):
     path.write_text(yaml.safe_dump(cfg))
     out = tmp_path / "out"
     assert main(["simulate", str(path), "--out", str(out)]) == 0
-    for name in ("particles_a.zarr", "particles_b.zarr", "image_a.tif", "image_a.zarr", "image_b.tif",
-                 "image_b.zarr", "pinhole.tif", "pinhole.zarr"):
+    for name in (
+        "particles_a.zarr",
+        "particles_b.zarr",
+        "image_a.tif",
+        "image_a.zarr",
+        "image_b.tif",
+        "image_b.zarr",
+        "pinhole.tif",
+        "pinhole.zarr",
+    ):
         assert (out / name).exists(), name
     data, meta = io.read_tiff(out / "image_a.tif")
     assert data.shape == (120, 160) and data.dtype == np.float32
@@ -276,8 +299,9 @@ def test_kernel_math_helpers_accuracy():
         return out
 
     # Every uniform the kernel can draw lies in [2^-33, 1): include both ends and every octave.
-    u = np.concatenate([(np.arange(2**16) + 0.5) * 2.0**-16, 1.37 * 2.0 ** -np.arange(1, 34),
-                        [2.0**-33, 1.0 - 2.0**-33]])
+    u = np.concatenate(
+        [(np.arange(2**16) + 0.5) * 2.0**-16, 1.37 * 2.0 ** -np.arange(1, 34), [2.0**-33, 1.0 - 2.0**-33]]
+    )
     out = evaluate(u)
     assert np.abs(out[0] - np.log(u)).max() < 1e-12
     assert np.abs(out[1] - np.sin(2 * np.pi * u)).max() < 2e-9

@@ -12,9 +12,17 @@ from lfstudy.reconstruct import available_methods, disk, reconstruct, register_m
 def _stack(values: np.ndarray) -> xr.DataArray:
     nz, ny, nx = values.shape
     mm = {"units": "mm"}
-    return xr.DataArray(values, dims=("z", "y", "x"), name="intensity",
-                        coords={"z": ("z", np.arange(nz) * 1.0, mm), "y": ("y", np.arange(ny) * 0.125, mm),
-                                "x": ("x", np.arange(nx) * 0.125, mm)}, attrs={"units": "counts"})
+    return xr.DataArray(
+        values,
+        dims=("z", "y", "x"),
+        name="intensity",
+        coords={
+            "z": ("z", np.arange(nz) * 1.0, mm),
+            "y": ("y", np.arange(ny) * 0.125, mm),
+            "x": ("x", np.arange(nx) * 0.125, mm),
+        },
+        attrs={"units": "counts"},
+    )
 
 
 def test_threshold_dilation_hand_computed():
@@ -81,8 +89,8 @@ def test_registry_and_unknown_method():
 
 def test_cli_render(tmp_path, capsys):
     from lfstudy import io
-    from lfstudy.lightfield.calibrate import synthetic_pinhole
     from lfstudy.cli import main
+    from lfstudy.lightfield.calibrate import synthetic_pinhole
     from lfstudy.optics import PlenopticCamera
 
     cfg = tmp_path / "c.yaml"
@@ -97,8 +105,10 @@ def test_cli_render(tmp_path, capsys):
     raw = np.random.default_rng(0).poisson(5.0, (272, 340)).astype("float32")
     tif = io.write_tiff(raw, tmp_path / "raw.tif")
     out = tmp_path / "out"
-    assert main(["render", str(tif), "--centers", str(tmp_path / "cen.zarr"), "--config", str(cfg),
-                 "--out", str(out)]) == 0
+    assert (
+        main(["render", str(tif), "--centers", str(tmp_path / "cen.zarr"), "--config", str(cfg), "--out", str(out)])
+        == 0
+    )
     for name in ("lightfield.zarr", "stack.zarr", "volume.zarr"):
         assert (out / name).exists()
     vol = io.open_zarr(out / "volume.zarr", name="intensity")

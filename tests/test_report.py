@@ -37,20 +37,24 @@ def fake_piv(shift_vox: float, noise: float, seed: int, shape=(3, 4, 5)) -> xr.D
     data["corrector_rms"] = ("pass", [2.0, 0.3, 0.05, 0.02])
     data["valid_fraction"] = ("pass", [88.0, 95.0, 98.0, 98.5])
     data["level"] = ("pass", [1, 1, 2, 2])
-    return xr.Dataset(data, coords={**coords, "pass": ("pass", [1, 2, 3, 4])},
-                      attrs={"final_spacing": [8, 8, 8]})
+    return xr.Dataset(data, coords={**coords, "pass": ("pass", [1, 2, 3, 4])}, attrs={"final_spacing": [8, 8, 8]})
 
 
 def fake_images(d: Path, seed: int) -> None:
     rng = np.random.default_rng(seed)
-    raw = xr.DataArray(rng.random((60, 80)).astype("f4"), dims=("row", "col"), name="intensity",
-                       coords={"x": ("col", (np.arange(80) - 39.5) * 0.0074),
-                               "y": ("row", (29.5 - np.arange(60)) * 0.0074)})
+    raw = xr.DataArray(
+        rng.random((60, 80)).astype("f4"),
+        dims=("row", "col"),
+        name="intensity",
+        coords={"x": ("col", (np.arange(80) - 39.5) * 0.0074), "y": ("row", (29.5 - np.arange(60)) * 0.0074)},
+    )
     io.write_zarr(raw, d / "raw_a.zarr")
-    stack = xr.DataArray(rng.gamma(1.0, 0.1, (6, 12, 14)).astype("f4"), dims=("z", "y", "x"),
-                         name="intensity",
-                         coords={"z": np.linspace(-1, 1, 6), "y": (np.arange(12) - 5.5) * VOX,
-                                 "x": (np.arange(14) - 6.5) * VOX}).chunk({"z": 1})
+    stack = xr.DataArray(
+        rng.gamma(1.0, 0.1, (6, 12, 14)).astype("f4"),
+        dims=("z", "y", "x"),
+        name="intensity",
+        coords={"z": np.linspace(-1, 1, 6), "y": (np.arange(12) - 5.5) * VOX, "x": (np.arange(14) - 6.5) * VOX},
+    ).chunk({"z": 1})
     io.write_zarr(stack, d / "stack_a.zarr")
 
 
@@ -90,7 +94,7 @@ def test_write_report_self_contained(study_dirs, tmp_path):
     assert out.exists() and list(tmp_path.iterdir()) == [out]  # atomic: no temporary left
     text = out.read_text()
     assert text.count("data:image/png;base64") >= 10
-    assert 'src="http' not in text and "href=\"http" not in text and "<link" not in text
+    assert 'src="http' not in text and 'href="http' not in text and "<link" not in text
     assert "<script" not in text
     for title in SECTIONS.values():
         assert title in text

@@ -22,8 +22,18 @@ SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
 
 def _snakemake(workdir: Path, *extra: str, timeout: float = 600, config: Path = TINY) -> subprocess.CompletedProcess:
-    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(workdir), "--configfile", str(config),
-           "--cores", "2", *extra]
+    cmd = [
+        *SNAKEMAKE,
+        "-s",
+        str(ROOT / "Snakefile"),
+        "-d",
+        str(workdir),
+        "--configfile",
+        str(config),
+        "--cores",
+        "2",
+        *extra,
+    ]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
 
 
@@ -86,8 +96,17 @@ def test_snakemake_report(study_dir):
     """`snakemake --report` (no --cores needed) packs the study report with its caption."""
     import zipfile
 
-    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(study_dir), "--configfile", str(TINY),
-           "--report", str(study_dir / "smk_report.zip")]
+    cmd = [
+        *SNAKEMAKE,
+        "-s",
+        str(ROOT / "Snakefile"),
+        "-d",
+        str(study_dir),
+        "--configfile",
+        str(TINY),
+        "--report",
+        str(study_dir / "smk_report.zip"),
+    ]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     names = zipfile.ZipFile(study_dir / "smk_report.zip").namelist()
@@ -126,8 +145,7 @@ def test_killed_run_restarts_cleanly(study_dir):
     shutil.rmtree(out / "study.zarr")
     for case in expand_cases(load_config(TINY)):
         shutil.rmtree(out / case.case_id / "stack_a.zarr")
-    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(study_dir), "--configfile", str(TINY),
-           "--cores", "1"]
+    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(study_dir), "--configfile", str(TINY), "--cores", "1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 120
     # Wait until a refocus job is writing its store (its hidden temporary store exists), then
@@ -169,17 +187,41 @@ def test_stage_entry_point(tmp_path):
     cid = expand_cases(cfg)[0].case_id
     entry = [sys.executable, "-m", "lfstudy.workflow"]
     ok = json.dumps(stage_config(cfg, cid, "camera"))
-    r = subprocess.run([*entry, "camera", "--config", ok, "--log", str(tmp_path / "ok.log"),
-                        str(tmp_path / "camera.json"), str(tmp_path / "planes.zarr")],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            *entry,
+            "camera",
+            "--config",
+            ok,
+            "--log",
+            str(tmp_path / "ok.log"),
+            str(tmp_path / "camera.json"),
+            str(tmp_path / "planes.zarr"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, (tmp_path / "ok.log").read_text()
     assert json.loads((tmp_path / "camera.json").read_text())["case_id"] == cid
     assert io.open_zarr(tmp_path / "planes.zarr").sizes
     # A stage given less config than it reads fails loudly, points at its log, writes nothing.
     too_little = json.dumps(stage_config(cfg, cid, "calibrate"))  # the camera section, no refocus
-    r = subprocess.run([*entry, "--config", too_little, "--log", str(tmp_path / "bad.log"),
-                        "camera", str(tmp_path / "c2.json"), str(tmp_path / "p2.zarr")],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            *entry,
+            "--config",
+            too_little,
+            "--log",
+            str(tmp_path / "bad.log"),
+            "camera",
+            str(tmp_path / "c2.json"),
+            str(tmp_path / "p2.zarr"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 1
     assert "KeyError: 'refocus'" in (tmp_path / "bad.log").read_text() and "bad.log" in r.stderr
     assert not (tmp_path / "c2.json").exists() and not (tmp_path / "p2.zarr").exists()

@@ -41,10 +41,13 @@ def run(args: argparse.Namespace) -> int:
     centers.attrs.update(io.provenance(params), source=str(args.pinhole))
     io.write_zarr(centers, args.out)
     a = centers.attrs
-    print(f"lenslet grid: {centers.sizes['lenslet_col']} x {centers.sizes['lenslet_row']} "
-          f"({a['n_valid']} valid centres)")
-    print(f"pitch: {a['pitch_x_px']:.4f} x {a['pitch_y_px']:.4f} px, rotation {a['rotation']:.3e} rad, "
-          f"offset ({a['offset_x_px']:.3f}, {a['offset_y_px']:.3f}) px")
+    print(
+        f"lenslet grid: {centers.sizes['lenslet_col']} x {centers.sizes['lenslet_row']} ({a['n_valid']} valid centres)"
+    )
+    print(
+        f"pitch: {a['pitch_x_px']:.4f} x {a['pitch_y_px']:.4f} px, rotation {a['rotation']:.3e} rad, "
+        f"offset ({a['offset_x_px']:.3f}, {a['offset_y_px']:.3f}) px"
+    )
     print(f"lattice residual: {a['lattice_rms_px']:.4f} px RMS")
     if cam is not None:
         ex, ey = expected_centers(cam)

@@ -22,8 +22,9 @@ def run(args: argparse.Namespace) -> int:
     if args.ids:
         print("\n".join(table.index))
         return 0
-    with pd.option_context("display.max_rows", None, "display.max_columns", None, "display.width", 200,
-                           "display.max_colwidth", 80):
+    with pd.option_context(
+        "display.max_rows", None, "display.max_columns", None, "display.width", 200, "display.max_colwidth", 80
+    ):
         print(table.to_string())
     print(f"\n{len(table)} cases")
     return 0

@@ -33,6 +33,8 @@ def run(args: argparse.Namespace) -> int:
     for p in fp["plane"].values:
         row = fp.sel(plane=p)
         n, f = float(row["near"]), float(row["far"])
-        print(f"{int(p):>5} {n:>10.4f} {f:>10.4f} {f - n:>9.4f} {(f - n) / c:>8.4f} "
-              f"{float(row['image_distance']):>10.4f} {float(row['t']):>9.4f} {float(row['z']):>9.4f}")
+        print(
+            f"{int(p):>5} {n:>10.4f} {f:>10.4f} {f - n:>9.4f} {(f - n) / c:>8.4f} "
+            f"{float(row['image_distance']):>10.4f} {float(row['t']):>9.4f} {float(row['z']):>9.4f}"
+        )
     return 0

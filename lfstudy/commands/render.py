@@ -39,8 +39,10 @@ def run(args: argparse.Namespace) -> int:
         io.write_zarr(obj, out / f"{name}.zarr")
     a = volume.attrs
     print(f"light field: {dict(lf.sizes)}")
-    print(f"focal stack: {dict(stack.sizes)}, z {float(stack.z[0]):.3f} .. {float(stack.z[-1]):.3f} mm, "
-          f"voxel {stack.attrs['voxel_size']:.4g} mm, resize={bool(stack.attrs['resize'])}")
+    print(
+        f"focal stack: {dict(stack.sizes)}, z {float(stack.z[0]):.3f} .. {float(stack.z[-1]):.3f} mm, "
+        f"voxel {stack.attrs['voxel_size']:.4g} mm, resize={bool(stack.attrs['resize'])}"
+    )
     print(f"volume: threshold {a['threshold']:.4g} (k = {a['k']:g}), kept {100 * a['kept_fraction']:.2f} % of voxels")
     print(f"wrote {out}")
     return 0

@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 
 NAME = "simulate"
-HELP = ("ray-trace one case (sec. 4.3): the particle field before and after the flow's displacement, "
-        "both raw images and the pinhole calibration image (TIFF + zarr)")
+HELP = (
+    "ray-trace one case (sec. 4.3): the particle field before and after the flow's displacement, "
+    "both raw images and the pinhole calibration image (TIFF + zarr)"
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,8 +38,10 @@ def run(args: argparse.Namespace) -> int:
         write_image(res[name], out / name)
     a = res["image_a"].attrs
     print(f"case {case_id}")
-    print(f"particles: {res['particles_a'].sizes['particle']}, rays traced per frame: {a['rays_traced']:,} "
-          f"(recorded {a['rays_recorded']:,}, off the sensor {a['rays_dropped_outside_sensor']:,})")
+    print(
+        f"particles: {res['particles_a'].sizes['particle']}, rays traced per frame: {a['rays_traced']:,} "
+        f"(recorded {a['rays_recorded']:,}, off the sensor {a['rays_dropped_outside_sensor']:,})"
+    )
     print(f"pinhole: f/{res['pinhole'].attrs['pinhole_fnumber']:g}, {res['pinhole'].attrs['rays_traced']:,} rays")
     print(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -20,8 +20,16 @@ from lfstudy.lightfield.refocus import focal_stack, refocus_plane, render_volume
 from lfstudy.lightfield.registration import RegistrationError, pixels_per_lenslet, register
 
 __all__ = [
-    "CalibrationError", "find_lenslet_centers", "expected_centers", "lenslet_positions", "synthetic_pinhole",
+    "CalibrationError",
+    "find_lenslet_centers",
+    "expected_centers",
+    "lenslet_positions",
+    "synthetic_pinhole",
     "pixel_to_sensor",
-    "RegistrationError", "register", "pixels_per_lenslet",
-    "focal_stack", "render_volume", "refocus_plane",
+    "RegistrationError",
+    "register",
+    "pixels_per_lenslet",
+    "focal_stack",
+    "render_volume",
+    "refocus_plane",
 ]

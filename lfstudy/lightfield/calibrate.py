@@ -59,8 +59,9 @@ class CalibrationError(ValueError):
 
 
 # ----------------------------------------------------------------- helpers
-def pixel_to_sensor(cx: np.ndarray, cy: np.ndarray, shape: tuple[int, int],
-                    pixel_pitch: float) -> tuple[np.ndarray, np.ndarray]:
+def pixel_to_sensor(
+    cx: np.ndarray, cy: np.ndarray, shape: tuple[int, int], pixel_pitch: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (col, row; pixel centres at integers) → sensor frame [mm] (eqs 5.2-5.3)."""
     ny, nx = shape
     x = (np.asarray(cx) + 0.5) * pixel_pitch - nx * pixel_pitch / 2.0  # eq. 5.2
@@ -68,12 +69,15 @@ def pixel_to_sensor(cx: np.ndarray, cy: np.ndarray, shape: tuple[int, int],
     return x, y
 
 
-def sensor_to_pixel(x: np.ndarray, y: np.ndarray, shape: tuple[int, int],
-                    pixel_pitch: float) -> tuple[np.ndarray, np.ndarray]:
+def sensor_to_pixel(
+    x: np.ndarray, y: np.ndarray, shape: tuple[int, int], pixel_pitch: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of :func:`pixel_to_sensor`."""
     ny, nx = shape
-    return ((np.asarray(x) + nx * pixel_pitch / 2.0) / pixel_pitch - 0.5,
-            (ny * pixel_pitch / 2.0 - np.asarray(y)) / pixel_pitch - 0.5)
+    return (
+        (np.asarray(x) + nx * pixel_pitch / 2.0) / pixel_pitch - 0.5,
+        (ny * pixel_pitch / 2.0 - np.asarray(y)) / pixel_pitch - 0.5,
+    )
 
 
 def expected_centers(camera: PlenopticCamera, *, projected: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -142,7 +146,7 @@ def _detect_reciprocal(img: np.ndarray, pitch_hint: float | None) -> tuple[np.nd
     ny, nx = img.shape
     s = int(min(1024, ny, nx)) // 2 * 2
     r0, c0 = (ny - s) // 2, (nx - s) // 2
-    crop = img[r0:r0 + s, c0:c0 + s]
+    crop = img[r0 : r0 + s, c0 : c0 + s]
     win = np.hanning(s)
     power = np.abs(np.fft.rfft2((crop - crop.mean()) * win[:, None] * win[None, :])) ** 2
     ky = np.fft.fftfreq(s)[:, None]
@@ -228,8 +232,9 @@ def _centroid(img: np.ndarray, pc: np.ndarray, pr: np.ndarray, h: int, n_iter: i
     return pc, pr, tot, inside
 
 
-def _gauss_fit(img: np.ndarray, pc: np.ndarray, pr: np.ndarray, h: int, sigma0: float,
-               n_iter: int = 8) -> tuple[np.ndarray, ...]:
+def _gauss_fit(
+    img: np.ndarray, pc: np.ndarray, pr: np.ndarray, h: int, sigma0: float, n_iter: int = 8
+) -> tuple[np.ndarray, ...]:
     """Levenberg-Marquardt fit of eq. 5.1 plus background, vectorised over spots.
 
     Parameters per spot: amplitude c, centre (cx, cy), σx, σy, background b.
@@ -262,8 +267,17 @@ def _gauss_fit(img: np.ndarray, pc: np.ndarray, pr: np.ndarray, h: int, sigma0: 
     eye = np.eye(6)[None]
     for _ in range(n_iter):
         a = p[:, 0:1] * g
-        J = np.stack([g, a * ex / p[:, 3:4], a * ey / p[:, 4:5], a * ex * ex / p[:, 3:4],
-                      a * ey * ey / p[:, 4:5], np.ones_like(g)], axis=2)
+        J = np.stack(
+            [
+                g,
+                a * ex / p[:, 3:4],
+                a * ey / p[:, 4:5],
+                a * ex * ex / p[:, 3:4],
+                a * ey * ey / p[:, 4:5],
+                np.ones_like(g),
+            ],
+            axis=2,
+        )
         JtJ = np.einsum("nki,nkj->nij", J, J)
         Jtr = np.einsum("nki,nk->ni", J, d - m)
         diag = np.einsum("nii->ni", JtJ)
@@ -422,7 +436,7 @@ def find_lenslet_centers(
     coef = None
     for radius in (0.5 * s, np.inf):
         qc, qr = predict(coef)
-        sel = (np.hypot(qc - centre[0], qr - centre[1]) <= radius)
+        sel = np.hypot(qc - centre[0], qr - centre[1]) <= radius
         ccx, ccy, tot, inside = _centroid(img, qc, qr, h)
         good = sel & inside & (tot > 0)
         if good.sum() < 3:
@@ -459,8 +473,7 @@ def find_lenslet_centers(
     ccy = np.where(np.hypot(ccx - lc, ccy - lr) < h, ccy, lr)
     fx, fy, amp, sx, sy, conv, inside = _gauss_fit(img, ccx, ccy, h, sigma, n_iter)
     med = np.median(amp[conv & inside]) if (conv & inside).any() else 0.0
-    valid = (conv & inside & (amp >= min_amplitude * med)
-             & (np.hypot(fx - lc, fy - lr) < max(1.0, 0.2 * pitch)))
+    valid = conv & inside & (amp >= min_amplitude * med) & (np.hypot(fx - lc, fy - lr) < max(1.0, 0.2 * pitch))
     if valid.sum() < 0.5 * inside.sum() or valid.sum() < 4:
         raise CalibrationError(
             f"no lenslet grid detected: only {int(valid.sum())} of {int(inside.sum())} lattice "
@@ -492,7 +505,11 @@ def find_lenslet_centers(
         "cx": (dims, cx, px("lenslet-image centre column (pixel centres at integers)")),
         "cy": (dims, cy, px("lenslet-image centre row (row 0 at the top)")),
         "valid": (dims, valid.reshape(shape), {"units": "1", "long_name": "spot found and fitted"}),
-        "amplitude": (dims, np.where(conv, amp, 0.0).reshape(shape), {"units": "counts", "long_name": "fitted spot amplitude c (eq. 5.1)"}),
+        "amplitude": (
+            dims,
+            np.where(conv, amp, 0.0).reshape(shape),
+            {"units": "counts", "long_name": "fitted spot amplitude c (eq. 5.1)"},
+        ),
         "sigma_x": (dims, sx.reshape(shape), px("fitted spot sigma_x (eq. 5.1)")),
         "sigma_y": (dims, sy.reshape(shape), px("fitted spot sigma_y (eq. 5.1)")),
         "cx_lattice": (dims, lc.reshape(shape), px("affine-lattice column")),
@@ -507,8 +524,10 @@ def find_lenslet_centers(
     nm = np.rint(np.linalg.solve(np.column_stack([a1, a2]), ic - coef[0]))
     onear = coef[0] + nm[0] * a1 + nm[1] * a2 - ic
     attrs: dict[str, Any] = {
-        "quantity": ("lenslet-image (spot) centres as measured: the lenslet centres projected from the "
-                     "main-lens centre onto the sensor, c*(si+fl)/si (bulk angle, eqs 5.4-5.5)"),
+        "quantity": (
+            "lenslet-image (spot) centres as measured: the lenslet centres projected from the "
+            "main-lens centre onto the sensor, c*(si+fl)/si (bulk angle, eqs 5.4-5.5)"
+        ),
         "pitch_px": float(0.5 * (np.hypot(*a1) + np.hypot(*a2))),
         "pitch_x_px": float(np.hypot(*a1)),
         "pitch_y_px": float(np.hypot(*a2)),
@@ -581,9 +600,17 @@ def synthetic_pinhole(
     img = rng.poisson(img + background).astype(np.float64) + rng.normal(0.0, read_noise, img.shape)
     x, y = camera.pixel_centers()
     return xr.DataArray(
-        img, dims=("row", "col"), name="intensity",
-        coords={"x": ("col", x, {"units": "mm", "long_name": "sensor x"}),
-                "y": ("row", y, {"units": "mm", "long_name": "sensor y (up)"})},
-        attrs={"units": "counts", "long_name": "synthetic pinhole image", "seed": int(seed),
-               "y_direction": "row 0 is the top (largest y)"},
+        img,
+        dims=("row", "col"),
+        name="intensity",
+        coords={
+            "x": ("col", x, {"units": "mm", "long_name": "sensor x"}),
+            "y": ("row", y, {"units": "mm", "long_name": "sensor y (up)"}),
+        },
+        attrs={
+            "units": "counts",
+            "long_name": "synthetic pinhole image",
+            "seed": int(seed),
+            "y_direction": "row 0 is the top (largest y)",
+        },
     )

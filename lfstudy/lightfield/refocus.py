@@ -31,7 +31,8 @@ from __future__ import annotations
 
 import math
 import uuid
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import dask
 import dask.array as da
@@ -82,7 +83,7 @@ def _splat(rad, lx, ly, sx, sy, t, scale, nx, ny, out):  # pragma: no cover - co
 class _Rays:
     """The light field flattened for the splat (kept out of dask's tokenizer)."""
 
-    __slots__ = ("rad", "lx", "ly", "sx", "sy")
+    __slots__ = ("lx", "ly", "rad", "sx", "sy")
 
     def __init__(self, lightfield: xr.DataArray) -> None:
         lf = lightfield.transpose("lrow", "lcol", "prow", "pcol")
@@ -94,10 +95,12 @@ class _Rays:
         self.lx = np.asarray(lf["x"].values, np.float64).ravel()
         self.ly = np.asarray(lf["y"].values, np.float64).ravel()
         # Ray slopes: tan(local) + tan(bulk) (eqs 5.4-5.9), exact for thin lenslets.
-        self.sx = (np.tan(lf["theta"].transpose("lrow", "lcol", "pcol").values)
-                   + np.tan(lf["theta_bulk"].values)[:, :, None]).reshape(nl, -1)
-        self.sy = (np.tan(lf["phi"].transpose("lrow", "lcol", "prow").values)
-                   + np.tan(lf["phi_bulk"].values)[:, :, None]).reshape(nl, -1)
+        self.sx = (
+            np.tan(lf["theta"].transpose("lrow", "lcol", "pcol").values) + np.tan(lf["theta_bulk"].values)[:, :, None]
+        ).reshape(nl, -1)
+        self.sy = (
+            np.tan(lf["phi"].transpose("lrow", "lcol", "prow").values) + np.tan(lf["phi_bulk"].values)[:, :, None]
+        ).reshape(nl, -1)
 
 
 def _plane(rays: _Rays, t: float, scale: float, nx: int, ny: int, dtype) -> np.ndarray:
@@ -168,8 +171,11 @@ def focal_stack(
     rays_d = dask.delayed(rays, name=f"lightfield-rays-{tag}")
     plane_fn = dask.delayed(_plane, name=f"refocus-fn-{tag}", pure=True)
     blocks = [
-        da.from_delayed(plane_fn(rays_d, t[i], scale[i], nx, ny, dtype, dask_key_name=f"refocus-{tag}-{i}"),
-                        shape=(1, ny, nx), dtype=dtype)
+        da.from_delayed(
+            plane_fn(rays_d, t[i], scale[i], nx, ny, dtype, dask_key_name=f"refocus-{tag}-{i}"),
+            shape=(1, ny, nx),
+            dtype=dtype,
+        )
         for i in range(t.size)
     ]
     data = da.concatenate(blocks, axis=0)
@@ -189,10 +195,16 @@ def focal_stack(
         coords["image_distance"] = ("z", zc("image_distance"), {"units": "mm", "long_name": "image distance D_i"})
     if not resize:
         f = m0 * sf / mp  # true/nominal object coordinate = D_o/s_o
-        coords["x_object"] = (("z", "x"), f[:, None] * xg[None, :],
-                              {"units": "mm", "long_name": "true object x of the un-resized plane"})
-        coords["y_object"] = (("z", "y"), f[:, None] * yg[None, :],
-                              {"units": "mm", "long_name": "true object y of the un-resized plane"})
+        coords["x_object"] = (
+            ("z", "x"),
+            f[:, None] * xg[None, :],
+            {"units": "mm", "long_name": "true object x of the un-resized plane"},
+        )
+        coords["y_object"] = (
+            ("z", "y"),
+            f[:, None] * yg[None, :],
+            {"units": "mm", "long_name": "true object y of the un-resized plane"},
+        )
     attrs = {
         "units": lightfield.attrs.get("units", "counts"),
         "long_name": "refocused intensity" + (" (constant magnification)" if resize else " (not resized)"),
@@ -200,7 +212,8 @@ def focal_stack(
         "resize": int(bool(resize)),
         "voxel_size": float(d),
         "voxel_size_units": "mm",
-        "refocus": "eqs 5.10-5.15, bilinear splat (Fig. 5.6)" + (", resized to constant magnification (sec. 6.2)" if resize else ""),
+        "refocus": "eqs 5.10-5.15, bilinear splat (Fig. 5.6)"
+        + (", resized to constant magnification (sec. 6.2)" if resize else ""),
     }
     attrs.update(camera.to_attrs())
     return xr.DataArray(data, dims=("z", "y", "x"), coords=coords, attrs=attrs, name="intensity")
@@ -238,8 +251,9 @@ def render_volume(
 
     cam = camera if camera is not None else PlenopticCamera.from_config(case_cfg)
     r = dict(case_cfg.get("refocus", {}) or {})
-    planes = cam.focal_planes(r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0),
-                              cubic=bool(r.get("cubic", False)))
+    planes = cam.focal_planes(
+        r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0), cubic=bool(r.get("cubic", False))
+    )
     lf = register(raw, centers, cam)
     # persist: the stack is small (planes x lenslets) and both the reconstruction's
     # statistics and the caller's write need it, so render it once.

@@ -50,7 +50,7 @@ def pixels_per_lenslet(centers: xr.Dataset, camera: PlenopticCamera | None = Non
         pitch = camera.pixels_per_lenslet * (camera.si + camera.lenslet_focal_length) / camera.si
     else:
         raise RegistrationError("centres carry no pitch_px attrs and no camera was given")
-    return int(math.floor(pitch + 1e-6))
+    return math.floor(pitch + 1e-6)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -112,8 +112,13 @@ def register(
         raise RegistrationError(f"raw image has {int((~np.isfinite(img)).sum())} non-finite pixels")
     for k in ("cx", "cy"):
         if k not in centers:
-            raise RegistrationError(f"centres dataset lacks {k!r} (use lfstudy.lightfield.calibrate.find_lenslet_centers)")
-    if "image_rows" in centers.attrs and (int(centers.attrs["image_rows"]), int(centers.attrs["image_cols"])) != (ny, nx):
+            raise RegistrationError(
+                f"centres dataset lacks {k!r} (use lfstudy.lightfield.calibrate.find_lenslet_centers)"
+            )
+    if "image_rows" in centers.attrs and (int(centers.attrs["image_rows"]), int(centers.attrs["image_cols"])) != (
+        ny,
+        nx,
+    ):
         raise RegistrationError(
             f"centres were calibrated on a {centers.attrs['image_cols']} x {centers.attrs['image_rows']} px "
             f"image but the raw image is {nx} x {ny} px"
@@ -173,5 +178,6 @@ def register(
         "ray_slope": "tan(theta) + tan(theta_bulk) = (pixel - lenslet centre)/fl",
     }
     attrs.update(camera.to_attrs())
-    return xr.DataArray(rad.reshape(lr, lc, n, n), dims=("lrow", "lcol", "prow", "pcol"),
-                        coords=coords, attrs=attrs, name="radiance")
+    return xr.DataArray(
+        rad.reshape(lr, lc, n, n), dims=("lrow", "lcol", "prow", "pcol"), coords=coords, attrs=attrs, name="radiance"
+    )

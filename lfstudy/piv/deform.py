@@ -10,7 +10,7 @@ the result does not depend on the number of threads.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numba
 import numpy as np
@@ -32,8 +32,7 @@ def _axis_weights(points: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, 
     return i0, i0 + 1, f - i0
 
 
-def dense_predictor(field: np.ndarray, centres: Sequence[np.ndarray],
-                    points: Sequence[np.ndarray]) -> np.ndarray:
+def dense_predictor(field: np.ndarray, centres: Sequence[np.ndarray], points: Sequence[np.ndarray]) -> np.ndarray:
     """Multilinear interpolation of a gridded vector field onto a separable grid.
 
     Parameters
@@ -70,8 +69,14 @@ def _bweights(x: float, order: int) -> tuple:
     if order == 3:
         t2 = t * t
         t3 = t2 * t
-        return i - 1, ((1.0 - t) ** 3 / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
-                       (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, t3 / 6.0, 0.0, 0.0)
+        return i - 1, (
+            (1.0 - t) ** 3 / 6.0,
+            (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
+            (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0,
+            t3 / 6.0,
+            0.0,
+            0.0,
+        )
     # quintic: taps i-2 .. i+3 at distances u = |t - j|
     return i - 2, (_b5(t + 2.0), _b5(t + 1.0), _b5(t), _b5(1.0 - t), _b5(2.0 - t), _b5(3.0 - t))
 
@@ -84,16 +89,16 @@ def _b5(u: float) -> float:
         return (66.0 - 60.0 * u2 + 30.0 * u2 * u2 - 10.0 * u2 * u2 * u) / 120.0
     if u < 2.0:
         u2 = u * u
-        return (51.0 + 75.0 * u - 210.0 * u2 + 150.0 * u2 * u - 45.0 * u2 * u2
-                + 5.0 * u2 * u2 * u) / 120.0
+        return (51.0 + 75.0 * u - 210.0 * u2 + 150.0 * u2 * u - 45.0 * u2 * u2 + 5.0 * u2 * u2 * u) / 120.0
     if u < 3.0:
         return (3.0 - u) ** 5 / 120.0
     return 0.0
 
 
 @numba.njit(cache=True, inline="always")
-def _lerp3(f: np.ndarray, c: int, z0: int, z1: int, az: float, y0: int, y1: int, ay: float,
-           x0: int, x1: int, ax: float) -> float:
+def _lerp3(
+    f: np.ndarray, c: int, z0: int, z1: int, az: float, y0: int, y1: int, ay: float, x0: int, x1: int, ax: float
+) -> float:
     f00 = f[c, z0, y0, x0] * (1 - ax) + f[c, z0, y0, x1] * ax
     f01 = f[c, z0, y1, x0] * (1 - ax) + f[c, z0, y1, x1] * ax
     f10 = f[c, z1, y0, x0] * (1 - ax) + f[c, z1, y0, x1] * ax
@@ -102,10 +107,20 @@ def _lerp3(f: np.ndarray, c: int, z0: int, z1: int, az: float, y0: int, y1: int,
 
 
 @numba.njit(parallel=True, cache=True)
-def _deform3(coef: np.ndarray, origin: np.ndarray, field: np.ndarray,
-             iz: np.ndarray, tz: np.ndarray, iy: np.ndarray, ty: np.ndarray,
-             ix: np.ndarray, tx: np.ndarray, sign: float, order: int,
-             out: np.ndarray) -> None:  # pragma: no cover - compiled
+def _deform3(
+    coef: np.ndarray,
+    origin: np.ndarray,
+    field: np.ndarray,
+    iz: np.ndarray,
+    tz: np.ndarray,
+    iy: np.ndarray,
+    ty: np.ndarray,
+    ix: np.ndarray,
+    tx: np.ndarray,
+    sign: float,
+    order: int,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     # out[k,j,i] = spline(coef) at (k,j,i) + origin + sign * d(k,j,i) / 2, where d is the
     # trilinear interpolation of `field` with per-axis lower index i* and weight t*
     nz, ny, nx = coef.shape
@@ -162,9 +177,17 @@ def spline_coefficients(img: np.ndarray, order: int = 3) -> np.ndarray:
     return ndimage.spline_filter(np.pad(img, _PAD), order=order, mode="mirror")
 
 
-def deform(coef: np.ndarray, nd: int, sign: float, box_lo: Sequence[int], box_hi: Sequence[int],
-           slab_lo: Sequence[int], field: np.ndarray, centres: Sequence[np.ndarray],
-           order: int = 3) -> np.ndarray:
+def deform(
+    coef: np.ndarray,
+    nd: int,
+    sign: float,
+    box_lo: Sequence[int],
+    box_hi: Sequence[int],
+    slab_lo: Sequence[int],
+    field: np.ndarray,
+    centres: Sequence[np.ndarray],
+    order: int = 3,
+) -> np.ndarray:
     """Frame sampled at ``x + sign * d(x) / 2`` on a box (cubic or quintic B-spline).
 
     The dense predictor ``d(x)`` is the multilinear interpolation of the vector
@@ -196,14 +219,26 @@ def deform(coef: np.ndarray, nd: int, sign: float, box_lo: Sequence[int], box_hi
     lo, hi, slo = list(box_lo), list(box_hi), list(slab_lo)
     cen = [np.asarray(c, dtype=float) for c in centres]
     if nd == 2:  # carry 2-D as one z plane with zero z displacement
-        field = np.concatenate([np.zeros((1,) + field.shape[1:]), field])[:, None]
-        lo, hi, slo, cen = [0] + lo, [1] + hi, [0] + slo, [np.zeros(1)] + cen
+        field = np.concatenate([np.zeros((1, *field.shape[1:])), field])[:, None]
+        lo, hi, slo, cen = [0, *lo], [1, *hi], [0, *slo], [np.zeros(1), *cen]
         pads = (0, _PAD, _PAD)
     else:
         pads = (_PAD,) * 3
     origin = np.array([l - s + p for l, s, p in zip(lo, slo, pads)], dtype=float)
     w = [_axis_weights(np.arange(l, h, dtype=float), c) for l, h, c in zip(lo, hi, cen)]
     out = np.empty([h - l for l, h in zip(lo, hi)], dtype=np.float64)
-    _deform3(coef, origin, np.ascontiguousarray(field), w[0][0], w[0][2], w[1][0], w[1][2],
-             w[2][0], w[2][2], float(sign), order, out)
+    _deform3(
+        coef,
+        origin,
+        np.ascontiguousarray(field),
+        w[0][0],
+        w[0][2],
+        w[1][0],
+        w[1][2],
+        w[2][0],
+        w[2][2],
+        float(sign),
+        order,
+        out,
+    )
     return out[0] if nd == 2 else out

@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import itertools
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import scipy.fft as sfft
@@ -70,8 +71,9 @@ def _as_input(x: Any, name: str) -> _Input:
     if not is_dask:
         data = np.asarray(data)
     if data.ndim not in (2, 3):
-        raise ValueError(f"input `{name}` must be 2-D (y, x) or 3-D (z, y, x); got {data.ndim}-D "
-                         f"with shape {tuple(data.shape)}")
+        raise ValueError(
+            f"input `{name}` must be 2-D (y, x) or 3-D (z, y, x); got {data.ndim}-D with shape {tuple(data.shape)}"
+        )
     if not (np.issubdtype(data.dtype, np.number) or data.dtype == bool) or np.iscomplexobj(data):
         raise ValueError(f"input `{name}` must hold real numbers; got dtype {data.dtype}")
     if dims is None:
@@ -100,8 +102,9 @@ def _dask_isfinite(arr: Any) -> Any:
 def _as_tuple(value: Any, nd: int, name: str, *, minimum: int) -> tuple[int, ...]:
     vals = (value,) * nd if np.isscalar(value) else tuple(value)
     if len(vals) != nd:
-        raise ValueError(f"`{name}` must be an int or a tuple of {nd} ints (one per axis "
-                         f"{_DIMS3[-nd:]}); got {value!r}")
+        raise ValueError(
+            f"`{name}` must be an int or a tuple of {nd} ints (one per axis {_DIMS3[-nd:]}); got {value!r}"
+        )
     out = []
     for v in vals:
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < minimum:
@@ -145,8 +148,7 @@ def grid_nodes(n: int, window: int, spacing: int) -> np.ndarray:
     return offset + spacing * np.arange(count, dtype=np.int64)
 
 
-def _level_sizes(window: tuple[int, ...], spacing: tuple[int, ...], rf: int
-                 ) -> tuple[tuple[int, ...], tuple[int, ...]]:
+def _level_sizes(window: tuple[int, ...], spacing: tuple[int, ...], rf: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
     # eqs 6.5-6.8: size = ceil(size_i / Rf), spacing = ceil(spacing_i / Rf); sizes kept
     # even so the zero lag sits at the centre voxel of the correlation plane (sec. 6.1.5)
     w = tuple(-(-s // rf) for s in window)
@@ -172,8 +174,9 @@ def _subpixel(rm: np.ndarray, r0: np.ndarray, rp: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(eps, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
 
 
-def _correlate(wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _correlate(
+    wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Batched normalised FFT cross-correlation (sec. 6.1.2).
 
     Returns displacement (n, nd) of the correlation peak in voxels (b relative to a),
@@ -240,8 +243,7 @@ def _ptp(win: np.ndarray) -> np.ndarray:
     return flat.max(axis=1) - flat.min(axis=1)
 
 
-def _gather(img: np.ndarray, origin: Sequence[int], starts: np.ndarray,
-            w: Sequence[int]) -> np.ndarray:
+def _gather(img: np.ndarray, origin: Sequence[int], starts: np.ndarray, w: Sequence[int]) -> np.ndarray:
     """Windows ``img[start : start + w]`` (float32 copies, shape (n, *w)).
 
     ``img`` is a slab of the domain beginning at global index ``origin`` and
@@ -271,7 +273,7 @@ def _neighbours(field: np.ndarray) -> np.ndarray:
     out = []
     for off in itertools.product((-1, 0, 1), repeat=nd):  # neighbourhood offsets
         if any(off):
-            out.append(pad[(slice(None),) + tuple(slice(1 + o, 1 + o + g) for o, g in zip(off, grid))])
+            out.append(pad[(slice(None), *tuple(slice(1 + o, 1 + o + g) for o, g in zip(off, grid)))])
     return np.stack(out)
 
 
@@ -316,8 +318,9 @@ def _replace(d: np.ndarray, bad: np.ndarray) -> np.ndarray:
     return np.where(good, out, 0.0)
 
 
-def _validate(d: np.ndarray, usable: np.ndarray, eps: float, threshold: float,
-              max_iter: int = 10) -> tuple[np.ndarray, np.ndarray]:
+def _validate(
+    d: np.ndarray, usable: np.ndarray, eps: float, threshold: float, max_iter: int = 10
+) -> tuple[np.ndarray, np.ndarray]:
     """Iterative detection and replacement (sec. 6.1.3 steps 1-3); returns field, valid."""
     usable = usable & np.isfinite(d).all(axis=0)
     flagged = _median_test(d, usable, eps, threshold)
@@ -350,10 +353,20 @@ def _load_pair(a: _Input, b: _Input, lo_a, hi_a, lo_b, hi_b) -> tuple[np.ndarray
     return np.asarray(xa, dtype=np.float64), np.asarray(xb, dtype=np.float64)
 
 
-def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
-          pred: np.ndarray, centres: list[np.ndarray], mode: str, zero_pad: bool,
-          batch: int, workers: int | None, order: int, cache: dict | None = None
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pass(
+    a: _Input,
+    b: _Input,
+    nodes: list[np.ndarray],
+    w: tuple[int, ...],
+    pred: np.ndarray,
+    centres: list[np.ndarray],
+    mode: str,
+    zero_pad: bool,
+    batch: int,
+    workers: int | None,
+    order: int,
+    cache: dict | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Correlate every window once; returns corrector (nd, *grid), peak, nonempty."""
     full = tuple(int(s) for s in a.data.shape)
     nd = len(full)
@@ -402,10 +415,12 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
                 dense = dense_predictor(pred, centres, vox)
                 base = np.meshgrid(*[v - s for v, s in zip(vox, slo)], indexing="ij")
                 # symmetric offset: a sampled at x - d/2, b at x + d/2
-                da = ndimage.map_coordinates(sa, [g - 0.5 * dd for g, dd in zip(base, dense)],
-                                             order=order, mode="grid-constant", cval=0.0)
-                db = ndimage.map_coordinates(sb, [g + 0.5 * dd for g, dd in zip(base, dense)],
-                                             order=order, mode="grid-constant", cval=0.0)
+                da = ndimage.map_coordinates(
+                    sa, [g - 0.5 * dd for g, dd in zip(base, dense)], order=order, mode="grid-constant", cval=0.0
+                )
+                db = ndimage.map_coordinates(
+                    sb, [g + 0.5 * dd for g, dd in zip(base, dense)], order=order, mode="grid-constant", cval=0.0
+                )
                 del base, dense
             if cache is not None and nwin <= batch:
                 # one batch covers the domain: keep the slabs and spline coefficients for the
@@ -422,7 +437,7 @@ def _pass(a: _Input, b: _Input, nodes: list[np.ndarray], w: tuple[int, ...],
             p = np.where(raw_ok, p, 0.0)
             c[~raw_ok] = 0.0
         corr[k0:k1], peak[k0:k1], nonempty[k0:k1] = c, p, ne
-    corr_g = np.moveaxis(corr.reshape(grid + (nd,)), -1, 0)
+    corr_g = np.moveaxis(corr.reshape((*grid, nd)), -1, 0)
     return corr_g, peak.reshape(grid), nonempty.reshape(grid)
 
 
@@ -506,21 +521,26 @@ def widim(
     ia = _as_input(a, "a")
     ib = _as_input(b, "b")
     if tuple(ia.data.shape) != tuple(ib.data.shape):
-        raise ValueError(f"inputs `a` and `b` must have the same shape; got a {tuple(ia.data.shape)} "
-                         f"and b {tuple(ib.data.shape)}")
+        raise ValueError(
+            f"inputs `a` and `b` must have the same shape; got a {tuple(ia.data.shape)} and b {tuple(ib.data.shape)}"
+        )
     shape = tuple(int(s) for s in ia.data.shape)
     nd = len(shape)
     dims = _DIMS3[-nd:]
     window_t = _as_tuple(window, nd, "window", minimum=4)
-    spacing_t = (tuple(max(1, x // 2) for x in window_t) if spacing is None
-                 else _as_tuple(spacing, nd, "spacing", minimum=1))
+    spacing_t = (
+        tuple(max(1, x // 2) for x in window_t) if spacing is None else _as_tuple(spacing, nd, "spacing", minimum=1)
+    )
     for ax in range(nd):
         if spacing_t[ax] > window_t[ax]:
-            raise ValueError(f"`spacing` must be <= `window` along axis {ax} ('{dims[ax]}'): "
-                             f"allowed 1..{window_t[ax]}, got {spacing_t[ax]}")
+            raise ValueError(
+                f"`spacing` must be <= `window` along axis {ax} ('{dims[ax]}'): "
+                f"allowed 1..{window_t[ax]}, got {spacing_t[ax]}"
+            )
         if window_t[ax] > shape[ax]:
-            raise ValueError(f"`window` {window_t[ax]} along axis {ax} ('{dims[ax]}') exceeds the "
-                             f"domain size {shape[ax]}")
+            raise ValueError(
+                f"`window` {window_t[ax]} along axis {ax} ('{dims[ax]}') exceeds the domain size {shape[ax]}"
+            )
     levels = _check_int(levels, "levels", 1)
     if mode not in _MODES:
         raise ValueError(f"`mode` must be one of {_MODES}; got {mode!r}")
@@ -540,13 +560,17 @@ def widim(
     sizes = [_level_sizes(window_t, spacing_t, rf) for rf in range(1, levels + 1)]
     for rf, (w, _) in enumerate(sizes, start=1):
         if min(w) < 4:
-            raise ValueError(f"`levels` = {levels} refines `window` {window_t} to {w} at level {rf}; "
-                             f"every window side must stay >= 4 voxels: use fewer levels")
+            raise ValueError(
+                f"`levels` = {levels} refines `window` {window_t} to {w} at level {rf}; "
+                f"every window side must stay >= 4 voxels: use fewer levels"
+            )
     for name, inp in (("a", ia), ("b", ib)):
         bad = _count_nonfinite(inp)
         if bad:
-            raise ValueError(f"input `{name}` contains {bad} non-finite (NaN or inf) voxel(s) of "
-                             f"{int(np.prod(shape))}; mask or fill them before PIV")
+            raise ValueError(
+                f"input `{name}` contains {bad} non-finite (NaN or inf) voxel(s) of "
+                f"{int(np.prod(shape))}; mask or fill them before PIV"
+            )
     if ia.coords is not None and ib.coords is not None:
         for ax in range(nd):
             if not np.allclose(ia.coords[ax], ib.coords[ax]):
@@ -557,14 +581,13 @@ def widim(
     centres_prev: list[np.ndarray] | None = None
     rec_rms, rec_valid, rec_level = [], [], []
     # the bar's total is the pass budget; levels that converge early finish it sooner
-    bar = tqdm(total=levels * max_passes, desc="PIV passes", unit="pass", disable=not progress,
-               mininterval=1.0)
+    bar = tqdm(total=levels * max_passes, desc="PIV passes", unit="pass", disable=not progress, mininterval=1.0)
     for level, (w, s) in enumerate(sizes, start=1):  # grid refinement (sec. 6.1.5)
         nodes = [grid_nodes(shape[ax], w[ax], s[ax]) for ax in range(nd)]
         centres = [n + (w[ax] - 1) / 2.0 for ax, n in enumerate(nodes)]
         grid = tuple(len(n) for n in nodes)
         if field is None:
-            field = np.zeros((nd,) + grid)  # no predictor on the first pass
+            field = np.zeros((nd, *grid))  # no predictor on the first pass
         else:  # predictor interpolated onto the finer grid (sec. 6.1.4)
             field = dense_predictor(field, centres_prev, centres)
         if chunk_windows is not None:
@@ -575,8 +598,7 @@ def widim(
         rms_old = None
         for _ in range(max_passes):  # multi-pass (sec. 6.1.4, Fig. 6.1)
             pred = np.rint(field) if mode == "offset" else field
-            corr, peak, nonempty = _pass(ia, ib, nodes, w, pred, centres, mode, zero_pad,
-                                         batch, workers, order, cache)
+            corr, peak, nonempty = _pass(ia, ib, nodes, w, pred, centres, mode, zero_pad, batch, workers, order, cache)
             d = pred + corr  # d = p + c (Fig. 6.1)
             field, valid = _validate(d, nonempty, nmt_eps, nmt_threshold)
             rms = float(np.sqrt(np.mean(np.sum(corr[:, nonempty] ** 2, axis=0)))) if nonempty.any() else 0.0
@@ -593,34 +615,65 @@ def widim(
     bar.refresh()
     bar.close()
 
-    return _to_dataset(field, valid, peak, centres, ia, dims, shape, sizes, rec_rms, rec_valid,
-                       rec_level, dict(window=window_t, spacing=spacing_t, levels=levels, mode=mode,
-                                       order=order, zero_pad=zero_pad, max_passes=max_passes, tol=tol,
-                                       nmt_eps=nmt_eps, nmt_threshold=nmt_threshold,
-                                       chunk_windows=chunk_windows))
+    return _to_dataset(
+        field,
+        valid,
+        peak,
+        centres,
+        ia,
+        dims,
+        shape,
+        sizes,
+        rec_rms,
+        rec_valid,
+        rec_level,
+        {
+            "window": window_t,
+            "spacing": spacing_t,
+            "levels": levels,
+            "mode": mode,
+            "order": order,
+            "zero_pad": zero_pad,
+            "max_passes": max_passes,
+            "tol": tol,
+            "nmt_eps": nmt_eps,
+            "nmt_threshold": nmt_threshold,
+            "chunk_windows": chunk_windows,
+        },
+    )
 
 
-def _to_dataset(field, valid, peak, centres, ia: _Input, dims, shape, sizes, rec_rms, rec_valid,
-                rec_level, settings) -> xr.Dataset:
+def _to_dataset(
+    field, valid, peak, centres, ia: _Input, dims, shape, sizes, rec_rms, rec_valid, rec_level, settings
+) -> xr.Dataset:
     nd = len(shape)
     comp = _COMP[:nd][::-1]  # array axis order: (w, v, u) or (v, u)
     data_vars: dict[str, Any] = {}
     coords: dict[str, Any] = {}
     phys = ia.coords is not None
     for ax, dim in enumerate(dims):
-        coords[f"{dim}_index"] = (dim, centres[ax], {
-            "units": "voxel", "long_name": f"window centre {dim} (array index along axis {ax - nd})"})
+        coords[f"{dim}_index"] = (
+            dim,
+            centres[ax],
+            {"units": "voxel", "long_name": f"window centre {dim} (array index along axis {ax - nd})"},
+        )
         if phys:
             c = ia.coords[ax]
             idx = np.arange(c.size, dtype=float)
-            coords[dim] = (dim, np.interp(centres[ax], idx, c), {
-                "units": ia.coord_units[ax], "long_name": f"window centre {dim}"})
+            coords[dim] = (
+                dim,
+                np.interp(centres[ax], idx, c),
+                {"units": ia.coord_units[ax], "long_name": f"window centre {dim}"},
+            )
         else:
             coords[dim] = (dim, centres[ax], {"units": "voxel", "long_name": f"window centre {dim}"})
     for ax, name in enumerate(comp):
         dim = dims[ax]
-        data_vars[name] = (dims, field[ax], {
-            "units": "voxel", "long_name": f"{dim} displacement (array axis {ax - nd})"})
+        data_vars[name] = (
+            dims,
+            field[ax],
+            {"units": "voxel", "long_name": f"{dim} displacement (array axis {ax - nd})"},
+        )
         if phys:
             c = ia.coords[ax]
             step = np.gradient(c) if c.size > 1 else np.ones(1)
@@ -628,21 +681,38 @@ def _to_dataset(field, valid, peak, centres, ia: _Input, dims, shape, sizes, rec
             local = np.interp(centres[ax], np.arange(c.size, dtype=float), step)
             shp = [1] * nd
             shp[ax] = -1
-            data_vars[f"{name}_mm"] = (dims, field[ax] * local.reshape(shp), {
-                "units": ia.coord_units[ax], "long_name": f"{dim} displacement"})
-    data_vars["valid"] = (dims, valid.astype(bool), {
-        "long_name": "passed the normalised median test at the final pass (not replaced)",
-        "units": "1"})
-    data_vars["peak"] = (dims, peak, {
-        "long_name": "correlation peak (normalised correlation coefficient)", "units": "1"})
+            data_vars[f"{name}_mm"] = (
+                dims,
+                field[ax] * local.reshape(shp),
+                {"units": ia.coord_units[ax], "long_name": f"{dim} displacement"},
+            )
+    data_vars["valid"] = (
+        dims,
+        valid.astype(bool),
+        {"long_name": "passed the normalised median test at the final pass (not replaced)", "units": "1"},
+    )
+    data_vars["peak"] = (
+        dims,
+        peak,
+        {"long_name": "correlation peak (normalised correlation coefficient)", "units": "1"},
+    )
     npass = len(rec_rms)
     coords["pass"] = ("pass", np.arange(1, npass + 1), {"long_name": "pass number", "units": "1"})
-    data_vars["corrector_rms"] = ("pass", np.asarray(rec_rms), {
-        "units": "voxel", "long_name": "RMS of the corrector over all windows and components"})
-    data_vars["valid_fraction"] = ("pass", np.asarray(rec_valid), {
-        "units": "percent", "long_name": "vectors passing the normalised median test"})
-    data_vars["level"] = ("pass", np.asarray(rec_level, dtype=np.int64), {
-        "units": "1", "long_name": "grid refinement level Rf of the pass"})
+    data_vars["corrector_rms"] = (
+        "pass",
+        np.asarray(rec_rms),
+        {"units": "voxel", "long_name": "RMS of the corrector over all windows and components"},
+    )
+    data_vars["valid_fraction"] = (
+        "pass",
+        np.asarray(rec_valid),
+        {"units": "percent", "long_name": "vectors passing the normalised median test"},
+    )
+    data_vars["level"] = (
+        "pass",
+        np.asarray(rec_level, dtype=np.int64),
+        {"units": "1", "long_name": "grid refinement level Rf of the pass"},
+    )
     try:
         from importlib.metadata import version
 
@@ -651,16 +721,19 @@ def _to_dataset(field, valid, peak, centres, ia: _Input, dims, shape, sizes, rec
         ver = "0+unknown"
     attrs = {
         "title": "WIDIM PIV result",
-        "method": "WIDIM (Lynch 2011, ch. 6) with " + (
-            f"symmetric order-{settings['order']} B-spline image deformation" if settings["mode"] == "deform"
-            else "discrete integer window offset"),
+        "method": "WIDIM (Lynch 2011, ch. 6) with "
+        + (
+            f"symmetric order-{settings['order']} B-spline image deformation"
+            if settings["mode"] == "deform"
+            else "discrete integer window offset"
+        ),
         "lfstudy_version": ver,
         "input_shape": list(shape),
         "input_dims": list(ia.dims),
         "final_window": list(sizes[-1][0]),
         "final_spacing": list(sizes[-1][1]),
         "sign_convention": "+d along an array axis of b relative to a gives +d; u: axis -1 (x), "
-                           "v: axis -2 (y), w: axis 0 (z)",
+        "v: axis -2 (y), w: axis 0 (z)",
         "n_passes": npass,
     }
     for k, v in settings.items():

@@ -8,8 +8,8 @@ the ground truth against which the PIV engine is measured.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from math import sqrt
-from typing import Callable, Sequence
 
 import numpy as np
 from scipy.special import erf

@@ -10,7 +10,8 @@ Reconstructions (MART, 3-D deconvolution, sec. 5.6) plug in by name::
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import xarray as xr
 

@@ -9,8 +9,9 @@ sub-steps; RK4 converges far faster, see ``tests/test_flows.py``).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import xarray as xr
@@ -36,8 +37,7 @@ class Flow(Protocol):
 
     name: str
 
-    def velocity(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        ...
+    def velocity(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
 
 @dataclass(frozen=True)
@@ -104,19 +104,19 @@ class HillVortex:
         px = np.asarray(x, dtype=float) - self.center[0]
         py = np.asarray(y, dtype=float) - self.center[1]
         pz = np.asarray(z, dtype=float) - self.center[2]
-        zz = px * e[0] + py * e[1] + pz * e[2]          # Z: along the induced motion
+        zz = px * e[0] + py * e[1] + pz * e[2]  # Z: along the induced motion
         rx, ry, rz = px - zz * e[0], py - zz * e[1], pz - zz * e[2]
-        rr = np.sqrt(rx * rx + ry * ry + rz * rz)        # R: distance from the axis
+        rr = np.sqrt(rx * rx + ry * ry + rz * rz)  # R: distance from the axis
         r2 = rr * rr + zz * zz
-        inside = r2 <= a * a                              # eqs 4.33–4.34
+        inside = r2 <= a * a  # eqs 4.33–4.34
         u_in = 1.5 * u0 * (1.0 - (2.0 * rr * rr + zz * zz) / a**2)  # eq. 4.29
-        v_in = 1.5 * u0 * zz * rr / a**2                              # eq. 4.30
+        v_in = 1.5 * u0 * zz * rr / a**2  # eq. 4.30
         with np.errstate(divide="ignore", invalid="ignore"):
             q = np.where(inside, 1.0, (a * a / np.where(r2 > 0, r2, 1.0)) ** 2.5)
         u_ex = u0 * (q * (2.0 * zz * zz - rr * rr) / (2.0 * a * a) - 1.0)  # eq. 4.31
-        v_ex = 1.5 * u0 * zz * rr / a**2 * q                                # eq. 4.32
-        ua = np.where(inside, u_in, u_ex)                                   # eq. 4.35
-        ur = np.where(inside, v_in, v_ex)                                   # eq. 4.36
+        v_ex = 1.5 * u0 * zz * rr / a**2 * q  # eq. 4.32
+        ua = np.where(inside, u_in, u_ex)  # eq. 4.35
+        ur = np.where(inside, v_in, v_ex)  # eq. 4.36
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = np.where(rr > 0, 1.0 / np.where(rr > 0, rr, 1.0), 0.0)
         # Radial unit vector (rx, ry, rz)/R; on the axis the radial part is 0.
@@ -141,8 +141,9 @@ def flow_from_config(spec: Mapping[str, Any]) -> UniformFlow | HillVortex:
     raise FlowError(f"flow kind = {kind!r}: allowed values are 'uniform' and 'hill'")
 
 
-def integrate(flow: Flow, x: np.ndarray, y: np.ndarray, z: np.ndarray,
-              dt: float, n_steps: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def integrate(
+    flow: Flow, x: np.ndarray, y: np.ndarray, z: np.ndarray, dt: float, n_steps: int = 100
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Advect points through a steady flow over ``dt`` with RK4 sub-steps.
 
     Replaces the thesis' Taylor series (eq. 4.37) / many small Euler steps
@@ -175,9 +176,15 @@ def displace(particles: xr.Dataset, flow: Flow, dt: float = 1.0, n_steps: int = 
     return out
 
 
-def true_displacement(flow: Flow, x: np.ndarray, y: np.ndarray, z: np.ndarray,
-                      dt: float = 1.0, n_steps: int = 100,
-                      reference: str = "midpoint") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def true_displacement(
+    flow: Flow,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    dt: float = 1.0,
+    n_steps: int = 100,
+    reference: str = "midpoint",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """True displacement (dx, dy, dz) [mm] attributed to points (x, y, z).
 
     ``reference="midpoint"`` gives the displacement of the particle whose path

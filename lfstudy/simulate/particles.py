@@ -9,7 +9,7 @@ focal plane meets the optical axis, +z away from the camera, Fig. 4.16) and
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import xarray as xr
@@ -31,11 +31,10 @@ def particle_count(camera: PlenopticCamera, ppp: float) -> int:
     """
     if not (isinstance(ppp, (int, float)) and math.isfinite(ppp) and 0 < ppp <= 1):
         raise ParticleError(f"ppp = {ppp!r}: allowed range is (0, 1] particles per sensor pixel")
-    return int(round(ppp * camera.n_pixels_x * camera.n_pixels_y))
+    return round(ppp * camera.n_pixels_x * camera.n_pixels_y)
 
 
-def make_field(x: np.ndarray, y: np.ndarray, z: np.ndarray, intensity: np.ndarray,
-               **attrs: object) -> xr.Dataset:
+def make_field(x: np.ndarray, y: np.ndarray, z: np.ndarray, intensity: np.ndarray, **attrs: object) -> xr.Dataset:
     """Wrap particle coordinates into the labelled particle-field Dataset."""
     x, y, z, intensity = (np.asarray(a, dtype=np.float64) for a in (x, y, z, intensity))
     n = x.shape[0]
@@ -113,8 +112,11 @@ def seed_particles(
         (u[1] - 0.5) * ys,
         (u[2] - 0.5) * z_span,
         lo + (hi - lo) * u[3],
-        seed=int(seed), ppp=float(ppp) if ppp is not None else float(n) / (camera.n_pixels_x * camera.n_pixels_y),
-        x_span=float(xs), y_span=float(ys), z_span=float(z_span),
+        seed=int(seed),
+        ppp=float(ppp) if ppp is not None else float(n) / (camera.n_pixels_x * camera.n_pixels_y),
+        x_span=float(xs),
+        y_span=float(ys),
+        z_span=float(z_span),
     )
 
 
@@ -126,5 +128,6 @@ def pinhole_field(camera: PlenopticCamera, *, count: int = 500_000, seed: int = 
     view plus one lenslet so edge lenslets are lit too.
     """
     margin = 2 * camera.lenslet_pitch / abs(camera.magnification)
-    return seed_particles(camera, count=count, x_span=camera.fov_x + margin,
-                          y_span=camera.fov_y + margin, z_span=0.0, seed=seed)
+    return seed_particles(
+        camera, count=count, x_span=camera.fov_x + margin, y_span=camera.fov_y + margin, z_span=0.0, seed=seed
+    )

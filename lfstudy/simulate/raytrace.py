@@ -53,10 +53,10 @@ on which thread runs it. One seed therefore gives a bit-identical image with
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
-import numba
 import numpy as np
 import xarray as xr
 from numba import njit, prange
@@ -191,7 +191,9 @@ _MISSED_ARRAY, _OFF_SENSOR = -1.0, -2.0  # pixel codes of lost rays
 
 
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
-def _trace(px, py, pz, pint, nrays, starts, ends, seed, g, buffers, stats, lost, hist, amax):  # pragma: no cover - jitted
+def _trace(
+    px, py, pz, pint, nrays, starts, ends, seed, g, buffers, stats, lost, hist, amax
+):  # pragma: no cover - jitted
     """Trace particles ``starts[k]:ends[k]`` of chunk k into buffer k; chunks in parallel.
 
     Everything accumulates, so a chunk traced in consecutive pieces (one call
@@ -341,8 +343,10 @@ def _check_rays(rays_per_particle: Any, name: str = "rays_per_particle") -> int:
 def _particle_arrays(camera: PlenopticCamera, particles: xr.Dataset) -> tuple[np.ndarray, ...]:
     """Validated contiguous float64 arrays x, y, z, intensity."""
     try:
-        arrs = [np.ascontiguousarray(np.asarray(particles[v].values, dtype=np.float64).ravel())
-                for v in ("x", "y", "z", "intensity")]
+        arrs = [
+            np.ascontiguousarray(np.asarray(particles[v].values, dtype=np.float64).ravel())
+            for v in ("x", "y", "z", "intensity")
+        ]
     except KeyError as exc:
         raise RaytraceError(f"particles: missing variable {exc.args[0]!r}; need x, y, z, intensity") from None
     x, y, z, inten = arrs
@@ -366,8 +370,9 @@ def _particle_arrays(camera: PlenopticCamera, particles: xr.Dataset) -> tuple[np
 
 
 # ---------------------------------------------------------- solid angle
-def solid_angle(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray,
-                *, n_radial: int = 16, n_angular: int = 32) -> np.ndarray:
+def solid_angle(
+    camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, *, n_radial: int = 16, n_angular: int = 32
+) -> np.ndarray:
     """Solid angle [sr] the main-lens aperture disc subtends from points (x, y, z).
 
     Gauss–Legendre quadrature in the aperture radius and the (periodic,
@@ -387,14 +392,15 @@ def solid_angle(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.nda
     out = np.empty(x.shape)
     step = 4096
     for s in range(0, x.size, step):  # bounded temporaries for large fields
-        d = camera.so + z[s:s + step, None]
-        r2 = d * d + (ax - x[s:s + step, None]) ** 2 + (ay - y[s:s + step, None]) ** 2
-        out[s:s + step] = (d / (r2 * np.sqrt(r2))) @ wa
+        d = camera.so + z[s : s + step, None]
+        r2 = d * d + (ax - x[s : s + step, None]) ** 2 + (ay - y[s : s + step, None]) ** 2
+        out[s : s + step] = (d / (r2 * np.sqrt(r2))) @ wa
     return out
 
 
-def ray_counts(camera: PlenopticCamera, particles: xr.Dataset, rays_per_particle: int,
-               *, solid_angle_correction: bool = True) -> np.ndarray:
+def ray_counts(
+    camera: PlenopticCamera, particles: xr.Dataset, rays_per_particle: int, *, solid_angle_correction: bool = True
+) -> np.ndarray:
     """Rays traced for each particle: eq. 4.14 generalised to 2-D.
 
     ``round(n · Ω_i / Ω_ref)``, Ω_ref being the aperture's solid angle from the
@@ -443,8 +449,9 @@ def memory_estimate(camera: PlenopticCamera, n_particles: int, n_chunks: int = D
     return int(k * npx * 4 + npx * 8 + n_particles * 5 * 8)
 
 
-def _run_kernel(camera, x, y, z, inten, nrays, seed, *, diffraction, n_chunks, record=True,
-                nbins=0, hmax=1.0, progress=False):
+def _run_kernel(
+    camera, x, y, z, inten, nrays, seed, *, diffraction, n_chunks, record=True, nbins=0, hmax=1.0, progress=False
+):
     bounds = _chunk_bounds(x.size, n_chunks)
     k = bounds.size - 1
     shape = (k, camera.n_pixels_y, camera.n_pixels_x) if record else (k, 1, 1)
@@ -457,8 +464,9 @@ def _run_kernel(camera, x, y, z, inten, nrays, seed, *, diffraction, n_chunks, r
     # Each chunk is traced in _PIECES consecutive pieces (a fixed count, so the
     # bytes never depend on the progress bar or the threads); one bar step per piece.
     cum = np.concatenate([[0], np.cumsum(nrays, dtype=np.int64)])
-    with tqdm(total=int(cum[-1]), desc="ray tracing", unit="ray", unit_scale=True,
-              disable=not progress, mininterval=1.0) as bar:
+    with tqdm(
+        total=int(cum[-1]), desc="ray tracing", unit="ray", unit_scale=True, disable=not progress, mininterval=1.0
+    ) as bar:
         for p in range(_PIECES):
             starts = bounds[:-1] + (bounds[1:] - bounds[:-1]) * p // _PIECES
             ends = bounds[:-1] + (bounds[1:] - bounds[:-1]) * (p + 1) // _PIECES
@@ -556,8 +564,9 @@ def render(
             f"{max_image_bytes / 1e9:.3g} GB; use fewer n_chunks or raise the limit"
         )
     nrays = ray_counts(camera, particles, n, solid_angle_correction=solid_angle_correction)
-    buffers, stats, lost, _, _ = _run_kernel(camera, x, y, z, inten, nrays, seed64,
-                                             diffraction=diffraction, n_chunks=n_chunks, progress=progress)
+    buffers, stats, lost, _, _ = _run_kernel(
+        camera, x, y, z, inten, nrays, seed64, diffraction=diffraction, n_chunks=n_chunks, progress=progress
+    )
     # Fixed-order sum of the chunk buffers (deterministic whatever the threads).
     image = np.zeros(buffers.shape[1:], dtype=np.float64)
     for b in buffers:
@@ -608,7 +617,7 @@ def quantize(image: xr.DataArray, bit_depth: int, full_well: float | None = None
     """
     if not isinstance(bit_depth, (int, np.integer)) or not 1 <= bit_depth <= 32:
         raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
-    top = float(2**int(bit_depth) - 1)
+    top = float(2 ** int(bit_depth) - 1)
     fw = float(image.max()) if full_well is None else float(full_well)
     if not (math.isfinite(fw) and fw > 0):
         if full_well is not None:
@@ -618,13 +627,21 @@ def quantize(image: xr.DataArray, bit_depth: int, full_well: float | None = None
     saturated = int((scaled > top).sum())
     dtype = np.uint8 if bit_depth <= 8 else np.uint16 if bit_depth <= 16 else np.uint32
     out = image.copy(data=np.clip(scaled, 0, top).astype(dtype))
-    out.attrs.update(bit_depth=int(bit_depth), full_well=fw, counts_per_unit=top / fw,
-                     saturated_pixels=saturated, units="counts")
+    out.attrs.update(
+        bit_depth=int(bit_depth), full_well=fw, counts_per_unit=top / fw, saturated_pixels=saturated, units="counts"
+    )
     return out
 
 
-def render_pinhole(camera: PlenopticCamera, *, fnumber: float = 16, count: int = 500_000,
-                   rays_per_point: int = 100, seed: int = 0, **kwargs: Any) -> xr.DataArray:
+def render_pinhole(
+    camera: PlenopticCamera,
+    *,
+    fnumber: float = 16,
+    count: int = 500_000,
+    rays_per_point: int = 100,
+    seed: int = 0,
+    **kwargs: Any,
+) -> xr.DataArray:
     """Calibration "pinhole" image (sec. 5.1).
 
     Many points on the object focal plane (:func:`lfstudy.simulate.particles.pinhole_field`)
@@ -640,8 +657,9 @@ def render_pinhole(camera: PlenopticCamera, *, fnumber: float = 16, count: int =
     cam = camera.with_(fnumber=float(fnumber))
     field = pinhole_field(camera, count=count, seed=seed)
     img = render(cam, field, rays_per_point, seed, **kwargs)
-    img.attrs.update(long_name="simulated pinhole calibration image", pinhole_fnumber=float(fnumber),
-                     pinhole_count=int(count))
+    img.attrs.update(
+        long_name="simulated pinhole calibration image", pinhole_fnumber=float(fnumber), pinhole_count=int(count)
+    )
     return img
 
 
@@ -659,7 +677,9 @@ def incidence_angle_bound(camera: PlenopticCamera) -> float:
     diffraction shifts, a few σ/fl).
     """
     half = max(camera.sensor_width, camera.sensor_height) / 2.0 + camera.lenslet_pitch / 2.0
-    slope = (half + camera.aperture_diameter / 2.0) / camera.si + camera.lenslet_pitch / (2.0 * camera.lenslet_focal_length)
+    slope = (half + camera.aperture_diameter / 2.0) / camera.si + camera.lenslet_pitch / (
+        2.0 * camera.lenslet_focal_length
+    )
     return math.atan(slope)
 
 
@@ -696,8 +716,20 @@ def angle_histograms(
         raise RaytraceError(f"max_angle = {max_angle!r}: allowed range is (0, pi/2) rad")
     x, y, z, inten = _particle_arrays(camera, particles)
     nrays = ray_counts(camera, particles, n)
-    _, stats, _, hist, amax = _run_kernel(camera, x, y, z, inten, nrays, _seed_u64(seed), diffraction=diffraction,
-                                          n_chunks=n_chunks, record=False, nbins=int(bins), hmax=float(max_angle))
+    _, stats, _, hist, amax = _run_kernel(
+        camera,
+        x,
+        y,
+        z,
+        inten,
+        nrays,
+        _seed_u64(seed),
+        diffraction=diffraction,
+        n_chunks=n_chunks,
+        record=False,
+        nbins=int(bins),
+        hmax=float(max_angle),
+    )
     h = hist.sum(axis=0)
     edges = np.linspace(-max_angle, max_angle, int(bins) + 1)
     centres = 0.5 * (edges[1:] + edges[:-1])
@@ -755,10 +787,13 @@ def simulate_case(case_cfg: Mapping[str, Any], *, progress: bool = False) -> dic
 
     field_a = case_particles(case_cfg)
     field_b = case_displaced(case_cfg, field_a)
-    return {"particles_a": field_a, "particles_b": field_b,
-            "image_a": case_image(case_cfg, field_a, "a", progress=progress),
-            "image_b": case_image(case_cfg, field_b, "b", progress=progress),
-            "pinhole": case_pinhole(case_cfg, progress=progress)}
+    return {
+        "particles_a": field_a,
+        "particles_b": field_b,
+        "image_a": case_image(case_cfg, field_a, "a", progress=progress),
+        "image_b": case_image(case_cfg, field_b, "b", progress=progress),
+        "pinhole": case_pinhole(case_cfg, progress=progress),
+    }
 
 
 def write_image(image: xr.DataArray, stem: str | Path) -> tuple[Path, Path]:

@@ -17,7 +17,7 @@ The thesis' Table 4.1 camera is ``PlenopticCamera(75, 75, 0.0074, 0.125, 0.5, 1.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import xarray as xr
@@ -97,7 +97,7 @@ def trace_1d(
     phi_max = math.atan2(half - dy, d)  # eq. 4.12
     phi_min = math.atan2(-half - dy, d)  # eq. 4.13
     gamma_ref = 2.0 * math.atan2(half, so)
-    n = int(round(n_rays * (phi_max - phi_min) / gamma_ref))  # eq. 4.14
+    n = round(n_rays * (phi_max - phi_min) / gamma_ref)  # eq. 4.14
     rng = np.random.default_rng(seed)
     phi = phi_min + (phi_max - phi_min) * rng.random(n)
     t = np.tan(phi)
@@ -125,8 +125,11 @@ def trace_1d(
     return xr.Dataset(
         {
             "signal": ("row", signal, {"units": "rays", "long_name": "1-D pixel signal"}),
-            "ray_y": (("ray", "plane"), np.stack([np.full(n, dy), y_lens, y_let, y_sen], axis=1),
-                      mm("ray height at each plane")),
+            "ray_y": (
+                ("ray", "plane"),
+                np.stack([np.full(n, dy), y_lens, y_let, y_sen], axis=1),
+                mm("ray height at each plane"),
+            ),
             "lenslet": ("ray", np.where(hit, idx, -1).astype(np.int64), {"long_name": "struck lenslet row"}),
             "recorded": ("ray", rec, {"long_name": "ray landed on the sensor"}),
         },
@@ -135,9 +138,17 @@ def trace_1d(
             "plane": ("plane", ["particle", "main lens", "lenslet array", "sensor"]),
             "z": ("plane", z_planes, mm("axial position (sensor at 0)")),
         },
-        attrs={"dy": float(dy), "dz": float(dz), "n_rays": n, "diffraction": int(bool(diffraction)),
-               "seed": int(seed), "phi_min": phi_min, "phi_max": phi_max, "gamma_ref": gamma_ref,
-               **camera.to_attrs()},
+        attrs={
+            "dy": float(dy),
+            "dz": float(dz),
+            "n_rays": n,
+            "diffraction": int(bool(diffraction)),
+            "seed": int(seed),
+            "phi_min": phi_min,
+            "phi_max": phi_max,
+            "gamma_ref": gamma_ref,
+            **camera.to_attrs(),
+        },
     )
 
 
@@ -154,8 +165,7 @@ def _draw(ax_rays, ax_sig, camera: PlenopticCamera, tr: xr.Dataset, n_show: int,
         ax_rays.text(zz, 1.02, label, transform=ax_rays.get_xaxis_transform(), rotation=30, fontsize=7)
     # Lenslet boundaries on the lenslet plane.
     cy0 = 0.5 * (camera.n_lenslets_y - 1)
-    edges = ((cy0 - np.arange(camera.n_lenslets_y + 1) + 0.5) * camera.lenslet_pitch
-             + camera.lenslet_offset_y) * um
+    edges = ((cy0 - np.arange(camera.n_lenslets_y + 1) + 0.5) * camera.lenslet_pitch + camera.lenslet_offset_y) * um
     ax_rays.plot(np.full(edges.size, z[2]), edges, "k_", ms=6)
     ax_rays.plot([z[0]], [tr.attrs["dy"] * um], "ro", ms=3)
     lim = max(h, camera.aperture_diameter / 2 * um) * 1.1
@@ -203,8 +213,10 @@ def plot_ray_diagram(
     axes = fig.subplots(len(modes), 2, squeeze=False, gridspec_kw={"width_ratios": [4, 1]})
     for (ax_r, ax_s), diff in zip(axes, modes):
         tr = trace_1d(camera, dy, dz, n_rays, diffraction=diff, seed=seed)
-        title = (f"dy = {dy * 1e3:+.0f} µm, dz = {dz * 1e3:+.0f} µm, "
-                 f"{'with' if diff else 'without'} diffraction ({n_show} of {tr.attrs['n_rays']:,} rays)")
+        title = (
+            f"dy = {dy * 1e3:+.0f} µm, dz = {dz * 1e3:+.0f} µm, "
+            f"{'with' if diff else 'without'} diffraction ({n_show} of {tr.attrs['n_rays']:,} rays)"
+        )
         _draw(ax_r, ax_s, camera, tr, n_show, title)
     return fig
 

@@ -28,8 +28,18 @@ from lfstudy.study.metrics import (
 _REPORT = ("write_report", "write_figures", "report_blocks", "best_designs", "case_table")
 
 __all__ = [
-    "AXES", "METRIC_LABELS", "case_errors", "error_statistics", "peak_locking_c1", "locking_excess",
-    "reconstruction_quality", "stage_times", "combine_cases", "to_csv", "from_csv", "format_param",
+    "AXES",
+    "METRIC_LABELS",
+    "case_errors",
+    "error_statistics",
+    "peak_locking_c1",
+    "locking_excess",
+    "reconstruction_quality",
+    "stage_times",
+    "combine_cases",
+    "to_csv",
+    "from_csv",
+    "format_param",
     *_REPORT,
 ]
 

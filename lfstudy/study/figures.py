@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import xarray as xr
@@ -38,14 +38,16 @@ def _fig(w: float, h: float, **adjust: float) -> Figure:
     # Fixed margins, not a layout engine: constrained layout triples the
     # drawing time of a report with hundreds of small figures.
     fig = Figure(figsize=(w, h), dpi=90)
-    fig.subplots_adjust(**{"left": 0.1, "right": 0.95, "bottom": 0.14, "top": 0.88, "wspace": 0.3,
-                           "hspace": 0.45, **adjust})
+    fig.subplots_adjust(
+        **{"left": 0.1, "right": 0.95, "bottom": 0.14, "top": 0.88, "wspace": 0.3, "hspace": 0.45, **adjust}
+    )
     return fig
 
 
 # ------------------------------------------------------------------ optics
-def ambiguity_vs_magnification(camera: PlenopticCamera, magnifications: Sequence[float] | None = None,
-                               *, marked: Sequence[float] = ()) -> Figure:
+def ambiguity_vs_magnification(
+    camera: PlenopticCamera, magnifications: Sequence[float] | None = None, *, marked: Sequence[float] = ()
+) -> Figure:
     """Depth and in-plane ambiguity ξz, ξy against magnification (Fig. 4.11, eqs 4.18–4.19).
 
     Parameters
@@ -110,8 +112,9 @@ def focal_plane_diamonds(cameras: Mapping[str, tuple[PlenopticCamera, xr.Dataset
             near = float(planes["near"][k]) - si
             far = float(planes["far"][k]) - si
             mid = float(planes["t"][k])
-            ax.fill([near, mid, far, mid], [0, c / 2, 0, -c / 2], alpha=0.35,
-                    color="C0" if k % 2 else "C1", lw=0.5, ec="k")
+            ax.fill(
+                [near, mid, far, mid], [0, c / 2, 0, -c / 2], alpha=0.35, color="C0" if k % 2 else "C1", lw=0.5, ec="k"
+            )
         ax.plot(planes["t"], np.zeros(planes.sizes["plane"]), "k|", ms=8)
         ax.set_ylabel("height [mm]")
         ax.set_title(f"{label}: {planes.sizes['plane']} planes, f/{cam.main_fnumber:g}", fontsize=9)
@@ -154,8 +157,7 @@ def refocused_planes(stack: xr.DataArray, *, n: int = 4) -> Figure:
     x, y = stack["x"].values, stack["y"].values
     for ax, k in zip(axes, ks):
         img = np.asarray(stack.isel(z=int(k)).transpose("y", "x").values, float)
-        ax.imshow(img, cmap="gray", origin="lower", extent=(x[0], x[-1], y[0], y[-1]),
-                  interpolation="nearest")
+        ax.imshow(img, cmap="gray", origin="lower", extent=(x[0], x[-1], y[0], y[-1]), interpolation="nearest")
         ax.set_title(f"z = {float(stack['z'][k]):+.3f} mm", fontsize=9)
         ax.set_xlabel("x [mm]")
     axes[0].set_ylabel("y [mm]")
@@ -163,8 +165,7 @@ def refocused_planes(stack: xr.DataArray, *, n: int = 4) -> Figure:
     return fig
 
 
-def intensity_histogram(values: np.ndarray, *, k: float = 3.0, bins: int = 100,
-                        title: str = "") -> Figure:
+def intensity_histogram(values: np.ndarray, *, k: float = 3.0, bins: int = 100, title: str = "") -> Figure:
     """Histogram of rendered intensities with the threshold mean + kσ (Figs 5.17, 7.13–7.14, sec. 5.5)."""
     v = np.asarray(values, float).ravel()
     v = v[np.isfinite(v)]
@@ -191,8 +192,10 @@ def piv_convergence(piv: xr.Dataset) -> Figure:
     lvl = piv["level"].values if "level" in piv else None
     fig = _fig(9.0, 3.2, left=0.08, right=0.92, wspace=0.5, top=0.88, bottom=0.16)
     axes = fig.subplots(1, 2)
-    for ax, name, ylabel, log in ((axes[0], "corrector_rms", "corrector RMS [voxel]", True),
-                                  (axes[1], "valid_fraction", "valid vectors [%]", False)):
+    for ax, name, ylabel, log in (
+        (axes[0], "corrector_rms", "corrector RMS [voxel]", True),
+        (axes[1], "valid_fraction", "valid vectors [%]", False),
+    ):
         if name in piv:
             ax.plot(p, piv[name].values, "o-", color="C0")
         if log:
@@ -225,9 +228,15 @@ def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *
         if d.size:
             # The thesis' 50 bins over 4800 vectors; fewer for small grids.
             a.hist(d, bins=int(min(bins, max(10, 2 * math.sqrt(d.size)))), color="C0", alpha=0.8)
-            a.text(0.03, 0.95, f"μ = {d.mean():+.3f} vox\nσ = {d.std():.3f} vox\nn = {d.size}",
-                   transform=a.transAxes, va="top", fontsize=8,
-                   bbox={"fc": "white", "alpha": 0.8, "lw": 0})
+            a.text(
+                0.03,
+                0.95,
+                f"μ = {d.mean():+.3f} vox\nσ = {d.std():.3f} vox\nn = {d.size}",
+                transform=a.transAxes,
+                va="top",
+                fontsize=8,
+                bbox={"fc": "white", "alpha": 0.8, "lw": 0},
+            )
         else:
             a.text(0.5, 0.5, "no valid vector", ha="center", transform=a.transAxes)
         if errors is not None and f"true_{axn}" in errors and np.isfinite(float(errors[f"true_{axn}"])):
@@ -266,8 +275,13 @@ def vector_slices(piv: xr.Dataset) -> Figure:
     ax = axes[1]
     if sl_xz is not None and "w" in piv:
         w = get("w").where(valid)
-        ax.quiver(x, piv["z"].values, u.isel(sl_xz).transpose("z", "x").values,
-                  w.isel(sl_xz).transpose("z", "x").values, angles="xy")
+        ax.quiver(
+            x,
+            piv["z"].values,
+            u.isel(sl_xz).transpose("z", "x").values,
+            w.isel(sl_xz).transpose("z", "x").values,
+            angles="xy",
+        )
         ax.set_title(f"x–z slice at y = {float(piv['y'][ky]):+.2f} mm", fontsize=9)
         ax.set_xlabel("x [mm]")
         ax.set_ylabel("z [mm] (+ away from camera)")
@@ -291,8 +305,9 @@ def _label(da: xr.DataArray) -> str:
     return f"{ln} [{u}]" if u and u != "1" else str(ln)
 
 
-def metrics_vs_parameter(study: xr.Dataset, metrics: Sequence[str], param: str,
-                         line_param: str | None = None, *, ncols: int = 4) -> Figure:
+def metrics_vs_parameter(
+    study: xr.Dataset, metrics: Sequence[str], param: str, line_param: str | None = None, *, ncols: int = 4
+) -> Figure:
     """Every metric against one swept parameter (the comparative figure).
 
     One subplot per metric; x: the values of ``param``; one line per value of
@@ -323,16 +338,22 @@ def metrics_vs_parameter(study: xr.Dataset, metrics: Sequence[str], param: str,
                     sub = sub.sel({line_param: lv})
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", RuntimeWarning)
-                    red = [d for d in other if d in sub.dims] + (["flow"] if param != "flow" and fl is None
-                                                                 and "flow" in sub.dims else [])
+                    red = [d for d in other if d in sub.dims] + (
+                        ["flow"] if param != "flow" and fl is None and "flow" in sub.dims else []
+                    )
                     y = sub.mean(red, skipna=True) if red else sub
                 y = np.asarray(y.transpose(param).values, float)
                 if not np.isfinite(y).any():
                     continue
-                lab = ", ".join(s for s in (f"{line_param}={lv}" if lv is not None else "",
-                                            str(fl) if fl is not None and len(flows) > 1 else "") if s)
-                ax.plot(xpos, y, styles[fi % len(styles)], marker="o", color=f"C{li % 10}",
-                        label=lab or None)
+                lab = ", ".join(
+                    s
+                    for s in (
+                        f"{line_param}={lv}" if lv is not None else "",
+                        str(fl) if fl is not None and len(flows) > 1 else "",
+                    )
+                    if s
+                )
+                ax.plot(xpos, y, styles[fi % len(styles)], marker="o", color=f"C{li % 10}", label=lab or None)
         if m.startswith("bias"):
             ax.axhline(0.0, color="k", lw=0.5)
         if param == "ppp" and numeric and np.all(xpos > 0) and len(xpos) > 1:
@@ -343,7 +364,7 @@ def metrics_vs_parameter(study: xr.Dataset, metrics: Sequence[str], param: str,
         ax.set_xlabel(_label(study[param]), fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(True, alpha=0.3)
-    for ax in axes[len(metrics):]:
+    for ax in axes[len(metrics) :]:
         ax.set_axis_off()
     handles, labels = axes[0].get_legend_handles_labels() if metrics else ([], [])
     if labels:

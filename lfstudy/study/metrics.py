@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import xarray as xr
@@ -54,11 +55,18 @@ AXES: dict[str, str] = {"x": "u", "y": "v", "z": "w"}
 #: Headline per-case metrics and how to label them (used by the report).
 METRIC_LABELS: dict[str, str] = {
     "rms_total": "total RMS error",
-    "bias_x": "bias x", "bias_y": "bias y", "bias_z": "bias z",
-    "rms_x": "RMS error x", "rms_y": "RMS error y", "rms_z": "RMS error z",
-    "std_x": "random error (std) x", "std_y": "random error (std) y", "std_z": "random error (std) z",
+    "bias_x": "bias x",
+    "bias_y": "bias y",
+    "bias_z": "bias z",
+    "rms_x": "RMS error x",
+    "rms_y": "RMS error y",
+    "rms_z": "RMS error z",
+    "std_x": "random error (std) x",
+    "std_y": "random error (std) y",
+    "std_z": "random error (std) z",
     "valid_percent": "valid vectors",
-    "peak_locking_x": "peak locking C1 x", "peak_locking_y": "peak locking C1 y",
+    "peak_locking_x": "peak locking C1 x",
+    "peak_locking_y": "peak locking C1 y",
     "peak_locking_z": "peak locking C1 z",
     "locking_excess_z": "excess near-integer fraction z",
     "Q": "reconstruction quality Q",
@@ -157,7 +165,7 @@ def locking_excess(measured: np.ndarray, true: np.ndarray, *, half_width: float 
         f_ref = float(np.mean(np.abs(mu - np.rint(mu)) < half_width))
     else:
         # Probability mass of N(mu, s) within ±h of each integer k near mu.
-        reach = int(math.ceil(6.0 * s)) + 1
+        reach = math.ceil(6.0 * s) + 1
         k = np.rint(mu)[:, None] + np.arange(-reach, reach + 1)[None, :]
         p = ndtr((k + half_width - mu[:, None]) / s) - ndtr((k - half_width - mu[:, None]) / s)
         f_ref = float(np.mean(p.sum(axis=1)))
@@ -165,8 +173,9 @@ def locking_excess(measured: np.ndarray, true: np.ndarray, *, half_width: float 
 
 
 # ------------------------------------------------------------ voxel size
-def _voxel_steps(piv: xr.Dataset, voxel_size: float | Sequence[float] | Mapping[str, float] | None
-                 ) -> dict[str, np.ndarray]:
+def _voxel_steps(
+    piv: xr.Dataset, voxel_size: float | Sequence[float] | Mapping[str, float] | None
+) -> dict[str, np.ndarray]:
     """Voxel size [mm] per axis at each window centre (1-D along that axis)."""
     out: dict[str, np.ndarray] = {}
     for i, ax in enumerate(("x", "y", "z")):
@@ -186,8 +195,7 @@ def _voxel_steps(piv: xr.Dataset, voxel_size: float | Sequence[float] | Mapping[
         if idx in piv.coords and n > 1:
             # Window centres in mm over centres in voxel index: the local step,
             # as WIDIM used for *_mm (z planes need not be evenly spaced).
-            out[ax] = np.abs(np.gradient(piv[ax].values.astype(float)) /
-                             np.gradient(piv[idx].values.astype(float)))
+            out[ax] = np.abs(np.gradient(piv[ax].values.astype(float)) / np.gradient(piv[idx].values.astype(float)))
             continue
         spacing = piv.attrs.get("final_spacing")
         dims = [d for d in ("z", "y", "x") if d in piv.dims]
@@ -267,12 +275,18 @@ def case_errors(
     grid = xr.broadcast(*(piv[d] for d in dims))
     pts = {d: g.transpose(*dims).values.astype(float) for d, g in zip(dims, grid)}
     zeros = np.zeros_like(pts[dims[0]])
-    tx, ty, tz = true_displacement(flow, pts.get("x", zeros), pts.get("y", zeros), pts.get("z", zeros),
-                                   dt=dt, n_steps=n_steps, reference="midpoint")
+    tx, ty, tz = true_displacement(
+        flow,
+        pts.get("x", zeros),
+        pts.get("y", zeros),
+        pts.get("z", zeros),
+        dt=dt,
+        n_steps=n_steps,
+        reference="midpoint",
+    )
     true_mm = {"x": tx, "y": ty, "z": tz}
 
-    valid = (piv["valid"].transpose(*dims).values.astype(bool) if "valid" in piv
-             else np.ones(zeros.shape, bool))
+    valid = piv["valid"].transpose(*dims).values.astype(bool) if "valid" in piv else np.ones(zeros.shape, bool)
     coords = {d: piv[d] for d in dims}
     out = xr.Dataset(coords=coords)
     fin = valid.copy()
@@ -309,8 +323,10 @@ def case_errors(
         out[f"{c}_true_mm"] = (dims, t_mm, _attrs("mm", f"true {ax} displacement at the window centre"))
         out[f"{c}_err"] = (dims, e_vx, _attrs("voxel", f"{ax} displacement error (measured − true)"))
         out[f"{c}_err_mm"] = (dims, e_mm, _attrs("mm", f"{ax} displacement error (measured − true)"))
-        for unit, err, meas, tru, sfx in (("voxel", e_vx, meas_vox[ax], t_vx, ""),
-                                          ("mm", e_mm, meas_mm[ax], t_mm, "_mm")):
+        for unit, err, meas, tru, sfx in (
+            ("voxel", e_vx, meas_vox[ax], t_vx, ""),
+            ("mm", e_mm, meas_mm[ax], t_mm, "_mm"),
+        ):
             bias, rms, std = error_statistics(err, fin)
             mb, _, ms = error_statistics(meas, fin)  # mean and std of the measured values
             tb = error_statistics(tru, fin)[0]
@@ -321,26 +337,38 @@ def case_errors(
             out[f"sd_{ax}{sfx}"] = ((), ms, _attrs(unit, f"std of measured {ax} displacement"))
             out[f"true_{ax}{sfx}"] = ((), tb, _attrs(unit, f"mean true {ax} displacement"))
         mv = meas_vox[ax][fin]
-        out[f"peak_locking_{ax}"] = ((), peak_locking_c1(mv), _attrs(
-            "1", f"degree of peak locking C1 {ax} (Christensen 2004)",
-            description="1 - Nmin/Nmax of the histogram (10 bins) of the fractional parts of the "
-                        "measured displacement in voxels"))
-        out[f"locking_excess_{ax}"] = ((), locking_excess(mv, t_vx[fin]), _attrs(
-            "1", f"excess near-integer fraction {ax}",
-            description="fraction of measured displacements within 0.25 voxel of an integer minus "
-                        "that expected for Gaussian errors about the truth"))
+        out[f"peak_locking_{ax}"] = (
+            (),
+            peak_locking_c1(mv),
+            _attrs(
+                "1",
+                f"degree of peak locking C1 {ax} (Christensen 2004)",
+                description="1 - Nmin/Nmax of the histogram (10 bins) of the fractional parts of the "
+                "measured displacement in voxels",
+            ),
+        )
+        out[f"locking_excess_{ax}"] = (
+            (),
+            locking_excess(mv, t_vx[fin]),
+            _attrs(
+                "1",
+                f"excess near-integer fraction {ax}",
+                description="fraction of measured displacements within 0.25 voxel of an integer minus "
+                "that expected for Gaussian errors about the truth",
+            ),
+        )
     rt = math.sqrt(sum(float(out[f"rms_{ax}"]) ** 2 for ax in axes)) if n_valid else math.nan
     out["rms_total"] = ((), rt, _attrs("voxel", "total RMS error (all components)"))
     rt_mm = math.sqrt(sum(float(out[f"rms_{ax}_mm"]) ** 2 for ax in axes)) if n_valid else math.nan
     out["rms_total_mm"] = ((), rt_mm, _attrs("mm", "total RMS error (all components)"))
     out["n_vectors"] = ((), n_vec, _attrs("1", "number of PIV vectors"))
     out["n_valid"] = ((), n_valid, _attrs("1", "number of valid vectors"))
-    out["valid_percent"] = ((), 100.0 * n_valid / n_vec if n_vec else 0.0,
-                            _attrs("percent", "valid vectors"))
+    out["valid_percent"] = ((), 100.0 * n_valid / n_vec if n_vec else 0.0, _attrs("percent", "valid vectors"))
     out.attrs.update(
         title="PIV errors against the known flow",
         flow=getattr(flow, "name", type(flow).__name__),
-        dt=float(dt), n_steps=int(n_steps),
+        dt=float(dt),
+        n_steps=int(n_steps),
         true_displacement_reference="midpoint",
         sign_convention="object frame, +z away from the camera; error = measured - true",
     )
@@ -362,8 +390,13 @@ def _fractional_index(coord: np.ndarray, p: np.ndarray) -> np.ndarray:
     return f
 
 
-def render_particles(coords: Mapping[str, np.ndarray], particles: xr.Dataset, *,
-                     sigma_vox: float | Sequence[float] = 1.0, truncate: float = 3.0) -> np.ndarray:
+def render_particles(
+    coords: Mapping[str, np.ndarray],
+    particles: xr.Dataset,
+    *,
+    sigma_vox: float | Sequence[float] = 1.0,
+    truncate: float = 3.0,
+) -> np.ndarray:
     """A "true" volume: one Gaussian blob per particle on a voxel grid.
 
     Parameters
@@ -391,10 +424,9 @@ def render_particles(coords: Mapping[str, np.ndarray], particles: xr.Dataset, *,
     n = particles.sizes.get("particle", len(particles["x"]))
     if n == 0:
         return out.reshape(shape)
-    amp = (np.asarray(particles["intensity"].values, float) if "intensity" in particles
-           else np.ones(n))
+    amp = np.asarray(particles["intensity"].values, float) if "intensity" in particles else np.ones(n)
     f = [_fractional_index(coords[d], np.asarray(particles[d].values, float)) for d in dims]
-    r = [int(math.ceil(truncate * s)) for s in sig]
+    r = [math.ceil(truncate * s) for s in sig]
     # Per-axis 1-D weights on a (particle, offset) stencil, then an outer
     # product: the blob is separable, no loop over particles or voxels.
     idx, wts = [], []
@@ -413,8 +445,9 @@ def render_particles(coords: Mapping[str, np.ndarray], particles: xr.Dataset, *,
     return out.reshape(shape)
 
 
-def reconstruction_quality(volume: xr.DataArray, particles: xr.Dataset, *,
-                           sigma_vox: float | Sequence[float] = 1.0, planes_per_block: int = 8) -> float:
+def reconstruction_quality(
+    volume: xr.DataArray, particles: xr.Dataset, *, sigma_vox: float | Sequence[float] = 1.0, planes_per_block: int = 8
+) -> float:
     """Reconstruction quality Q of Elsinga et al. (2006).
 
     Q = Σ E·E_true / sqrt(Σ E² · Σ E_true²), the normalised correlation of the
@@ -450,7 +483,7 @@ def reconstruction_quality(volume: xr.DataArray, particles: xr.Dataset, *,
     num = e2 = 0.0
     for k in range(0, truth.shape[0], max(1, int(planes_per_block))):
         e = np.asarray(vol.isel(z=slice(k, k + planes_per_block)).values, dtype=np.float64)
-        t = truth[k:k + e.shape[0]]
+        t = truth[k : k + e.shape[0]]
         num += float(np.sum(e * t))
         e2 += float(np.sum(e * e))
     t2 = float(np.sum(truth * truth))
@@ -578,8 +611,10 @@ def combine_cases(per_case: Iterable[tuple[Mapping[str, Any], xr.Dataset]]) -> x
         {n: (SWEEP_KEYS, data[n], attrs[n]) for n in order},
         # Object (variable-length) strings: zarr v3 stores them as vlen-utf8,
         # fixed-width '<U' has no v3 specification yet.
-        coords={k: (k, np.asarray(coords[k], dtype=object if k in ("fnumber", "flow") else float),
-                    _PARAM_ATTRS[k]) for k in SWEEP_KEYS},
+        coords={
+            k: (k, np.asarray(coords[k], dtype=object if k in ("fnumber", "flow") else float), _PARAM_ATTRS[k])
+            for k in SWEEP_KEYS
+        },
     )
     ds["computed"] = (SWEEP_KEYS, computed, _attrs("1", "case computed"))
     ds.attrs["title"] = "light-field PIV parametric study: errors per case"
@@ -602,9 +637,15 @@ def to_csv(study: xr.Dataset, path: str | Path) -> Path:
     ids = []
     for _, r in df.iterrows():
         fn = r["fnumber"]
-        ids.append(Case(magnification=float(r["magnification"]), fnumber=fn if fn == "matched" else float(fn),
-                        lenslet_pitch=float(r["lenslet_pitch"]), ppp=float(r["ppp"]),
-                        flow=str(r["flow"])).case_id)
+        ids.append(
+            Case(
+                magnification=float(r["magnification"]),
+                fnumber=fn if fn == "matched" else float(fn),
+                lenslet_pitch=float(r["lenslet_pitch"]),
+                ppp=float(r["ppp"]),
+                flow=str(r["flow"]),
+            ).case_id
+        )
     df.insert(0, "case_id", ids)
     path = Path(path)
     with atomic_path(path) as tmp:

@@ -20,9 +20,10 @@ import math
 import re
 import time
 import warnings
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -30,8 +31,8 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.config import SWEEP_KEYS, Case, case_config
-from lfstudy.study.metrics import METRIC_LABELS, format_param
 from lfstudy.optics import PlenopticCamera
+from lfstudy.study.metrics import METRIC_LABELS, format_param
 
 __all__ = ["write_report", "write_figures", "report_blocks", "best_designs", "case_table", "SECTIONS"]
 
@@ -47,8 +48,20 @@ SECTIONS: dict[str, str] = {
 }
 
 #: Columns of the case tables (when present in the study).
-HEADLINE = ("rms_total", "bias_x", "bias_y", "bias_z", "std_x", "std_y", "std_z", "valid_percent",
-            "peak_locking_z", "locking_excess_z", "Q", "time_total")
+HEADLINE = (
+    "rms_total",
+    "bias_x",
+    "bias_y",
+    "bias_z",
+    "std_x",
+    "std_y",
+    "std_z",
+    "valid_percent",
+    "peak_locking_z",
+    "locking_excess_z",
+    "Q",
+    "time_total",
+)
 
 #: Thesis figures for the uniform displacements (image-frame sign), sec. 7.1–7.2.
 THESIS_REFERENCE = {
@@ -64,10 +77,10 @@ class Block:
     section: str
     name: str
     caption: str = ""
-    figure: Any = None          # matplotlib Figure
-    html: str = ""              # trusted fragment built here (tables are escaped by pandas)
-    note: str = ""              # plain text, escaped on output
-    case: str | None = None     # per-case blocks are grouped under their case id
+    figure: Any = None  # matplotlib Figure
+    html: str = ""  # trusted fragment built here (tables are escaped by pandas)
+    note: str = ""  # plain text, escaped on output
+    case: str | None = None  # per-case blocks are grouped under their case id
     extras: dict[str, Any] = field(default_factory=dict)
 
 
@@ -76,15 +89,19 @@ def _na(section: str, name: str, what: str, why: str, case: str | None = None) -
     return Block(section, name, note=f"{what}: not available ({why}).", case=case)
 
 
-def _try(section: str, name: str, caption: str, what: str, make: Callable[[], Any],
-         case: str | None = None) -> Block:
+def _try(section: str, name: str, caption: str, what: str, make: Callable[[], Any], case: str | None = None) -> Block:
     """Build a figure; any failure becomes a "not available" note (the report must not crash)."""
     try:
         fig = make()
     except FileNotFoundError as exc:
-        return _na(section, name, what, f"missing {Path(str(exc.args[0]) if exc.args else '?').name}"
-                   if exc.args else "missing artefact", case)
-    except Exception as exc:  # noqa: BLE001 - an unreadable artefact is reported, not fatal
+        return _na(
+            section,
+            name,
+            what,
+            f"missing {Path(str(exc.args[0]) if exc.args else '?').name}" if exc.args else "missing artefact",
+            case,
+        )
+    except Exception as exc:
         warnings.warn(f"report: {what} failed: {exc!r}", RuntimeWarning, stacklevel=2)
         return _na(section, name, what, f"{type(exc).__name__}: {exc}", case)
     return Block(section, name, caption=caption, figure=fig, case=case)
@@ -95,7 +112,7 @@ def _open(case_dir: Path, store: str, var: str | None = None) -> xr.Dataset | xr
     ds = io.open_zarr(Path(case_dir) / store)
     if var is None:
         return ds
-    name = var or (list(ds.data_vars)[0])
+    name = var or (next(iter(ds.data_vars)))
     return ds[name]
 
 
@@ -104,8 +121,10 @@ def _table(df: pd.DataFrame, *, index: bool = True, fmt: str = "{:.4g}") -> str:
         if isinstance(v, (float, np.floating)):
             return "–" if not np.isfinite(v) else fmt.format(v)
         return str(v)
-    return df.to_html(index=index, escape=True, border=0, classes="tbl", na_rep="–",
-                      formatters={c: f for c in df.columns})
+
+    return df.to_html(
+        index=index, escape=True, border=0, classes="tbl", na_rep="–", formatters=dict.fromkeys(df.columns, f)
+    )
 
 
 def _png(fig: Any) -> bytes:
@@ -125,10 +144,7 @@ def case_table(study: xr.Dataset, columns: tuple[str, ...] | list[str] = HEADLIN
     if not cols:
         return pd.DataFrame()
     df = study[cols + (["computed"] if "computed" in study else [])].to_dataframe()
-    if "computed" in df:
-        df = df[df["computed"].astype(bool)].drop(columns="computed")
-    else:
-        df = df.dropna(how="all")
+    df = df[df["computed"].astype(bool)].drop(columns="computed") if "computed" in df else df.dropna(how="all")
     return df[cols]
 
 
@@ -147,12 +163,14 @@ def best_designs(study: xr.Dataset) -> pd.DataFrame:
         df["bias_norm"] = np.sqrt(sum(df[f"bias_{a}"] ** 2 for a in "xyz"))
     if all(f"std_{a}" in df for a in "xyz"):
         df["random_norm"] = np.sqrt(sum(df[f"std_{a}"] ** 2 for a in "xyz"))
-    crit = [("lowest total RMS error", "rms_total", "min", "voxel"),
-            ("lowest bias |b|", "bias_norm", "min", "voxel"),
-            ("lowest random error |σ|", "random_norm", "min", "voxel"),
-            ("most valid vectors", "valid_percent", "max", "%"),
-            ("highest reconstruction quality Q", "Q", "max", ""),
-            ("shortest run time", "time_total", "min", "s")]
+    crit = [
+        ("lowest total RMS error", "rms_total", "min", "voxel"),
+        ("lowest bias |b|", "bias_norm", "min", "voxel"),
+        ("lowest random error |σ|", "random_norm", "min", "voxel"),
+        ("most valid vectors", "valid_percent", "max", "%"),
+        ("highest reconstruction quality Q", "Q", "max", ""),
+        ("shortest run time", "time_total", "min", "s"),
+    ]
     rows = []
     for flow, sub in df.groupby(level="flow", sort=False):
         for label, col, how, unit in crit:
@@ -160,10 +178,19 @@ def best_designs(study: xr.Dataset) -> pd.DataFrame:
                 continue
             idx = sub[col].idxmin() if how == "min" else sub[col].idxmax()
             p = dict(zip(sub.index.names, idx))
-            rows.append({"flow": flow, "criterion": label, "value": float(sub.loc[idx, col]), "unit": unit,
-                         "magnification": p["magnification"], "fnumber": p["fnumber"],
-                         "lenslet_pitch [mm]": p["lenslet_pitch"], "ppp": p["ppp"],
-                         "total RMS [voxel]": float(sub.loc[idx, "rms_total"]) if "rms_total" in sub else math.nan})
+            rows.append(
+                {
+                    "flow": flow,
+                    "criterion": label,
+                    "value": float(sub.loc[idx, col]),
+                    "unit": unit,
+                    "magnification": p["magnification"],
+                    "fnumber": p["fnumber"],
+                    "lenslet_pitch [mm]": p["lenslet_pitch"],
+                    "ppp": p["ppp"],
+                    "total RMS [voxel]": float(sub.loc[idx, "rms_total"]) if "rms_total" in sub else math.nan,
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -174,7 +201,7 @@ def _varied(study: xr.Dataset) -> list[str]:
 def _cameras(study: xr.Dataset, cfg: Mapping[str, Any]) -> dict[str, PlenopticCamera]:
     """The distinct cameras (magnification × f-number × lenslet pitch) of the computed cases."""
     flow = next(iter(cfg["flows"]))
-    comp = study["computed"] if "computed" in study else None
+    comp = study.get("computed", None)
     out: dict[str, PlenopticCamera] = {}
     for m in study["magnification"].values:
         for fn in study["fnumber"].values:
@@ -198,16 +225,27 @@ def _representative(study: xr.Dataset, case_dirs: Mapping[str, Path]) -> str | N
         for idx in df.sort_values("rms_total").index:
             p = dict(zip(df.index.names, idx))
             fn = p["fnumber"]
-            cid = Case(float(p["magnification"]), fn if fn == "matched" else float(fn),
-                       float(p["lenslet_pitch"]), float(p["ppp"]), str(p["flow"])).case_id
+            cid = Case(
+                float(p["magnification"]),
+                fn if fn == "matched" else float(fn),
+                float(p["lenslet_pitch"]),
+                float(p["ppp"]),
+                str(p["flow"]),
+            ).case_id
             if cid in existing:
                 return cid
     return existing[0]
 
 
 # ------------------------------------------------------------------ blocks
-def report_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any], *,
-                  max_cases: int = 50, progress: bool = True) -> Iterator[Block]:
+def report_blocks(
+    study: xr.Dataset,
+    case_dirs: Mapping[str, Path],
+    cfg: Mapping[str, Any],
+    *,
+    max_cases: int = 50,
+    progress: bool = True,
+) -> Iterator[Block]:
     """Every block of the report, section by section (figures are built lazily, one at a time).
 
     Parameters
@@ -229,14 +267,24 @@ def report_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping
     # ---------------------------------------------------------- overview
     n_comp = int(study["computed"].sum()) if "computed" in study else len(case_dirs)
     n_total = int(np.prod([study.sizes[k] for k in SWEEP_KEYS if k in study.dims]))
-    sweep = pd.DataFrame({"values": [", ".join(str(format_param(k, v)) for v in study[k].values)
-                                     for k in SWEEP_KEYS if k in study.coords]},
-                         index=[k for k in SWEEP_KEYS if k in study.coords])
-    yield Block("overview", "sweep", html=(
-        f"<p>{n_comp} of {n_total} parameter combinations computed; {len(case_dirs)} case directories. "
-        "Displacements and errors are in the object frame (+z away from the camera): a +x shift reads "
-        "positive here, negative in the thesis' histograms. Errors are measured − true over valid "
-        "vectors, in voxels unless marked mm.</p>" + _table(sweep)))
+    sweep = pd.DataFrame(
+        {
+            "values": [
+                ", ".join(str(format_param(k, v)) for v in study[k].values) for k in SWEEP_KEYS if k in study.coords
+            ]
+        },
+        index=[k for k in SWEEP_KEYS if k in study.coords],
+    )
+    yield Block(
+        "overview",
+        "sweep",
+        html=(
+            f"<p>{n_comp} of {n_total} parameter combinations computed; {len(case_dirs)} case directories. "
+            "Displacements and errors are in the object frame (+z away from the camera): a +x shift reads "
+            "positive here, negative in the thesis' histograms. Errors are measured − true over valid "
+            "vectors, in voxels unless marked mm.</p>" + _table(sweep)
+        ),
+    )
     # -------------------------------------------------------------- best
     best = best_designs(study)
     if best.empty:
@@ -247,29 +295,40 @@ def report_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping
     metrics = [m for m in METRIC_LABELS if m in study]
     varied = _varied(study)
     if not varied:
-        yield Block("comparison", "none", note="Comparison: not available (only one value of every "
-                                               "swept camera/seeding parameter).")
-    for i, p in enumerate(varied):
+        yield Block(
+            "comparison",
+            "none",
+            note="Comparison: not available (only one value of every swept camera/seeding parameter).",
+        )
+    for _i, p in enumerate(varied):
         others = [q for q in varied if q != p]
         line = others[0] if others else None
-        yield _try("comparison", f"metrics_vs_{p}",
-                   f"Every error metric against {p}" + (f", one line per {line}" if line else "") +
-                   "; solid/dashed lines are flows.", f"metrics against {p}",
-                   lambda p=p, line=line: rf.metrics_vs_parameter(study, metrics, p, line))
+        yield _try(
+            "comparison",
+            f"metrics_vs_{p}",
+            f"Every error metric against {p}"
+            + (f", one line per {line}" if line else "")
+            + "; solid/dashed lines are flows.",
+            f"metrics against {p}",
+            lambda p=p, line=line: rf.metrics_vs_parameter(study, metrics, p, line),
+        )
         cols = [m for m in HEADLINE if m in study]
         if cols:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 red = [d for d in SWEEP_KEYS if d not in (p, "flow") and d in study.dims]
                 marg = study[cols].mean(red, skipna=True).to_dataframe()
-            yield Block("comparison", f"table_{p}", html=f"<h4>Mean over the other parameters, by {html.escape(p)}"
-                        f"</h4>" + _table(marg))
+            yield Block(
+                "comparison",
+                f"table_{p}",
+                html=f"<h4>Mean over the other parameters, by {html.escape(p)}</h4>" + _table(marg),
+            )
     ct = case_table(study)
     if not ct.empty:
         yield Block("comparison", "all_cases", html="<h4>All computed cases</h4>" + _table(ct))
     # ------------------------------------------------------------ thesis
     rows = []
-    for flow in (study["flow"].values if "flow" in study.dims else []):
+    for flow in study["flow"].values if "flow" in study.dims else []:
         spec = cfg.get("flows", {}).get(str(flow), {})
         if spec.get("kind") != "uniform":
             continue
@@ -280,64 +339,111 @@ def report_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping
         sub = case_table(study.sel(flow=[flow]), cols)
         for idx, r in sub.iterrows():
             p = dict(zip(sub.index.names, idx))
-            rows.append({"flow": flow, "axis": ax, "M": p["magnification"], "f/#": p["fnumber"],
-                         "pl [mm]": p["lenslet_pitch"], "ppp": p["ppp"],
-                         "true [vox]": r.get(f"true_{ax}"), "mean [vox]": r.get(f"mean_{ax}"),
-                         "σ [vox]": r.get(f"sd_{ax}"), "bias [vox]": r.get(f"bias_{ax}"),
-                         "thesis μ [px]": ref["mean"] if ref else math.nan,
-                         "thesis σ [px]": ref["std"] if ref else math.nan})
+            rows.append(
+                {
+                    "flow": flow,
+                    "axis": ax,
+                    "M": p["magnification"],
+                    "f/#": p["fnumber"],
+                    "pl [mm]": p["lenslet_pitch"],
+                    "ppp": p["ppp"],
+                    "true [vox]": r.get(f"true_{ax}"),
+                    "mean [vox]": r.get(f"mean_{ax}"),
+                    "σ [vox]": r.get(f"sd_{ax}"),
+                    "bias [vox]": r.get(f"bias_{ax}"),
+                    "thesis μ [px]": ref["mean"] if ref else math.nan,
+                    "thesis σ [px]": ref["std"] if ref else math.nan,
+                }
+            )
     if rows:
-        yield Block("thesis", "uniform", html=(
-            "<p>Mean and standard deviation of the measured displacement beside the thesis' histograms "
-            "(" + "; ".join(html.escape(v["where"]) for v in THESIS_REFERENCE.values()) + "). The thesis "
-            "reports image-frame signs (μ negative); ours are object-frame (positive for a +x or +z "
-            "shift).</p>" + _table(pd.DataFrame(rows), index=False)))
+        yield Block(
+            "thesis",
+            "uniform",
+            html=(
+                "<p>Mean and standard deviation of the measured displacement beside the thesis' histograms "
+                "(" + "; ".join(html.escape(v["where"]) for v in THESIS_REFERENCE.values()) + "). The thesis "
+                "reports image-frame signs (μ negative); ours are object-frame (positive for a +x or +z "
+                "shift).</p>" + _table(pd.DataFrame(rows), index=False)
+            ),
+        )
     else:
-        yield Block("thesis", "uniform", note="Uniform-displacement comparison: not available "
-                                              "(no uniform flow among the computed cases).")
+        yield Block(
+            "thesis",
+            "uniform",
+            note="Uniform-displacement comparison: not available (no uniform flow among the computed cases).",
+        )
     # ----------------------------------------------------------- cameras
     try:
         cams = _cameras(study, cfg)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:
         cams = {}
         yield _na("cameras", "table", "Camera table", f"{type(exc).__name__}: {exc}")
     if cams:
         tab = pd.DataFrame({k: c.summary() for k, c in cams.items()})
         yield Block("cameras", "table", html=_table(tab))
         cam0 = next(iter(cams.values()))
-        yield _try("cameras", "ambiguity", "Depth ambiguity ξz (eq. 4.18) and in-plane ambiguity ξy "
-                   "(eq. 4.19) at z = 0 against |M|; dots: the swept magnifications. Steps mark where the "
-                   "matched f-number rounds up to the next standard stop (sec. 4.3.1).",
-                   "ambiguity against magnification",
-                   lambda: rf.ambiguity_vs_magnification(cam0, marked=[float(m) for m in study["magnification"].values]))
+        yield _try(
+            "cameras",
+            "ambiguity",
+            "Depth ambiguity ξz (eq. 4.18) and in-plane ambiguity ξy "
+            "(eq. 4.19) at z = 0 against |M|; dots: the swept magnifications. Steps mark where the "
+            "matched f-number rounds up to the next standard stop (sec. 4.3.1).",
+            "ambiguity against magnification",
+            lambda: rf.ambiguity_vs_magnification(cam0, marked=[float(m) for m in study["magnification"].values]),
+        )
         r = cfg.get("refocus", {})
 
         def diamonds():
-            planes = {k: (c, c.focal_planes(r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0),
-                                            cubic=bool(r.get("cubic", False))))
-                      for k, c in list(cams.items())[:8]}
+            planes = {
+                k: (
+                    c,
+                    c.focal_planes(
+                        r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0), cubic=bool(r.get("cubic", False))
+                    ),
+                )
+                for k, c in list(cams.items())[:8]
+            }
             return rf.focal_plane_diamonds(planes)
 
-        yield _try("cameras", "focal_planes", "Depth-of-focus diamonds of the refocus planes "
-                   "(eqs 5.16–5.20) in image space; ticks: plane centres.", "focal-plane diamonds", diamonds)
+        yield _try(
+            "cameras",
+            "focal_planes",
+            "Depth-of-focus diamonds of the refocus planes (eqs 5.16–5.20) in image space; ticks: plane centres.",
+            "focal-plane diamonds",
+            diamonds,
+        )
     # --------------------------------------------------- representative
     rep = _representative(study, case_dirs)
     if rep is None:
         yield Block("representative", "none", note="Representative case: not available (no case directory).")
     else:
         d = Path(case_dirs[rep])
-        yield Block("representative", "id", html=f"<p>Case <code>{html.escape(rep)}</code> "
-                    "(lowest total RMS error with its artefacts on disk).</p>")
-        yield _try("representative", "raw", "Central crop of the raw plenoptic image, frame a.",
-                   "raw image", lambda: rf.raw_crop(_open(d, "raw_a.zarr", "")))
-        yield _try("representative", "refocused", "Refocused planes of frame a over the depth.",
-                   "refocused planes", lambda: rf.refocused_planes(_open(d, "stack_a.zarr", "")))
+        yield Block(
+            "representative",
+            "id",
+            html=f"<p>Case <code>{html.escape(rep)}</code> (lowest total RMS error with its artefacts on disk).</p>",
+        )
+        yield _try(
+            "representative",
+            "raw",
+            "Central crop of the raw plenoptic image, frame a.",
+            "raw image",
+            lambda: rf.raw_crop(_open(d, "raw_a.zarr", "")),
+        )
+        yield _try(
+            "representative",
+            "refocused",
+            "Refocused planes of frame a over the depth.",
+            "refocused planes",
+            lambda: rf.refocused_planes(_open(d, "stack_a.zarr", "")),
+        )
     # ------------------------------------------------------------ cases
     yield from _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
 
 
-def _case_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any], *,
-                 max_cases: int, progress: bool) -> Iterator[Block]:
+def _case_blocks(
+    study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any], *, max_cases: int, progress: bool
+) -> Iterator[Block]:
     from tqdm.auto import tqdm
 
     from lfstudy.study import figures as rf
@@ -345,8 +451,12 @@ def _case_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[
     k = float(cfg.get("reconstruct", {}).get("k", 3.0))
     items = list(case_dirs.items())
     if len(items) > max_cases:
-        yield Block("cases", "truncated", note=f"Per-case figures drawn for the first {max_cases} of "
-                                               f"{len(items)} cases; every case is in the tables above.")
+        yield Block(
+            "cases",
+            "truncated",
+            note=f"Per-case figures drawn for the first {max_cases} of "
+            f"{len(items)} cases; every case is in the tables above.",
+        )
     for cid, d in tqdm(items[:max_cases], desc="report: cases", unit="case", disable=not progress):
         d = Path(d)
         if not d.is_dir():
@@ -354,25 +464,47 @@ def _case_blocks(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[
             continue
         try:
             piv = _open(d, "piv.zarr").load()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             piv = None
             yield _na("cases", "piv", "PIV result", f"{type(exc).__name__}: {exc}"[:200], case=cid)
         try:
             err = _open(d, "errors.zarr").load()
-        except Exception:  # noqa: BLE001 - histograms still work without the truth line
+        except Exception:
             err = None
         if piv is not None:
-            yield _try("cases", "convergence", "Corrector RMS and valid vectors per pass (Figs 6.14–6.15).",
-                       "PIV convergence", lambda: rf.piv_convergence(piv), case=cid)
-            yield _try("cases", "histograms", "Measured displacement per component, valid vectors "
-                       "(Figs 7.2–7.4, 7.8); dashed: mean true displacement.", "displacement histograms",
-                       lambda: rf.displacement_histograms(piv, err), case=cid)
-            yield _try("cases", "vectors", "Vector-field slices (Figs 7.1, 7.6, 7.9).", "vector slices",
-                       lambda: rf.vector_slices(piv), case=cid)
-        yield _try("cases", "intensity", f"Focal-stack intensities, threshold mean + {k:g}σ "
-                   "(Figs 5.17, 7.13–7.14).", "intensity histogram",
-                   lambda: rf.intensity_histogram(np.asarray(_open(d, "stack_a.zarr", "").values), k=k),
-                   case=cid)
+            yield _try(
+                "cases",
+                "convergence",
+                "Corrector RMS and valid vectors per pass (Figs 6.14–6.15).",
+                "PIV convergence",
+                lambda piv=piv: rf.piv_convergence(piv),
+                case=cid,
+            )
+            yield _try(
+                "cases",
+                "histograms",
+                "Measured displacement per component, valid vectors "
+                "(Figs 7.2–7.4, 7.8); dashed: mean true displacement.",
+                "displacement histograms",
+                lambda piv=piv, err=err: rf.displacement_histograms(piv, err),
+                case=cid,
+            )
+            yield _try(
+                "cases",
+                "vectors",
+                "Vector-field slices (Figs 7.1, 7.6, 7.9).",
+                "vector slices",
+                lambda piv=piv: rf.vector_slices(piv),
+                case=cid,
+            )
+        yield _try(
+            "cases",
+            "intensity",
+            f"Focal-stack intensities, threshold mean + {k:g}σ (Figs 5.17, 7.13–7.14).",
+            "intensity histogram",
+            lambda d=d: rf.intensity_histogram(np.asarray(_open(d, "stack_a.zarr", "").values), k=k),
+            case=cid,
+        )
 
 
 # ------------------------------------------------------------------ output
@@ -394,15 +526,24 @@ def _render(b: Block) -> str:
     if b.figure is not None:
         data = base64.b64encode(_png(b.figure)).decode("ascii")
         alt = html.escape(b.caption or b.name)
-        return (f'<figure><img alt="{alt}" src="data:image/png;base64,{data}">'
-                f"<figcaption>{html.escape(b.caption)}</figcaption></figure>")
+        return (
+            f'<figure><img alt="{alt}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{html.escape(b.caption)}</figcaption></figure>"
+        )
     if b.html:
         return f'<div class="scroll">{b.html}</div>'
     return f'<p class="note">{html.escape(b.note)}</p>'
 
 
-def write_report(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any],
-                 out_html: Path, *, max_cases: int = 50, progress: bool = True) -> Path:
+def write_report(
+    study: xr.Dataset,
+    case_dirs: Mapping[str, Path],
+    cfg: Mapping[str, Any],
+    out_html: Path,
+    *,
+    max_cases: int = 50,
+    progress: bool = True,
+) -> Path:
     """Write the self-contained HTML report of a study (atomically).
 
     Parameters
@@ -439,26 +580,36 @@ def write_report(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[
         parts["cases"].append(f"<details><summary>{html.escape(cid)}</summary>{''.join(frags)}</details>")
     name = html.escape(str(cfg.get("name", "study")))
     toc = "".join(f'<li><a href="#{s}">{html.escape(t)}</a></li>' for s, t in SECTIONS.items())
-    body = "".join(f'<section id="{s}"><h2>{html.escape(SECTIONS[s])}</h2>{"".join(parts[s])}</section>'
-                   for s in SECTIONS)
+    body = "".join(
+        f'<section id="{s}"><h2>{html.escape(SECTIONS[s])}</h2>{"".join(parts[s])}</section>' for s in SECTIONS
+    )
     from lfstudy import __version__
 
     ver = html.escape(str(study.attrs.get("lfstudy_version", __version__)))
-    doc = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
-           f'<meta name="viewport" content="width=device-width,initial-scale=1">'
-           f"<title>lfstudy report: {name}</title><style>{_CSS}</style></head><body>"
-           f"<h1>Light-field PIV study <code>{name}</code></h1>"
-           f"<p>Generated {time.strftime('%Y-%m-%d %H:%M')} by lfstudy {ver}. Method: Lynch (2011), "
-           f"Development of a 3-D Fluid Velocimetry Technique based on Light Field Imaging.</p>"
-           f"<nav><ul>{toc}</ul></nav>{body}</body></html>")
+    doc = (
+        f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
+        f'<meta name="viewport" content="width=device-width,initial-scale=1">'
+        f"<title>lfstudy report: {name}</title><style>{_CSS}</style></head><body>"
+        f"<h1>Light-field PIV study <code>{name}</code></h1>"
+        f"<p>Generated {time.strftime('%Y-%m-%d %H:%M')} by lfstudy {ver}. Method: Lynch (2011), "
+        f"Development of a 3-D Fluid Velocimetry Technique based on Light Field Imaging.</p>"
+        f"<nav><ul>{toc}</ul></nav>{body}</body></html>"
+    )
     out_html = Path(out_html)
     with io.atomic_path(out_html) as tmp:
         tmp.write_text(doc, encoding="utf-8")
     return out_html
 
 
-def write_figures(study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any],
-                  out_dir: Path, *, max_cases: int = 50, progress: bool = True) -> list[Path]:
+def write_figures(
+    study: xr.Dataset,
+    case_dirs: Mapping[str, Path],
+    cfg: Mapping[str, Any],
+    out_dir: Path,
+    *,
+    max_cases: int = 50,
+    progress: bool = True,
+) -> list[Path]:
     """Write every report figure as a separate PNG (for Snakemake's ``report(...)``).
 
     Files are named ``<section>_<name>.png`` (per-case figures
