@@ -19,7 +19,8 @@ import sys
 from snakemake.exceptions import WorkflowError
 
 from lfstudy.config import expand_cases, validate_config
-from lfstudy.workflow import calib_id, logged, stage_config
+from lfstudy.study.case import calib_id
+from lfstudy.workflow import logged, stage_config
 
 configfile: "config/demo.yaml"
 

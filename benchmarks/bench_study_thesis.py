@@ -24,6 +24,7 @@ import numpy as np
 
 from lfstudy import io, workflow
 from lfstudy.config import expand_cases, load_config
+from lfstudy.study.case import calib_id
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,7 +42,7 @@ def main() -> None:
     cid = case.case_id
     out = args.out or Path(tempfile.mkdtemp(prefix="lfstudy-bench-"))
     d = out / cid
-    cal = out / "calib" / workflow.calib_id(cid)
+    cal = out / "calib" / calib_id(cid)
     workflow.set_threads(args.threads)
 
     def sc(stage: str) -> dict:

@@ -25,6 +25,8 @@ __all__ = [
     "atomic_path",
     "write_zarr",
     "open_zarr",
+    "open_array",
+    "read_image",
     "write_tiff",
     "read_tiff",
 ]
@@ -138,6 +140,44 @@ def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.D
         warnings.filterwarnings("ignore", message=".*snakemake_timestamp.*")
         ds = xr.open_zarr(path, zarr_format=3, consolidated=False)
     return ds[name] if name is not None else ds
+
+
+def open_array(path: str | Path) -> xr.DataArray:
+    """Open the one data variable of a store lazily (a raw image, light field, stack or volume).
+
+    Raises
+    ------
+    FileNotFoundError
+        The store does not exist.
+    ValueError
+        The store holds no data variable, or several (then name one with
+        :func:`open_zarr`).
+    """
+    ds = open_zarr(path)
+    names = list(ds.data_vars)
+    if len(names) != 1:
+        raise ValueError(
+            f"zarr store {str(path)!r} holds {len(names)} data variables ({', '.join(names) or 'none'}); "
+            "expected exactly one"
+        )
+    return ds[names[0]]
+
+
+def read_image(path: str | Path) -> xr.DataArray:
+    """Read a 2-D image from a TIFF file or a zarr store (its ``intensity`` variable), eagerly.
+
+    TIFF pixel data come back as a DataArray ``intensity`` over (``row``,
+    ``col``) with the JSON metadata of :func:`write_tiff` (if any) as attrs.
+    """
+    path = Path(path)
+    if path.name.endswith(".zarr") or path.is_dir():
+        return open_zarr(path, name="intensity").load()
+    if not path.exists():
+        raise FileNotFoundError(f"image file {str(path)!r} does not exist")
+    data, meta = read_tiff(path)
+    if data.ndim != 2:
+        raise ValueError(f"image file {str(path)!r}: expected one 2-D image, got an array of shape {data.shape}")
+    return xr.DataArray(data, dims=("row", "col"), name="intensity", attrs=meta)
 
 
 def write_tiff(

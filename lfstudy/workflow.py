@@ -4,11 +4,8 @@ Keeping the rule bodies here (not in the Snakefile) makes them importable,
 testable and usable from a notebook. Every output is written atomically
 (``lfstudy.io``), so an interrupted job leaves no half-written store.
 
-Seeds are derived, never drawn from the clock: the particle field depends on
-(study seed, magnification, ppp) only, so every f-number and lenslet pitch of
-a sweep images the *same* particles (sec. 4.3.2 keeps the particle field
-apart from the optics for exactly this reason); ray-tracing streams depend on
-the full case id and the frame.
+The science of one case comes from the case layer (:mod:`lfstudy.study.case`);
+this module only reads its inputs, calls it and writes the outputs.
 """
 
 from __future__ import annotations
@@ -19,27 +16,20 @@ import logging
 import sys
 import time
 import traceback
-import zlib
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from lfstudy import io
 from lfstudy.config import Case, case_config
-from lfstudy.optics import PlenopticCamera
+from lfstudy.study import case as cl
 
 __all__ = [
     "logged",
     "set_threads",
-    "derive_seed",
     "STAGE_SECTIONS",
     "stage_config",
     "main",
-    "calib_id",
-    "case_particles",
-    "case_displaced",
-    "case_image",
-    "case_pinhole",
     "run_optics",
     "run_particles",
     "run_displace",
@@ -89,19 +79,6 @@ def set_threads(n: int) -> None:
     dask.config.set(scheduler="threads", num_workers=n)
 
 
-def derive_seed(base: int, *parts: Any) -> int:
-    """A stable 32-bit seed from the study seed and labels (crc32, not ``hash``)."""
-    text = "/".join(str(p) for p in (base, *parts))
-    return zlib.crc32(text.encode()) & 0x7FFFFFFF
-
-
-def calib_id(case: Case | str) -> str:
-    """Calibration is shared by all cases with the same magnification and pitch
-    (the pinhole image is taken at f/16 whatever the working f-number)."""
-    case = Case.from_id(case) if isinstance(case, str) else case
-    return case.case_id.split("/fnum~")[0] + "/pitch~" + case.case_id.split("/pitch~")[1].split("/")[0]
-
-
 #: The config sections each per-case stage reads. The Snakefile passes a
 #: stage only these (``stage_config``) and declares them as the rule's
 #: ``params``, so Snakemake reruns a stage exactly when a section it depends
@@ -135,107 +112,36 @@ def _write_json(obj: Mapping[str, Any], path: str | Path) -> None:
 # ----------------------------------------------------------------- stages
 def run_optics(ccfg: Mapping[str, Any], out_json: str | Path, out_planes: str | Path) -> None:
     """Camera stage: derived parameters (JSON) and the refocus-plane table (zarr)."""
-    cam = PlenopticCamera.from_config(ccfg)
+    cam = cl.case_camera(ccfg)
     case_id = ccfg["case_id"]
-    r = ccfg["refocus"]
-    planes = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
+    planes = cl.case_planes(ccfg, cam)
     planes.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(planes, out_planes)
     _write_json({"case_id": case_id, **{k: str(v) for k, v in cam.summary().items()}}, out_json)
 
 
-def case_particles(ccfg: Mapping[str, Any]) -> Any:
-    """The first-exposure particle field of a case config (:func:`lfstudy.config.case_config`)."""
-    from lfstudy.simulate.particles import seed_particles
-
-    cam = PlenopticCamera.from_config(ccfg)
-    p = ccfg["particles"]
-    case = Case.from_id(ccfg["case_id"])
-    seed = derive_seed(ccfg["seed"], "particles", case.magnification, case.ppp)
-    kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
-    field = seed_particles(
-        cam,
-        **kw,
-        x_span=p["x_span"],
-        y_span=p["y_span"],
-        z_span=p["z_span"],
-        intensity=tuple(p["intensity"]),
-        seed=seed,
-    )
-    field.attrs.update(io.provenance(ccfg, seed))
-    return field
-
-
-def case_displaced(ccfg: Mapping[str, Any], field: Any) -> Any:
-    """The second-exposure field: ``field`` advected by the case's flow."""
-    from lfstudy.simulate.flows import displace, flow_from_config
-
-    spec = ccfg["flow"]
-    moved = displace(field, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
-    moved.attrs.update(io.provenance(ccfg, field.attrs.get("seed")), flow=spec["name"])
-    return moved
-
-
-def case_image(ccfg: Mapping[str, Any], field: Any, frame: str, *, progress: bool = False) -> Any:
-    """Ray-trace the raw image of exposure ``frame`` ("a" or "b") of a case."""
-    from lfstudy.simulate.raytrace import render
-
-    rt = ccfg["raytrace"]
-    seed = derive_seed(ccfg["seed"], "raytrace", ccfg["case_id"], frame)
-    img = render(
-        PlenopticCamera.from_config(ccfg),
-        field,
-        rt["rays_per_particle"],
-        seed,
-        diffraction=rt["diffraction"],
-        max_image_bytes=rt["max_image_bytes"],
-        progress=progress,
-    )
-    img.attrs.update(io.provenance(ccfg, seed), frame=frame)
-    return img
-
-
-def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> Any:
-    """Ray-trace the calibration pinhole image (sec. 5.1), shared by the case's calibration group."""
-    from lfstudy.simulate.raytrace import render_pinhole
-
-    ph = ccfg["pinhole"]
-    seed = derive_seed(ccfg["seed"], "pinhole", calib_id(ccfg["case_id"]))
-    img = render_pinhole(
-        PlenopticCamera.from_config(ccfg),
-        fnumber=ph["fnumber"],
-        count=ph["count"],
-        rays_per_point=ph["rays_per_point"],
-        seed=seed,
-        max_image_bytes=ccfg["raytrace"]["max_image_bytes"],
-        progress=progress,
-    )
-    img.attrs.update(io.provenance(ccfg, seed))
-    return img
-
-
 def run_particles(ccfg: Mapping[str, Any], out: str | Path) -> None:
     """Seed the first-exposure particle field."""
-    io.write_zarr(case_particles(ccfg), out)
+    io.write_zarr(cl.case_particles(ccfg), out)
 
 
 def run_displace(ccfg: Mapping[str, Any], particles: str | Path, out: str | Path) -> None:
     """Second-exposure particle field: the first one advected by the case's flow."""
-    io.write_zarr(case_displaced(ccfg, io.open_zarr(particles).load()), out)
+    io.write_zarr(cl.case_displaced(ccfg, io.open_zarr(particles).load()), out)
 
 
 def run_simulate(
     ccfg: Mapping[str, Any], frame: str, particles: str | Path, out_zarr: str | Path, out_tiff: str | Path
 ) -> None:
     """Ray-trace one raw plenoptic image (frame ``a`` or ``b``)."""
-    img = case_image(ccfg, io.open_zarr(particles).load(), frame, progress=True)
+    img = cl.case_image(ccfg, io.open_zarr(particles).load(), frame, progress=True)
     io.write_zarr(img, out_zarr, name="intensity")
     io.write_tiff(img, out_tiff, dtype="float32")
 
 
 def run_pinhole(ccfg: Mapping[str, Any], out_zarr: str | Path, out_tiff: str | Path) -> None:
     """Ray-trace the calibration pinhole image (sec. 5.1)."""
-    img = case_pinhole(ccfg, progress=True)
+    img = cl.case_pinhole(ccfg, progress=True)
     io.write_zarr(img, out_zarr, name="intensity")
     io.write_tiff(img, out_tiff, dtype="float32")
 
@@ -244,9 +150,8 @@ def run_calibrate(ccfg: Mapping[str, Any], pinhole: str | Path, out: str | Path)
     """Find every lenslet centre in the pinhole image (automatic grid detection)."""
     from lfstudy.lightfield.calibrate import find_lenslet_centers
 
-    cam = PlenopticCamera.from_config(ccfg)
     img = io.open_zarr(pinhole, name="intensity").load()
-    centers = find_lenslet_centers(img, cam)
+    centers = find_lenslet_centers(img, cl.case_camera(ccfg))
     centers.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(centers, out)
 
@@ -255,36 +160,21 @@ def run_register(ccfg: Mapping[str, Any], raw: str | Path, centers: str | Path, 
     """Raw image → 4-D light field (eqs 5.2–5.9)."""
     from lfstudy.lightfield.registration import register
 
-    cam = PlenopticCamera.from_config(ccfg)
-    lf = register(io.open_zarr(raw, name="intensity").load(), io.open_zarr(centers).load(), cam)
+    lf = register(io.open_zarr(raw, name="intensity").load(), io.open_zarr(centers).load(), cl.case_camera(ccfg))
     lf.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(lf, out, name=lf.name or "radiance")
 
 
 def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path) -> None:
     """Light field → focal stack (z, y, x), resized to constant magnification."""
-    from lfstudy.lightfield.refocus import focal_stack
-
-    cam = PlenopticCamera.from_config(ccfg)
-    r = ccfg["refocus"]
-    planes = cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=r["cubic"])
-    ds = io.open_zarr(lightfield)
-    lf = ds[next(iter(ds.data_vars))].load()
-    stack = focal_stack(lf, cam, planes, resize=r["resize"])
+    stack = cl.case_stack(ccfg, io.open_array(lightfield).load())
     stack.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(stack, out, name=stack.name or "intensity", progress=True)  # one task per plane
 
 
 def run_reconstruct(ccfg: Mapping[str, Any], stack: str | Path, out: str | Path) -> None:
     """Focal stack → particle volume (threshold + dilation by default, sec. 5.5)."""
-    from lfstudy.reconstruct import reconstruct
-
-    r = dict(ccfg["reconstruct"])
-    method = r.pop("method")
-    if method == "none":  # k and dilation_radius belong to the threshold method
-        r = {}
-    ds = io.open_zarr(stack)
-    vol = reconstruct(ds[next(iter(ds.data_vars))], method=method, **r)
+    vol = cl.case_volume(ccfg, io.open_array(stack))
     vol.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(vol, out, name=vol.name or "intensity")
 
@@ -294,10 +184,8 @@ def run_piv(ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: 
     from lfstudy.piv import widim
 
     p = ccfg["piv"]
-    a = io.open_zarr(vol_a)
-    b = io.open_zarr(vol_b)
-    a = a[next(iter(a.data_vars))].load()
-    b = b[next(iter(b.data_vars))].load()
+    a = io.open_array(vol_a).load()
+    b = io.open_array(vol_b).load()
     t0 = time.perf_counter()
     res = widim(
         a, b, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"], progress=True
@@ -316,8 +204,7 @@ def run_errors(
     spec = ccfg["flow"]
     res = io.open_zarr(piv).load()
     err = case_errors(res, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
-    vds = io.open_zarr(volume)
-    q = reconstruction_quality(vds[next(iter(vds.data_vars))], io.open_zarr(particles).load())
+    q = reconstruction_quality(io.open_array(volume), io.open_zarr(particles).load())
     err["Q"] = ((), float(q), {"units": "1", "long_name": "reconstruction quality Q"})
     err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
     io.write_zarr(err, out)

@@ -77,8 +77,7 @@ def test_study_runs_end_to_end(study_dir):
 
 def test_simulate_case_reproduces_the_workflow(study_dir):
     """`lfstudy simulate` (simulate_case) gives the same bytes as the Snakemake rules."""
-    from lfstudy.simulate.raytrace import simulate_case
-    from lfstudy.workflow import calib_id
+    from lfstudy.study.case import calib_id, simulate_case
 
     out = study_dir / "results" / "tiny"
     cid = expand_cases(load_config(TINY))[-1].case_id

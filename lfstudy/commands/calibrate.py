@@ -33,10 +33,7 @@ def run(args: argparse.Namespace) -> int:
             cfg = case_config(cfg, args.case)
         cam = PlenopticCamera.from_config(cfg)
         params = cfg
-    if str(args.pinhole).rstrip("/").endswith(".zarr"):
-        image = io.open_zarr(args.pinhole, name="intensity").load()
-    else:
-        image, _ = io.read_tiff(args.pinhole)
+    image = io.read_image(args.pinhole)
     centers = find_lenslet_centers(image, cam, pixel_pitch=args.pixel_pitch)
     centers.attrs.update(io.provenance(params), source=str(args.pinhole))
     io.write_zarr(centers, args.out)

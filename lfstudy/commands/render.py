@@ -21,15 +21,12 @@ def run(args: argparse.Namespace) -> int:
 
     from lfstudy import io
     from lfstudy.config import case_config, load_config
-    from lfstudy.lightfield.refocus import render_volume
+    from lfstudy.study.case import render_volume
 
     cfg = load_config(args.config)
     if args.case:
         cfg = case_config(cfg, args.case)
-    if str(args.raw).rstrip("/").endswith(".zarr"):
-        raw = io.open_zarr(args.raw, name="intensity").load()
-    else:
-        raw, _ = io.read_tiff(args.raw)
+    raw = io.read_image(args.raw)
     centers = io.open_zarr(args.centers).load()
     lf, stack, volume = render_volume(raw, centers, cfg)
     prov = io.provenance(cfg, cfg.get("seed"))

@@ -23,7 +23,8 @@ def run(args: argparse.Namespace) -> int:
 
     from lfstudy import io
     from lfstudy.config import case_config, expand_cases, load_config
-    from lfstudy.simulate.raytrace import simulate_case, write_image
+    from lfstudy.simulate.raytrace import write_image
+    from lfstudy.study.case import simulate_case
 
     cfg = load_config(args.config)
     case_id = args.case or expand_cases(cfg)[0].case_id

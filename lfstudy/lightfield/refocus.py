@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import math
 import uuid
-from collections.abc import Mapping
 from typing import Any
 
 import dask
@@ -42,7 +41,7 @@ import xarray as xr
 
 from lfstudy.optics import PlenopticCamera
 
-__all__ = ["focal_stack", "render_volume", "refocus_plane"]
+__all__ = ["focal_stack", "refocus_plane"]
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
@@ -217,48 +216,3 @@ def focal_stack(
     }
     attrs.update(camera.to_attrs())
     return xr.DataArray(data, dims=("z", "y", "x"), coords=coords, attrs=attrs, name="intensity")
-
-
-def render_volume(
-    raw: xr.DataArray | np.ndarray,
-    centers: xr.Dataset,
-    case_cfg: Mapping[str, Any],
-    camera: PlenopticCamera | None = None,
-) -> tuple[xr.DataArray, xr.DataArray, xr.DataArray]:
-    """The config-driven chain raw image → light field → focal stack → volume.
-
-    Parameters
-    ----------
-    raw : DataArray or ndarray
-        Raw plenoptic image.
-    centers : xarray.Dataset
-        Lenslet calibration (:func:`lfstudy.lightfield.calibrate.find_lenslet_centers`).
-    case_cfg : mapping
-        One case's config: ``camera`` section, ``refocus`` (n_planes,
-        depth_scale, cubic, resize) and ``reconstruct`` (method, k,
-        dilation_radius, ...).
-    camera : PlenopticCamera, optional
-        Default ``PlenopticCamera.from_config(case_cfg)``.
-
-    Returns
-    -------
-    lightfield, stack, volume : xarray.DataArray
-        The stack (rendered once, persisted) and volume are dask-backed, one
-        chunk per plane.
-    """
-    from lfstudy.lightfield.registration import register
-    from lfstudy.reconstruct import reconstruct
-
-    cam = camera if camera is not None else PlenopticCamera.from_config(case_cfg)
-    r = dict(case_cfg.get("refocus", {}) or {})
-    planes = cam.focal_planes(
-        r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0), cubic=bool(r.get("cubic", False))
-    )
-    lf = register(raw, centers, cam)
-    # persist: the stack is small (planes x lenslets) and both the reconstruction's
-    # statistics and the caller's write need it, so render it once.
-    stack = focal_stack(lf, cam, planes, resize=bool(r.get("resize", True))).persist()
-    rc = dict(case_cfg.get("reconstruct", {}) or {})
-    method = rc.pop("method", "threshold")
-    volume = reconstruct(stack, method=method, **rc)
-    return lf, stack, volume

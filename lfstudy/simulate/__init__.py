@@ -30,7 +30,6 @@ from lfstudy.simulate.raytrace import (
     ray_counts,
     render,
     render_pinhole,
-    simulate_case,
     solid_angle,
     write_image,
 )
@@ -59,6 +58,5 @@ __all__ = [
     "quantize",
     "angle_histograms",
     "incidence_angle_bound",
-    "simulate_case",
     "write_image",
 ]

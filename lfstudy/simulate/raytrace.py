@@ -53,7 +53,6 @@ on which thread runs it. One seed therefore gives a bit-identical image with
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +74,6 @@ __all__ = [
     "quantize",
     "angle_histograms",
     "incidence_angle_bound",
-    "simulate_case",
     "write_image",
 ]
 
@@ -764,36 +762,6 @@ def angle_histograms(
             **camera.to_attrs(),
         },
     )
-
-
-# ------------------------------------------------------------ config -> images
-def simulate_case(case_cfg: Mapping[str, Any], *, progress: bool = False) -> dict[str, xr.DataArray | xr.Dataset]:
-    """Everything the simulate stage produces for one case config (from :func:`lfstudy.config.case_config`).
-
-    Seeds the first particle field, displaces it with the case's flow
-    (``flows.displace`` with its ``dt`` and ``n_steps``), and ray-traces both
-    exposures and the f/16 pinhole calibration image. Seeds are derived as
-    in :mod:`lfstudy.workflow` (particle field from the study seed,
-    magnification and ppp; ray streams from the case id and frame), so this
-    reproduces the Snakemake outputs. ``progress`` shows a bar per ray-traced image.
-
-    Returns
-    -------
-    dict
-        ``particles_a``, ``particles_b`` (Datasets) and ``image_a``,
-        ``image_b``, ``pinhole`` (DataArrays named ``intensity``).
-    """
-    from lfstudy.workflow import case_displaced, case_image, case_particles, case_pinhole
-
-    field_a = case_particles(case_cfg)
-    field_b = case_displaced(case_cfg, field_a)
-    return {
-        "particles_a": field_a,
-        "particles_b": field_b,
-        "image_a": case_image(case_cfg, field_a, "a", progress=progress),
-        "image_b": case_image(case_cfg, field_b, "b", progress=progress),
-        "pinhole": case_pinhole(case_cfg, progress=progress),
-    }
 
 
 def write_image(image: xr.DataArray, stem: str | Path) -> tuple[Path, Path]:

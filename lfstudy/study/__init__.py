@@ -1,7 +1,8 @@
 """The study (thesis ch. 7): errors against the truth, the sweep table and the report.
 
-Modules: :mod:`~lfstudy.study.metrics` (per-case errors, Q, the sweep
-Dataset), :mod:`~lfstudy.study.report` and :mod:`~lfstudy.study.figures`
+Modules: :mod:`~lfstudy.study.case` (one case's config → its science: the
+layer the workflow, the CLI and notebooks share), :mod:`~lfstudy.study.metrics`
+(per-case errors, Q, the sweep Dataset), :mod:`~lfstudy.study.report` and :mod:`~lfstudy.study.figures`
 (the HTML report). The report (matplotlib) is imported on first use, so the
 per-case stages that only need the metrics start fast.
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from lfstudy.study.case import calib_id, derive_seed, render_volume, simulate_case
 from lfstudy.study.metrics import (
     AXES,
     METRIC_LABELS,
@@ -28,6 +30,10 @@ from lfstudy.study.metrics import (
 _REPORT = ("write_report", "write_figures", "report_blocks", "best_designs", "case_table")
 
 __all__ = [
+    "simulate_case",
+    "render_volume",
+    "derive_seed",
+    "calib_id",
     "AXES",
     "METRIC_LABELS",
     "case_errors",

@@ -1,0 +1,199 @@
+"""The case layer: one case's config → the science of that case.
+
+Every function here takes a case config (:func:`lfstudy.config.case_config`,
+or the part of it a stage reads) and calls the pure science functions of the
+stage packages. The Snakemake rules (:mod:`lfstudy.workflow`), the CLI and a
+notebook all go through this module, so they produce the same bytes; the
+science packages know nothing of configs or cases.
+
+Seeds are derived, never drawn from the clock: the particle field depends on
+(study seed, magnification, ppp) only, so every f-number and lenslet pitch of
+a sweep images the *same* particles (sec. 4.3.2 keeps the particle field
+apart from the optics for exactly this reason); ray-tracing streams depend on
+the full case id and the frame.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Mapping
+from typing import Any
+
+import xarray as xr
+
+from lfstudy import io
+from lfstudy.config import Case
+from lfstudy.optics import PlenopticCamera
+
+__all__ = [
+    "derive_seed",
+    "calib_id",
+    "case_camera",
+    "case_planes",
+    "case_particles",
+    "case_displaced",
+    "case_image",
+    "case_pinhole",
+    "simulate_case",
+    "case_stack",
+    "case_volume",
+    "render_volume",
+]
+
+
+def derive_seed(base: int, *parts: Any) -> int:
+    """A stable 32-bit seed from the study seed and labels (crc32, not ``hash``)."""
+    text = "/".join(str(p) for p in (base, *parts))
+    return zlib.crc32(text.encode()) & 0x7FFFFFFF
+
+
+def calib_id(case: Case | str) -> str:
+    """Calibration is shared by all cases with the same magnification and pitch
+    (the pinhole image is taken at f/16 whatever the working f-number)."""
+    case = Case.from_id(case) if isinstance(case, str) else case
+    return case.case_id.split("/fnum~")[0] + "/pitch~" + case.case_id.split("/pitch~")[1].split("/")[0]
+
+
+def case_camera(ccfg: Mapping[str, Any]) -> PlenopticCamera:
+    """The camera of a case config."""
+    return PlenopticCamera.from_config(ccfg)
+
+
+def case_planes(ccfg: Mapping[str, Any], camera: PlenopticCamera | None = None) -> xr.Dataset:
+    """The refocus planes of a case (``refocus``: n_planes, depth_scale, cubic; eqs 5.16–5.20)."""
+    cam = camera if camera is not None else case_camera(ccfg)
+    r = ccfg["refocus"]  # a stage given no refocus section must fail loudly, not use defaults
+    return cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=bool(r["cubic"]))
+
+
+def case_particles(ccfg: Mapping[str, Any]) -> xr.Dataset:
+    """The first-exposure particle field of a case config."""
+    from lfstudy.simulate.particles import seed_particles
+
+    cam = case_camera(ccfg)
+    p = ccfg["particles"]
+    case = Case.from_id(ccfg["case_id"])
+    seed = derive_seed(ccfg["seed"], "particles", case.magnification, case.ppp)
+    kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
+    field = seed_particles(
+        cam,
+        **kw,
+        x_span=p["x_span"],
+        y_span=p["y_span"],
+        z_span=p["z_span"],
+        intensity=tuple(p["intensity"]),
+        seed=seed,
+    )
+    field.attrs.update(io.provenance(ccfg, seed))
+    return field
+
+
+def case_displaced(ccfg: Mapping[str, Any], field: xr.Dataset) -> xr.Dataset:
+    """The second-exposure field: ``field`` advected by the case's flow."""
+    from lfstudy.simulate.flows import displace, flow_from_config
+
+    spec = ccfg["flow"]
+    moved = displace(field, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
+    moved.attrs.update(io.provenance(ccfg, field.attrs.get("seed")), flow=spec["name"])
+    return moved
+
+
+def case_image(ccfg: Mapping[str, Any], field: xr.Dataset, frame: str, *, progress: bool = False) -> xr.DataArray:
+    """Ray-trace the raw image of exposure ``frame`` ("a" or "b") of a case."""
+    from lfstudy.simulate.raytrace import render
+
+    rt = ccfg["raytrace"]
+    seed = derive_seed(ccfg["seed"], "raytrace", ccfg["case_id"], frame)
+    img = render(
+        case_camera(ccfg),
+        field,
+        rt["rays_per_particle"],
+        seed,
+        diffraction=rt["diffraction"],
+        max_image_bytes=rt["max_image_bytes"],
+        progress=progress,
+    )
+    img.attrs.update(io.provenance(ccfg, seed), frame=frame)
+    return img
+
+
+def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> xr.DataArray:
+    """Ray-trace the calibration pinhole image (sec. 5.1), shared by the case's calibration group."""
+    from lfstudy.simulate.raytrace import render_pinhole
+
+    ph = ccfg["pinhole"]
+    seed = derive_seed(ccfg["seed"], "pinhole", calib_id(ccfg["case_id"]))
+    img = render_pinhole(
+        case_camera(ccfg),
+        fnumber=ph["fnumber"],
+        count=ph["count"],
+        rays_per_point=ph["rays_per_point"],
+        seed=seed,
+        max_image_bytes=ccfg["raytrace"]["max_image_bytes"],
+        progress=progress,
+    )
+    img.attrs.update(io.provenance(ccfg, seed))
+    return img
+
+
+def simulate_case(ccfg: Mapping[str, Any], *, progress: bool = False) -> dict[str, xr.DataArray | xr.Dataset]:
+    """Everything the simulate stages produce for one case config.
+
+    Seeds the first particle field, displaces it with the case's flow and
+    ray-traces both exposures and the pinhole calibration image, with the
+    seeds of the Snakemake rules (so this reproduces their outputs byte for
+    byte). ``progress`` shows a bar per ray-traced image.
+
+    Returns
+    -------
+    dict
+        ``particles_a``, ``particles_b`` (Datasets) and ``image_a``,
+        ``image_b``, ``pinhole`` (DataArrays named ``intensity``).
+    """
+    field_a = case_particles(ccfg)
+    field_b = case_displaced(ccfg, field_a)
+    return {
+        "particles_a": field_a,
+        "particles_b": field_b,
+        "image_a": case_image(ccfg, field_a, "a", progress=progress),
+        "image_b": case_image(ccfg, field_b, "b", progress=progress),
+        "pinhole": case_pinhole(ccfg, progress=progress),
+    }
+
+
+def case_stack(ccfg: Mapping[str, Any], lightfield: xr.DataArray) -> xr.DataArray:
+    """Light field → focal stack (z, y, x) of a case (lazy, one dask chunk per plane)."""
+    from lfstudy.lightfield.refocus import focal_stack
+
+    cam = case_camera(ccfg)
+    return focal_stack(lightfield, cam, case_planes(ccfg, cam), resize=bool(ccfg["refocus"]["resize"]))
+
+
+def case_volume(ccfg: Mapping[str, Any], stack: xr.DataArray) -> xr.DataArray:
+    """Focal stack → particle volume with the case's reconstruction method and its parameters."""
+    from lfstudy.reconstruct import reconstruct
+
+    r = dict(ccfg["reconstruct"])
+    method = r.pop("method")
+    if method == "none":  # k and dilation_radius belong to the threshold method
+        r = {}
+    return reconstruct(stack, method=method, **r)
+
+
+def render_volume(
+    raw: xr.DataArray, centers: xr.Dataset, ccfg: Mapping[str, Any]
+) -> tuple[xr.DataArray, xr.DataArray, xr.DataArray]:
+    """The chain raw image → light field → focal stack → volume of one case config.
+
+    Returns
+    -------
+    lightfield, stack, volume : xarray.DataArray
+        The stack (rendered once, persisted) and volume are dask-backed, one
+        chunk per plane.
+    """
+    from lfstudy.lightfield.registration import register
+
+    lf = register(raw, centers, case_camera(ccfg))
+    # persist: the reconstruction's statistics and the caller's write both read the stack
+    stack = case_stack(ccfg, lf).persist()
+    return lf, stack, case_volume(ccfg, stack)
