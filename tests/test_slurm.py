@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"
 PROFILE = ROOT / "profiles" / "slurm"
 IN_CI = os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
-TIMEOUT = 900  # s for the SLURM run; it takes ~3 min on 2 cores
+TIMEOUT = 900  # s for the SLURM run: ~5 min on 2 cores, with the local reference beside it
 
 pytestmark = pytest.mark.skipif(
     shutil.which("sbatch") is None and not IN_CI,
