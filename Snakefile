@@ -180,13 +180,16 @@ rule refocus:
 
 
 rule reconstruct:
-    input: f"{OUT}/{{case}}/stack_{{frame}}.zarr"
+    input:
+        stack=f"{OUT}/{{case}}/stack_{{frame}}.zarr",
+        lightfield=f"{OUT}/{{case}}/lightfield_{{frame}}.zarr",
+        centers=centers_of,
     output: directory(f"{OUT}/{{case}}/volume_{{frame}}.zarr")
     log: f"{LOG}/reconstruct/{{case}}_{{frame}}.log"
     benchmark: f"{BENCH}/reconstruct/{{case}}_{{frame}}.tsv"
-    threads: 1
+    threads: HEAVY
     params: cfg=stage_params("reconstruct")
-    shell: STAGE + " reconstruct {input[0]:q} {output[0]:q}"
+    shell: STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
 
 
 rule piv:
@@ -240,3 +243,31 @@ rule report:
         with logged(log[0]):
             from lfstudy.workflow import run_report
             run_report(CFG, CASES, OUT, input.study, output[0])
+
+
+# Optional, not part of `all`: ParaView and Fiji files of every case.
+#   snakemake export --cores all --configfile config/demo.yaml
+# (the target before --configfile, which takes several values). piv.vtr and volume_a.vtr
+# are rectilinear grids in mm; volume_a.tif is an ImageJ hyperstack with the voxel size.
+localrules: export
+
+
+rule export:
+    input: expand(f"{OUT}/{{case}}/{{name}}", case=CASES, name=["piv.vtr", "volume_a.vtr", "volume_a.tif"])
+
+
+rule export_case:
+    input:
+        piv=f"{OUT}/{{case}}/piv.zarr",
+        volume=f"{OUT}/{{case}}/volume_a.zarr",
+    output:
+        piv=f"{OUT}/{{case}}/piv.vtr",
+        volume_vtk=f"{OUT}/{{case}}/volume_a.vtr",
+        volume_tif=f"{OUT}/{{case}}/volume_a.tif",
+    log: f"{LOG}/export/{{case}}.log"
+    threads: 1
+    shell:
+        "(python -m lfstudy.cli export {input.piv:q} --out {output.piv:q}"
+        " && python -m lfstudy.cli export {input.volume:q} --out {output.volume_vtk:q}"
+        " && python -m lfstudy.cli export {input.volume:q} --out {output.volume_tif:q} --resample-z)"
+        " > {log:q} 2>&1"

@@ -81,8 +81,19 @@ def main() -> None:
         ),
         ("refocus a", lambda: workflow.run_refocus(sc("refocus"), d / "lightfield_a.zarr", d / "stack_a.zarr")),
         ("refocus b", lambda: workflow.run_refocus(sc("refocus"), d / "lightfield_b.zarr", d / "stack_b.zarr")),
-        ("reconstruct a", lambda: workflow.run_reconstruct(sc("reconstruct"), d / "stack_a.zarr", d / "volume_a.zarr")),
-        ("reconstruct b", lambda: workflow.run_reconstruct(sc("reconstruct"), d / "stack_b.zarr", d / "volume_b.zarr")),
+        *(
+            (
+                f"reconstruct {f}",
+                lambda f=f: workflow.run_reconstruct(
+                    sc("reconstruct"),
+                    d / f"stack_{f}.zarr",
+                    d / f"lightfield_{f}.zarr",
+                    cal / "centers.zarr",
+                    d / f"volume_{f}.zarr",
+                ),
+            )
+            for f in "ab"
+        ),
         ("piv", lambda: workflow.run_piv(sc("piv"), d / "volume_a.zarr", d / "volume_b.zarr", d / "piv.zarr")),
         (
             "errors",
@@ -121,8 +132,7 @@ def main() -> None:
     from lfstudy.reconstruct import reconstruct
 
     p = cfg["piv"]
-    stacks = [io.open_zarr(d / f"stack_{f}.zarr") for f in "ab"]
-    stacks = [s[next(iter(s.data_vars))].load() for s in stacks]
+    stacks = [io.open_array(d / f"stack_{f}.zarr").load() for f in "ab"]
     print("same stacks, other reconstructions (x / y / z sigma, vox):")
     for label, kw in (
         ("threshold k=3 (thesis)", {"method": "threshold", "k": 3.0}),

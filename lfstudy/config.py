@@ -8,6 +8,7 @@ value and what is allowed.
 from __future__ import annotations
 
 import copy
+import functools
 import itertools
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -27,6 +28,7 @@ __all__ = [
     "load_schema",
     "load_config",
     "validate_config",
+    "validate_section",
     "expand_cases",
     "case_config",
     "cases_table",
@@ -48,10 +50,23 @@ class ConfigError(ValueError):
     """An invalid configuration value (the message names key, value and allowed range)."""
 
 
+@functools.lru_cache(maxsize=1)
+def _schema() -> dict[str, Any]:
+    schema = yaml.safe_load(resources.files("lfstudy").joinpath("schema.yaml").read_text())
+    # Each reconstruction method declares its own parameters: reconstruct.<name>.
+    from lfstudy.reconstruct.registry import available_methods, method_schemas
+
+    rec = schema["properties"]["reconstruct"]["properties"]
+    rec["method"]["enum"] = available_methods()
+    for name, sub in method_schemas().items():
+        rec[name] = sub
+    return schema
+
+
 def load_schema() -> dict[str, Any]:
-    """The JSON schema (YAML) shipped with the package."""
-    text = resources.files("lfstudy").joinpath("schema.yaml").read_text()
-    return yaml.safe_load(text)
+    """The JSON schema of a study config: ``schema.yaml`` plus every reconstruction
+    method's parameters (``reconstruct.<method>``, from the method registry)."""
+    return copy.deepcopy(_schema())
 
 
 def _with_defaults(validator_class):
@@ -103,6 +118,27 @@ def _describe(err: jsonschema.ValidationError) -> str:
     return err.message
 
 
+def validate_section(schema: Mapping[str, Any], value: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Validate ``value`` against ``schema``, returning a deep copy with defaults filled in.
+
+    Raises
+    ------
+    ConfigError
+        On the most specific problem, naming the key (under ``prefix``), the value and
+        what is allowed.
+    """
+    out = copy.deepcopy(dict(value))
+    errors = list(_Validator(schema).iter_errors(out))
+    if errors:
+        # The deepest, most specific message is the useful one.
+        err = max(errors, key=lambda e: len(e.path))
+        key = ".".join(p for p in (prefix, _key(err.path) if err.path else "") if p) or "<root>"
+        raise ConfigError(f"config key '{key}' = {err.instance!r}: {_describe(err)}")
+    # Re-run once so defaults nested inside freshly defaulted sections are filled.
+    _Validator(schema).validate(out)
+    return out
+
+
 def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Validate a config mapping, returning a deep copy with defaults filled in.
 
@@ -115,14 +151,7 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
     ConfigError
         On the first problem, naming the key, the value and what is allowed.
     """
-    cfg = copy.deepcopy(dict(cfg))
-    errors = sorted(_Validator(load_schema()).iter_errors(cfg), key=lambda e: (len(e.path), list(e.path)))
-    if errors:
-        # The deepest, most specific message is the useful one.
-        err = max(errors, key=lambda e: len(e.path))
-        raise ConfigError(f"config key '{_key(err.path)}' = {err.instance!r}: {_describe(err)}")
-    # Re-run once so defaults nested inside freshly defaulted sections are filled.
-    _Validator(load_schema()).validate(cfg)
+    cfg = validate_section(load_schema(), cfg)
     lens = cfg["camera"]["lenslet"]
     if lens.get("focal_length") is None and lens.get("fnumber") is None:
         raise ConfigError("config key 'camera.lenslet': give focal_length or fnumber (fl = N·pl)")

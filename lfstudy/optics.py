@@ -378,23 +378,26 @@ class PlenopticCamera:
     @property
     def n_lenslets_x(self) -> int:
         """Lenslet columns needed to cover the sensor (Table 4.3: 289)."""
-        return self._n_lenslets(self.sensor_width)
+        return self._n_lenslets(axis=0)
 
     @property
     def n_lenslets_y(self) -> int:
         """Lenslet rows needed to cover the sensor (Table 4.3: 193)."""
-        return self._n_lenslets(self.sensor_height)
+        return self._n_lenslets(axis=1)
 
-    def _n_lenslets(self, extent: float) -> int:
-        # Smallest grid (centred on its offset, rotated) that covers every
-        # sensor corner; the tolerance keeps an exact multiple from gaining one.
+    def _n_lenslets(self, axis: int) -> int:
+        """Lenslets along grid axis 0 (columns, x) or 1 (rows, y) covering the sensor.
+
+        The smallest grid (centred on its offset, rotated) that covers every
+        sensor corner; the tolerance keeps an exact multiple from gaining one.
+        """
         c, s = math.cos(self.lenslet_rotation), math.sin(self.lenslet_rotation)
         w, h = self.sensor_width / 2.0, self.sensor_height / 2.0
         half = 0.0
         for x, y in ((w, h), (w, -h), (-w, h), (-w, -h)):
             dx, dy = x - self.lenslet_offset_x, y - self.lenslet_offset_y
-            gx, gy = c * dx + s * dy, -s * dx + c * dy  # into the grid frame
-            half = max(half, abs(gx) if extent == self.sensor_width else abs(gy))
+            g = (c * dx + s * dy, -s * dx + c * dy)  # into the grid frame
+            half = max(half, abs(g[axis]))
         return math.ceil(2.0 * half / self.lenslet_pitch - 1e-9)
 
     @property
@@ -599,6 +602,46 @@ class PlenopticCamera:
             image_distance_focus=self.si,
         )
         return ds
+
+    def planes_at(self, z: np.ndarray | list[float]) -> xr.Dataset:
+        """Refocus planes at given object-space depths (thin lens), laid out as :meth:`focal_planes`.
+
+        Used to refocus directly onto a reconstruction grid: plane ``k`` sits at
+        depth ``z[k]``, i.e. object distance Do = so + z, image distance
+        Di = 1/(1/fm − 1/Do) (eq. 4.1), refocus distance t = Di − si and
+        magnification −Di/Do.
+
+        Parameters
+        ----------
+        z : array_like
+            Object-space depths [mm], +z away from the camera; every one must keep
+            the object beyond the main-lens focal length.
+
+        Returns
+        -------
+        xarray.Dataset
+            ``image_distance``, ``t``, ``z`` and ``magnification`` over ``plane``
+            (1-based, in the order given).
+        """
+        z = np.atleast_1d(np.asarray(z, dtype=float))
+        f = self.main_focal_length
+        do = self.so + z
+        if z.size == 0 or not np.all(np.isfinite(z)) or np.any(do <= f):
+            raise OpticsError(
+                f"planes_at: depths must be finite and keep the object beyond the focal length "
+                f"(z > {f - self.so:.4g} mm)"
+            )
+        di = 1.0 / (1.0 / f - 1.0 / do)  # eq. 4.1
+        attrs = lambda u, ln: {"units": u, "long_name": ln}  # noqa: E731
+        return xr.Dataset(
+            {
+                "image_distance": ("plane", di, attrs("mm", "refocus image distance D_i")),
+                "t": ("plane", di - self.si, attrs("mm", "refocus distance t")),
+                "z": ("plane", z, attrs("mm", "object-space depth of plane")),
+                "magnification": ("plane", -di / do, attrs("1", "magnification of plane")),
+            },
+            coords={"plane": ("plane", np.arange(1, z.size + 1), attrs("1", "plane number"))},
+        )
 
     def _image_span(self, n_planes: int, c: float) -> float:
         """Image-side depth D_F,i(last) − D_N,i(first) covered by a marching."""

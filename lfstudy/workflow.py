@@ -91,10 +91,10 @@ STAGE_SECTIONS: dict[str, tuple[str, ...]] = {
     "pinhole": ("seed", "camera", "pinhole", "raytrace"),
     "calibrate": ("camera",),
     "register": ("camera",),
-    "refocus": ("camera", "refocus"),
-    "reconstruct": ("reconstruct",),
+    "refocus": ("camera", "refocus", "grid"),
+    "reconstruct": ("camera", "refocus", "grid", "reconstruct"),
     "piv": ("piv",),
-    "errors": ("flow",),
+    "errors": ("flow", "camera"),
 }
 
 
@@ -172,9 +172,13 @@ def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path
     io.write_zarr(stack, out, name=stack.name or "intensity", progress=True)  # one task per plane
 
 
-def run_reconstruct(ccfg: Mapping[str, Any], stack: str | Path, out: str | Path) -> None:
-    """Focal stack → particle volume (threshold + dilation by default, sec. 5.5)."""
-    vol = cl.case_volume(ccfg, io.open_array(stack))
+def run_reconstruct(
+    ccfg: Mapping[str, Any], stack: str | Path, lightfield: str | Path, centers: str | Path, out: str | Path
+) -> None:
+    """Focal stack, light field and calibration → particle volume on the reconstruction grid."""
+    vol = cl.case_volume(
+        ccfg, io.open_array(stack), io.open_array(lightfield).load(), io.open_zarr(centers).load(), progress=True
+    )
     vol.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(vol, out, name=vol.name or "intensity")
 
@@ -204,8 +208,18 @@ def run_errors(
     spec = ccfg["flow"]
     res = io.open_zarr(piv).load()
     err = case_errors(res, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
-    q = reconstruction_quality(io.open_array(volume), io.open_zarr(particles).load())
-    err["Q"] = ((), float(q), {"units": "1", "long_name": "reconstruction quality Q"})
+    sigma = cl.truth_sigma(cl.case_camera(ccfg))
+    q = reconstruction_quality(io.open_array(volume), io.open_zarr(particles).load(), sigma_mm=sigma)
+    err["Q"] = (
+        (),
+        float(q),
+        {
+            "units": "1",
+            "long_name": "reconstruction quality Q",
+            "description": "normalised correlation with the true particles as Gaussians of sigma (z, y, x) = "
+            f"{', '.join(f'{s:.4g}' for s in sigma)} mm (half the camera's resolution cell) on the same grid",
+        },
+    )
     err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
     io.write_zarr(err, out)
 

@@ -12,10 +12,12 @@ import pytest
 import xarray as xr
 
 from lfstudy import io
+from lfstudy.config import validate_config
 from lfstudy.lightfield.calibrate import find_lenslet_centers, synthetic_pinhole
 from lfstudy.lightfield.refocus import focal_stack
 from lfstudy.lightfield.registration import RegistrationError, register
 from lfstudy.optics import PlenopticCamera
+from lfstudy.reconstruct import default_voxel_z
 from lfstudy.study.case import render_volume
 
 CAM = PlenopticCamera(420, 340, 0.0074, 0.125, 0.5, 50.0, -1.0)  # Table 4.3 optics, small sensor
@@ -181,17 +183,24 @@ def test_render_volume_config_chain(centers):
             "magnification": -1.0,
         },
         "refocus": {"n_planes": 24, "depth_scale": 1.5, "cubic": False, "resize": True},
-        "reconstruct": {"method": "threshold", "k": 3.0, "dilation_radius": 1},
+        "reconstruct": {"method": "threshold", "threshold": {"k": 3.0, "dilation_radius": 1}},
     }
+    cfg = validate_config(cfg)
     raw = _simulate(CAM, [(0.2, 0.1, 1.0), (-0.6, -0.3, -3.0)], n_rays=30_000)
     _lf, st, vol = render_volume(raw, centers, cfg)
-    assert st.sizes["z"] == 24 and vol.sizes["z"] == 24 and vol.chunks[0] == (1,) * 24
-    assert 0 < vol.attrs["kept_fraction"] < 0.2 and vol.attrs["k"] == 3.0
+    # the stack is refocused onto the reconstruction grid: uniform z steps of half the
+    # Table 5.1 plane spacing at the focal plane, over the depth of the 24 widened planes
+    planes = CAM.focal_planes(24, depth_scale=1.5)["z"].values
+    dz = default_voxel_z(CAM)
+    assert np.allclose(np.diff(st["z"].values), dz) and np.allclose(vol["z"].values, st["z"].values)
+    assert planes.min() - 1e-9 <= st["z"].values[0] < planes.min() + dz
+    assert vol.chunks[0] == (1,) * vol.sizes["z"]
+    assert 0 < vol.attrs["kept_fraction"] < 0.2 and vol.attrs["k"] == 3.0 and vol.attrs["method"] == "threshold"
 
 
 def test_single_particle_with_raytrace(centers):
-    """End to end with the project's ray tracer (skipped until lfstudy.simulate.raytrace exists)."""
-    raytrace = pytest.importorskip("lfstudy.simulate.raytrace")
+    """End to end with the project's ray tracer."""
+    from lfstudy.simulate import raytrace
     from lfstudy.simulate.particles import make_field
 
     planes = CAM.focal_planes()

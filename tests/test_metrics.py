@@ -19,7 +19,7 @@ from lfstudy.study.metrics import (
     locking_excess,
     peak_locking_c1,
     reconstruction_quality,
-    render_particles,
+    render_truth,
     stage_times,
     to_csv,
 )
@@ -135,13 +135,6 @@ def test_peak_locking_figures():
     assert np.isnan(locking_excess([np.nan], [1.0]))
 
 
-def _volume(particles, shape=(10, 24, 28), vox=0.125):
-    coords = {d: (np.arange(n) - (n - 1) / 2) * vox for d, n in zip("zyx", shape)}
-    coords["z"] = np.cumsum(np.linspace(0.1, 0.2, shape[0])) - 1.0  # uneven planes
-    data = render_particles(coords, particles, sigma_vox=1.0)
-    return xr.DataArray(data, dims=("z", "y", "x"), coords=coords, name="intensity")
-
-
 def _particles(n, seed):
     rng = np.random.default_rng(seed)
     return xr.Dataset(
@@ -154,26 +147,54 @@ def _particles(n, seed):
     )
 
 
-def test_reconstruction_quality():
-    p = _particles(40, 2)
-    vol = _volume(p)
-    assert reconstruction_quality(vol, p) == pytest.approx(1.0)
-    assert reconstruction_quality(vol.chunk({"z": 1}), p, planes_per_block=3) == pytest.approx(1.0)
-    shifted = vol.copy(data=np.roll(vol.values, 1, axis=2))
-    q_shift = reconstruction_quality(shifted, p)
-    assert 0.3 < q_shift < 0.9
-    p, vol = _particles(10, 3), _volume(_particles(10, 3))
-    other = _volume(_particles(10, 99))
-    assert reconstruction_quality(other, p) < 0.15
-    assert np.isnan(reconstruction_quality(vol * 0, p))
+def _grid(shape=(40, 36, 44), step=(0.05, 0.02, 0.02)):
+    return {d: (np.arange(n) - (n - 1) / 2) * s for d, n, s in zip("zyx", shape, step)}
 
 
-def test_render_particles_centre_and_sum():
-    coords = {d: np.arange(9) * 0.1 for d in "zyx"}
-    p = xr.Dataset({d: ("particle", [0.4]) for d in "xyz"})
-    v = render_particles(coords, p, sigma_vox=1.0)
-    assert np.unravel_index(v.argmax(), v.shape) == (4, 4, 4)
-    assert v.max() == pytest.approx(1.0)
+def _gaussian(coords, centre, sigma):
+    """A Gaussian blob evaluated at the voxel centres (independent of render_truth)."""
+    g = [np.exp(-0.5 * ((coords[d] - c) / s) ** 2) for d, c, s in zip("zyx", centre, sigma)]
+    return g[0][:, None, None] * g[1][None, :, None] * g[2][None, None, :]
+
+
+def test_reconstruction_quality_matches_the_analytic_overlap_of_two_gaussians():
+    """Q of a Gaussian volume against a Gaussian particle of another size and position is the
+    normalised overlap of two Gaussians: Π sqrt(2 s1 s2 / (s1² + s2²)) · exp(−Δ² / (2 (s1² + s2²)))."""
+    coords = _grid()
+    truth_sigma = (0.2, 0.06, 0.06)
+    vol_sigma = (0.3, 0.05, 0.08)
+    shift = (0.1, 0.0, 0.04)  # the volume's blob is off the particle by this much
+    p = xr.Dataset({d: ("particle", [0.0]) for d in "xyz"})
+    vol = xr.DataArray(_gaussian(coords, shift, vol_sigma), dims=("z", "y", "x"), coords=coords)
+    expect = 1.0
+    for s1, s2, d in zip(truth_sigma, vol_sigma, shift):
+        expect *= np.sqrt(2 * s1 * s2 / (s1**2 + s2**2)) * np.exp(-(d**2) / (2 * (s1**2 + s2**2)))
+    q = reconstruction_quality(vol, p, sigma_mm=truth_sigma)
+    assert q == pytest.approx(expect, rel=0.01)
+    assert q < 0.9  # the sizes and the offset really do lower it
+    assert reconstruction_quality(vol.chunk({"z": 3}), p, sigma_mm=truth_sigma, planes_per_block=5) == pytest.approx(q)
+    assert np.isnan(reconstruction_quality(vol * 0, p, sigma_mm=truth_sigma))
+
+
+def test_reconstruction_quality_of_unrelated_fields_is_low():
+    coords = _grid((20, 48, 56), (0.1, 0.05, 0.05))
+    p, other = _particles(12, 3), _particles(12, 99)
+    vol = xr.DataArray(render_truth(coords, other, sigma_mm=0.05), dims=("z", "y", "x"), coords=coords)
+    assert reconstruction_quality(vol, p, sigma_mm=0.05) < 0.15
+
+
+def test_render_truth_is_voxel_integrated():
+    """Intensity is conserved and the centroid is the particle's, wherever it sits in its voxel."""
+    coords = {d: np.arange(15) * 0.1 for d in "zyx"}
+    coords["z"] = np.cumsum(np.linspace(0.08, 0.14, 15))  # uneven planes too
+    for pos in (0.70, 0.73, 0.755):
+        p = xr.Dataset({d: ("particle", [pos]) for d in "xyz"} | {"intensity": ("particle", [2.0])})
+        v = render_truth(coords, p, sigma_mm=0.1)
+        assert v.sum() == pytest.approx(2.0, rel=5e-4)  # cut at 4 sigma per axis: 6e-5 each
+        cx = float((v.sum((0, 1)) * coords["x"]).sum() / v.sum())
+        assert cx == pytest.approx(pos, abs=0.002)
+    with pytest.raises(ValueError, match="sigma_mm"):
+        render_truth(coords, p, sigma_mm=0.0)
 
 
 def test_stage_times(tmp_path):

@@ -154,3 +154,11 @@ def test_rotated_grid_covers_sensor():
         for y in (-cam.sensor_height / 2, cam.sensor_height / 2):
             gx, gy = c * (x - 0.03) - s * y, s * (x - 0.03) + c * y
             assert abs(gx) <= cam.n_lenslets_x * 0.125 / 2 and abs(gy) <= cam.n_lenslets_y * 0.125 / 2
+
+
+def test_lenslet_counts_on_a_square_sensor_follow_each_axis():
+    """A y offset changes the rows, not the columns, even when the sensor is square (width == height)."""
+    cam = PlenopticCamera(200, 200, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_offset_y=0.1)
+    assert (cam.n_lenslets_x, cam.n_lenslets_y) == (12, 14)
+    cam = PlenopticCamera(200, 200, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_offset_x=0.1)
+    assert (cam.n_lenslets_x, cam.n_lenslets_y) == (14, 12)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from lfstudy.reconstruct import available_methods, disk, reconstruct, register_method
+from lfstudy.reconstruct import available_methods, disk, reconstruct, register_method, unregister_method
 
 
 def _stack(values: np.ndarray) -> xr.DataArray:
@@ -66,8 +66,8 @@ def test_none_method_keeps_the_stack():
 def test_config_rejects_unknown_method():
     from lfstudy.config import ConfigError, validate_config
 
-    with pytest.raises(ConfigError, match=r"reconstruct\.method.*mart"):
-        validate_config({"camera": {}, "reconstruct": {"method": "mart"}})
+    with pytest.raises(ConfigError, match=r"reconstruct\.method.*'nosuch'.*deconvolution.*mart.*threshold"):
+        validate_config({"camera": {}, "reconstruct": {"method": "nosuch"}})
 
 
 def test_disk_footprints():
@@ -75,16 +75,23 @@ def test_disk_footprints():
 
 
 def test_registry_and_unknown_method():
-    assert "threshold" in available_methods()
+    assert {"threshold", "none", "mart", "deconvolution"} <= set(available_methods())
 
     @register_method("identity-test")
     def identity(stack, scale=1.0):
         return stack * scale
 
-    st = _stack(np.ones((1, 2, 2)))
-    assert float(reconstruct(st, "identity-test", scale=2.0).sum()) == 8.0
-    with pytest.raises(ValueError, match=r"unknown reconstruction method 'mart'.*threshold"):
-        reconstruct(st, method="mart")
+    try:
+        st = _stack(np.ones((1, 2, 2)))
+        assert float(reconstruct(st, "identity-test", scale=2.0).sum()) == 8.0
+        assert "identity-test" in available_methods()
+        with pytest.raises(ValueError, match=r"unknown parameter\(s\) sclae; allowed: scale"):
+            reconstruct(st, "identity-test", sclae=2.0)
+    finally:
+        unregister_method("identity-test")
+    assert "identity-test" not in available_methods()
+    with pytest.raises(ValueError, match=r"unknown reconstruction method; available: deconvolution, mart, none"):
+        reconstruct(st, method="nosuch")
 
 
 def test_cli_render(tmp_path, capsys):
@@ -112,5 +119,8 @@ def test_cli_render(tmp_path, capsys):
     for name in ("lightfield.zarr", "stack.zarr", "volume.zarr"):
         assert (out / name).exists()
     vol = io.open_zarr(out / "volume.zarr", name="intensity")
-    assert vol.dims == ("z", "y", "x") and vol.sizes["z"] == 8
+    z = vol["z"].values  # the reconstruction grid: uniform z over the depth of the 8 refocus planes
+    planes = cam.focal_planes(8)["z"].values
+    assert vol.dims == ("z", "y", "x") and np.allclose(np.diff(z), z[1] - z[0])
+    assert planes.min() - 1e-9 <= z[0] < planes.min() + (z[1] - z[0]) and z[-1] <= planes.max() + 1e-9
     assert "threshold" in vol.attrs and "kept" in capsys.readouterr().out

@@ -40,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
         f"focal stack: {dict(stack.sizes)}, z {float(stack.z[0]):.3f} .. {float(stack.z[-1]):.3f} mm, "
         f"voxel {stack.attrs['voxel_size']:.4g} mm, resize={bool(stack.attrs['resize'])}"
     )
-    print(f"volume: threshold {a['threshold']:.4g} (k = {a['k']:g}), kept {100 * a['kept_fraction']:.2f} % of voxels")
+    print(f"volume: method {a['method']}, {' x '.join(str(n) for n in volume.shape)} voxels (z, y, x)")
+    if "threshold" in a:  # the thesis' method reports its cut
+        print(f"  threshold {a['threshold']:.4g} (k = {a['k']:g}), kept {100 * a['kept_fraction']:.2f} % of voxels")
     print(f"wrote {out}")
     return 0

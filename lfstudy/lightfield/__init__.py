@@ -16,7 +16,7 @@ from lfstudy.lightfield.calibrate import (
     pixel_to_sensor,
     synthetic_pinhole,
 )
-from lfstudy.lightfield.refocus import focal_stack, refocus_plane
+from lfstudy.lightfield.refocus import focal_stack
 from lfstudy.lightfield.registration import RegistrationError, pixels_per_lenslet, register
 
 __all__ = [
@@ -30,5 +30,4 @@ __all__ = [
     "register",
     "pixels_per_lenslet",
     "focal_stack",
-    "refocus_plane",
 ]

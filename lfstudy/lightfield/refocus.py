@@ -41,14 +41,12 @@ import xarray as xr
 
 from lfstudy.optics import PlenopticCamera
 
-__all__ = ["focal_stack", "refocus_plane"]
+__all__ = ["focal_stack", "StackOperator"]
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
-def _splat(rad, lx, ly, sx, sy, t, scale, nx, ny, out):  # pragma: no cover - compiled
-    """Bilinear splat (Fig. 5.6) of every ray propagated by t; scale maps mm → voxel index."""
-    cx0 = 0.5 * (nx - 1)
-    cy0 = 0.5 * (ny - 1)
+def _splat(rad, lx, ly, sx, sy, t, scale, cx0, cy0, nx, ny, out):  # pragma: no cover - compiled
+    """Bilinear splat (Fig. 5.6) of every ray propagated by t; index = position·scale + (cx0, cy0)."""
     n_l, n_r, n_c = rad.shape
     for l in range(n_l):
         for i in range(n_r):
@@ -102,16 +100,86 @@ class _Rays:
         ).reshape(nl, -1)
 
 
-def _plane(rays: _Rays, t: float, scale: float, nx: int, ny: int, dtype) -> np.ndarray:
+def _plane(rays: _Rays, t: float, scale: float, cx0: float, cy0: float, nx: int, ny: int, dtype) -> np.ndarray:
     out = np.zeros((ny, nx), dtype=np.float64)
-    _splat(rays.rad, rays.lx, rays.ly, rays.sx, rays.sy, float(t), float(scale), nx, ny, out)
+    _splat(rays.rad, rays.lx, rays.ly, rays.sx, rays.sy, float(t), float(scale), cx0, cy0, nx, ny, out)
     return out.astype(dtype, copy=False)[None]
 
 
-def refocus_plane(lightfield: xr.DataArray, t: float, scale: float, nx: int, ny: int) -> np.ndarray:
-    """One refocused plane (eager): rays propagated by ``t`` [mm], placed at
-    voxel index ``X·scale + (n−1)/2`` (``scale`` = 1/(M_p·d) or 1/(M·SF·d))."""
-    return _plane(_Rays(lightfield), t, scale, nx, ny, np.float64)[0]
+class _StackGeometry:
+    """Planes (ascending z), their splat scales and the x, y grid of a focal stack."""
+
+    def __init__(self, lightfield, camera, planes, resize, x, y) -> None:
+        if planes is None:
+            planes = camera.focal_planes()
+        for k in ("t", "z", "magnification"):
+            if k not in planes:
+                raise ValueError(f"planes dataset lacks {k!r} (use PlenopticCamera.focal_planes)")
+        order = np.argsort(np.asarray(planes["z"].values), kind="stable")
+        self.planes = planes.isel(plane=order)
+        d = camera.lenslet_pitch / abs(camera.magnification)  # voxel at the focal plane
+        if x is None and y is None:
+            ny, nx = lightfield.sizes["lrow"], lightfield.sizes["lcol"]
+            xg = (np.arange(nx) - 0.5 * (nx - 1)) * d
+            yg = (np.arange(ny) - 0.5 * (ny - 1)) * d
+        else:
+            xg, yg = (np.asarray(v, dtype=float) for v in (x, y))
+            steps = [np.diff(v) for v in (xg, yg) if v.size > 1]
+            d = float(steps[0][0]) if steps else d
+            if any(s.size and not np.allclose(s, d, rtol=1e-9, atol=0) for s in steps):
+                raise ValueError("focal_stack: x and y must be uniform, ascending and share one step")
+            ny, nx = yg.size, xg.size
+        self.nx, self.ny, self.xg, self.yg, self.d = nx, ny, xg, yg, d
+        self.cx0, self.cy0 = -float(xg[0]) / d, -float(yg[0]) / d  # index of the optical axis
+        si = camera.si
+        self.t = np.asarray(self.planes["t"].values, float)
+        self.mp = np.asarray(self.planes["magnification"].values, float)
+        self.sf = (self.t + si) / si  # eqs 5.10-5.13
+        self.scale = 1.0 / (self.mp * d) if resize else 1.0 / (camera.magnification * self.sf * d)
+
+
+class StackOperator:
+    """The refocusing as an eager linear operator: radiance (lrow, lcol, prow, pcol) → stack (z, y, x).
+
+    The same splat as :func:`focal_stack` for a fixed light-field geometry and
+    planes, applied to any radiance values (e.g. a model light field); used to
+    compute point-spread functions of the focal stack.
+    """
+
+    def __init__(
+        self,
+        lightfield: xr.DataArray,
+        camera: PlenopticCamera,
+        planes: xr.Dataset | None = None,
+        *,
+        resize: bool = True,
+        x: np.ndarray | None = None,
+        y: np.ndarray | None = None,
+    ) -> None:
+        self.geometry = _StackGeometry(lightfield, camera, planes, resize, x, y)
+        self.rays = _Rays(lightfield)
+        self.shape_lf = tuple(lightfield.transpose("lrow", "lcol", "prow", "pcol").shape)
+
+    def __call__(self, radiance: np.ndarray) -> np.ndarray:
+        g, rays = self.geometry, self.rays
+        rad = np.ascontiguousarray(np.asarray(radiance, dtype=np.float64).reshape(rays.rad.shape))
+        out = np.zeros((g.t.size, g.ny, g.nx))
+        for i in range(g.t.size):
+            _splat(
+                rad,
+                rays.lx,
+                rays.ly,
+                rays.sx,
+                rays.sy,
+                float(g.t[i]),
+                float(g.scale[i]),
+                g.cx0,
+                g.cy0,
+                g.nx,
+                g.ny,
+                out[i],
+            )
+        return out
 
 
 def focal_stack(
@@ -120,6 +188,8 @@ def focal_stack(
     planes: xr.Dataset | None = None,
     *,
     resize: bool = True,
+    x: np.ndarray | None = None,
+    y: np.ndarray | None = None,
     dtype: Any = np.float32,
 ) -> xr.DataArray:
     """Refocus a light field onto a stack of planes (eqs 5.10–5.15, Fig. 5.6, sec. 6.2).
@@ -137,6 +207,10 @@ def focal_stack(
     resize : bool
         Resize every plane to constant magnification (default; sec. 6.2). See
         the module docstring for the ``False`` layout.
+    x, y : ndarray, optional
+        Uniform, ascending object-space voxel centres [mm] of the planes (a
+        reconstruction grid, :class:`lfstudy.reconstruct.ReconstructionGrid`);
+        default one voxel of pl/|M| per lenslet, centred on the optical axis.
     dtype : numpy dtype
         Output dtype.
 
@@ -150,28 +224,16 @@ def focal_stack(
         resized). Attrs: units, long_name, ``y_direction``, ``resize``,
         ``voxel_size``, camera parameters.
     """
-    if planes is None:
-        planes = camera.focal_planes()
-    for k in ("t", "z", "magnification"):
-        if k not in planes:
-            raise ValueError(f"planes dataset lacks {k!r} (use PlenopticCamera.focal_planes)")
-    order = np.argsort(np.asarray(planes["z"].values), kind="stable")
-    planes = planes.isel(plane=order)
-    ny, nx = lightfield.sizes["lrow"], lightfield.sizes["lcol"]
-    d = camera.lenslet_pitch / abs(camera.magnification)  # voxel at the focal plane
-    si, m0 = camera.si, camera.magnification
-    t = np.asarray(planes["t"].values, float)
-    mp = np.asarray(planes["magnification"].values, float)
-    sf = (t + si) / si  # eqs 5.10-5.13
-    scale = 1.0 / (mp * d) if resize else 1.0 / (m0 * sf * d)
-
+    g = _StackGeometry(lightfield, camera, planes, resize, x, y)
+    planes, t, mp, sf, scale = g.planes, g.t, g.mp, g.sf, g.scale
+    nx, ny, cx0, cy0, xg, yg, d, m0 = g.nx, g.ny, g.cx0, g.cy0, g.xg, g.yg, g.d, camera.magnification
     rays = _Rays(lightfield)
     tag = uuid.uuid4().hex
     rays_d = dask.delayed(rays, name=f"lightfield-rays-{tag}")
     plane_fn = dask.delayed(_plane, name=f"refocus-fn-{tag}", pure=True)
     blocks = [
         da.from_delayed(
-            plane_fn(rays_d, t[i], scale[i], nx, ny, dtype, dask_key_name=f"refocus-{tag}-{i}"),
+            plane_fn(rays_d, t[i], scale[i], cx0, cy0, nx, ny, dtype, dask_key_name=f"refocus-{tag}-{i}"),
             shape=(1, ny, nx),
             dtype=dtype,
         )
@@ -179,8 +241,6 @@ def focal_stack(
     ]
     data = da.concatenate(blocks, axis=0)
 
-    xg = (np.arange(nx) - 0.5 * (nx - 1)) * d
-    yg = (np.arange(ny) - 0.5 * (ny - 1)) * d
     zc = lambda k: planes[k].values  # noqa: E731
     coords: dict[str, Any] = {
         "z": ("z", zc("z"), {"units": "mm", "long_name": "depth z (object frame, +z away from camera)"}),

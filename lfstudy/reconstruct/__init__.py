@@ -1,14 +1,45 @@
-"""Volume reconstruction (thesis sec. 5.5–5.6): a registry of methods found by name.
+"""Volume reconstruction (thesis sec. 5.5–5.6) on one object-space grid.
 
-Modules: :mod:`~lfstudy.reconstruct.registry` (``reconstruct``,
-``register_method``) and :mod:`~lfstudy.reconstruct.threshold` (sec. 5.5
-threshold + dilation, and ``"none"``: the focal stack as is). Importing this
-package registers every built-in method.
+Modules: :mod:`~lfstudy.reconstruct.grid` (the reconstruction grid),
+:mod:`~lfstudy.reconstruct.registry` (the method interface, found by name),
+:mod:`~lfstudy.reconstruct.threshold` (sec. 5.5 threshold + dilation, and
+``none``), :mod:`~lfstudy.reconstruct.projector` (plenoptic weights),
+:mod:`~lfstudy.reconstruct.mart` (MART) and
+:mod:`~lfstudy.reconstruct.deconvolution` (Richardson–Lucy on the focal stack).
+Import from this package: the modules behind it may move.
 """
 
 from __future__ import annotations
 
-from lfstudy.reconstruct.registry import available_methods, reconstruct, register_method
+from lfstudy.reconstruct.grid import GridError, ReconstructionGrid, default_voxel_z, make_grid
+from lfstudy.reconstruct.registry import (
+    ReconstructionError,
+    ReconstructionInputs,
+    ReconstructionMethod,
+    available_methods,
+    get_method,
+    method_schemas,
+    reconstruct,
+    register_method,
+    unregister_method,
+)
 from lfstudy.reconstruct.threshold import disk, focal_stack_as_is, threshold_dilate
 
-__all__ = ["reconstruct", "register_method", "available_methods", "threshold_dilate", "focal_stack_as_is", "disk"]
+__all__ = [
+    "reconstruct",
+    "ReconstructionInputs",
+    "ReconstructionMethod",
+    "ReconstructionError",
+    "available_methods",
+    "get_method",
+    "method_schemas",
+    "register_method",
+    "unregister_method",
+    "ReconstructionGrid",
+    "GridError",
+    "make_grid",
+    "default_voxel_z",
+    "threshold_dilate",
+    "focal_stack_as_is",
+    "disk",
+]

@@ -1,70 +1,312 @@
-"""The registry of volume reconstruction methods (thesis sec. 5.5–5.6).
+"""Reconstruction methods: one interface, found by name (thesis sec. 5.5–5.6).
 
-Reconstructions (MART, 3-D deconvolution, sec. 5.6) plug in by name::
+A method is a subclass of :class:`ReconstructionMethod` with a ``name``, a
+``description``, the inputs it ``requires`` (what a real experiment has: the
+registered light field, the lenslet calibration, the camera, the
+reconstruction grid, and the focal stack refocused on that grid) and its
+``parameters`` (JSON-schema properties with defaults and ranges, which the
+config schema includes as ``reconstruct.<name>``). Its ``run`` takes those
+parameters as explicit keyword-only arguments and returns a volume on the grid.
 
-    @register_method("mart")
-    def mart(stack, **kw) -> xr.DataArray: ...
+Built-in methods are listed in :data:`BUILTIN` and imported on first use;
+methods of other packages are found through the entry-point group
+``lfstudy.reconstruct`` (``name = "package.module:Class"``), so
+``reconstruct.method: mine`` works without an import in the config;
+:func:`register_method` adds one at run time (a notebook, a test)::
 
-    reconstruct(stack, method="mart", iterations=5)
+    @register_method
+    class Blur(ReconstructionMethod):
+        name = "blur"
+        description = "Gaussian blur of the focal stack"
+        requires = ("stack",)
+        parameters = {"sigma": {"type": "number", "exclusiveMinimum": 0, "default": 1.0}}
+
+        def run(self, inputs, *, sigma=1.0, progress=False):
+            ...
+
+    reconstruct(inputs, method="blur", sigma=2.0)
 """
 
 from __future__ import annotations
 
+import importlib
+import inspect
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+from typing import Any, ClassVar
 
+import numpy as np
 import xarray as xr
 
-__all__ = ["reconstruct", "register_method", "available_methods"]
+from lfstudy.optics import PlenopticCamera
+from lfstudy.reconstruct.grid import ReconstructionGrid
 
-_METHODS: dict[str, Callable[..., xr.DataArray]] = {}
+__all__ = [
+    "INPUTS",
+    "BUILTIN",
+    "ENTRY_POINT_GROUP",
+    "ReconstructionError",
+    "ReconstructionInputs",
+    "ReconstructionMethod",
+    "available_methods",
+    "get_method",
+    "method_schemas",
+    "register_method",
+    "unregister_method",
+    "reconstruct",
+]
+
+#: What a method may require.
+INPUTS = ("stack", "lightfield", "centers", "camera", "grid")
+
+#: Built-in methods: name -> "module:Class" (imported on first use).
+BUILTIN: dict[str, str] = {
+    "threshold": "lfstudy.reconstruct.threshold:Threshold",
+    "none": "lfstudy.reconstruct.threshold:FocalStack",
+    "mart": "lfstudy.reconstruct.mart:MART",
+    "deconvolution": "lfstudy.reconstruct.deconvolution:RichardsonLucy",
+}
+
+#: Entry-point group of methods from other packages.
+ENTRY_POINT_GROUP = "lfstudy.reconstruct"
+
+_REGISTERED: dict[str, type[ReconstructionMethod]] = {}
 
 
-def register_method(name: str) -> Callable[[Callable[..., xr.DataArray]], Callable[..., xr.DataArray]]:
-    """Decorator registering ``func(stack, **kw) -> DataArray`` as reconstruction ``name``."""
-    if not isinstance(name, str) or not name:
-        raise ValueError(f"reconstruction method name must be a non-empty string, got {name!r}")
+class ReconstructionError(ValueError):
+    """Bad reconstruction input: unknown method, bad parameter, missing or mismatched input."""
+
+
+@dataclass(frozen=True, eq=False)
+class ReconstructionInputs:
+    """What an experiment has for one frame; a method takes what it ``requires``.
+
+    Attributes
+    ----------
+    stack : xarray.DataArray, optional
+        Focal stack refocused on the grid, dims (z, y, x).
+    lightfield : xarray.DataArray, optional
+        Registered 4-D light field (:func:`lfstudy.lightfield.register`).
+    centers : xarray.Dataset, optional
+        Lenslet calibration (:func:`lfstudy.lightfield.find_lenslet_centers`).
+    camera : PlenopticCamera, optional
+    grid : ReconstructionGrid, optional
+        Default: the grid of ``stack`` (its coords).
+    """
+
+    stack: xr.DataArray | None = None
+    lightfield: xr.DataArray | None = None
+    centers: xr.Dataset | None = None
+    camera: PlenopticCamera | None = None
+    grid: ReconstructionGrid | None = None
+
+    def __post_init__(self) -> None:
+        if self.stack is not None:
+            if not isinstance(self.stack, xr.DataArray) or tuple(self.stack.dims) != ("z", "y", "x"):
+                raise ReconstructionError("stack must be a 3-D DataArray with dims ('z', 'y', 'x')")
+            sg = ReconstructionGrid.from_coords(self.stack)
+            if self.grid is None:
+                object.__setattr__(self, "grid", sg)
+            elif sg.shape != self.grid.shape or not all(
+                np.allclose(getattr(sg, a), getattr(self.grid, a)) for a in ("x", "y", "z")
+            ):
+                raise ReconstructionError(
+                    f"the focal stack ({sg.shape}) is not on the reconstruction grid ({self.grid.shape}); "
+                    "refocus it onto the grid's planes"
+                )
+        if self.lightfield is not None and self.centers is not None:
+            lf, cen = self.lightfield, self.centers
+            shape_c = (cen.sizes.get("lenslet_row"), cen.sizes.get("lenslet_col"))
+            shape_l = (lf.sizes.get("lrow"), lf.sizes.get("lcol"))
+            if shape_c != shape_l:
+                raise ReconstructionError(
+                    f"the light field has {shape_l[0]} x {shape_l[1]} lenslets (rows x cols) but the calibration "
+                    f"has {shape_c[0]} x {shape_c[1]}: they do not belong together"
+                )
+
+
+class ReconstructionMethod:
+    """Base class of a reconstruction method (see the module docstring)."""
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    requires: ClassVar[tuple[str, ...]] = ("stack",)
+    parameters: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    def run(self, inputs: ReconstructionInputs, *, progress: bool = False, **params: Any) -> xr.DataArray:
+        raise NotImplementedError  # pragma: no cover - subclasses implement run
+
+    @classmethod
+    def schema(cls) -> dict[str, Any]:
+        """The JSON schema of this method's parameters (``reconstruct.<name>``)."""
+        return {
+            "type": "object",
+            "additionalProperties": False,
+            "default": {},
+            "description": f"parameters of reconstruct.method '{cls.name}': {cls.description}",
+            "properties": {k: dict(v) for k, v in cls.parameters.items()},
+        }
+
+    @classmethod
+    def defaults(cls) -> dict[str, Any]:
+        return {k: v["default"] for k, v in cls.parameters.items() if "default" in v}
+
+
+def _load(spec: str) -> type[ReconstructionMethod]:
+    mod, _, attr = spec.partition(":")
+    return getattr(importlib.import_module(mod), attr)
+
+
+def _entry_points() -> dict[str, Any]:
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def available_methods() -> list[str]:
+    """Names accepted by :func:`reconstruct`: built-in, installed (entry points) and registered."""
+    return sorted(set(BUILTIN) | set(_entry_points()) | set(_REGISTERED))
+
+
+def get_method(name: str) -> type[ReconstructionMethod]:
+    """The method class called ``name``.
+
+    Raises
+    ------
+    ReconstructionError
+        Unknown name (the message lists the available ones).
+    """
+    if name in _REGISTERED:
+        return _REGISTERED[name]
+    if name in BUILTIN:
+        return _load(BUILTIN[name])
+    eps = _entry_points()
+    if name in eps:
+        cls = eps[name].load()
+        if not (isinstance(cls, type) and issubclass(cls, ReconstructionMethod)):
+            raise ReconstructionError(f"entry point {name!r} of {ENTRY_POINT_GROUP} is not a ReconstructionMethod")
+        return cls
+    raise ReconstructionError(
+        f"reconstruct.method = {name!r}: unknown reconstruction method; available: {', '.join(available_methods())}"
+    )
+
+
+def method_schemas() -> dict[str, dict[str, Any]]:
+    """``{name: parameter schema}`` of every available method (for the config schema)."""
+    return {name: get_method(name).schema() for name in available_methods()}
+
+
+def _function_method(name: str, func: Callable[..., xr.DataArray]) -> type[ReconstructionMethod]:
+    """Wrap ``func(stack, **params) -> volume`` as a method requiring only the stack."""
+    sig = inspect.signature(func)
+    params = {
+        p.name: {"default": p.default}
+        for p in list(sig.parameters.values())[1:]
+        if p.default is not inspect.Parameter.empty
+    }
+
+    def run(self, inputs, *, progress=False, **kw):
+        return func(inputs.stack, **kw)
+
+    doc = (func.__doc__ or "").strip().splitlines()
+    return type(
+        f"FunctionMethod_{name}",
+        (ReconstructionMethod,),
+        {
+            "name": name,
+            "description": doc[0] if doc else name,
+            "requires": ("stack",),
+            "parameters": params,
+            "run": run,
+        },
+    )
+
+
+def register_method(obj: Any) -> Any:
+    """Register a method at run time: a :class:`ReconstructionMethod` subclass
+    (``@register_method``), or a name for a plain function ``f(stack, **params)``
+    (``@register_method("name")``)."""
+    if isinstance(obj, type) and issubclass(obj, ReconstructionMethod):
+        if not obj.name:
+            raise ReconstructionError(f"{obj.__name__}: a reconstruction method needs a non-empty name")
+        bad = set(obj.requires) - set(INPUTS)
+        if bad:
+            raise ReconstructionError(f"{obj.__name__}.requires: unknown inputs {sorted(bad)}; allowed {INPUTS}")
+        _REGISTERED[obj.name] = obj
+        return obj
+    if not isinstance(obj, str) or not obj:
+        raise ReconstructionError(f"reconstruction method name must be a non-empty string, got {obj!r}")
 
     def deco(func: Callable[..., xr.DataArray]) -> Callable[..., xr.DataArray]:
-        _METHODS[name] = func
+        _REGISTERED[obj] = _function_method(obj, func)
         return func
 
     return deco
 
 
-def available_methods() -> list[str]:
-    """Names accepted by :func:`reconstruct`, sorted."""
-    return sorted(_METHODS)
+def unregister_method(name: str) -> None:
+    """Remove a method registered with :func:`register_method` (built-ins stay)."""
+    _REGISTERED.pop(name, None)
 
 
-def reconstruct(stack: xr.DataArray, method: str = "threshold", **kwargs: Any) -> xr.DataArray:
-    """Reconstruct a particle volume from a focal stack with a registered method.
+def _check_params(cls: type[ReconstructionMethod], params: dict[str, Any]) -> dict[str, Any]:
+    unknown = sorted(set(params) - set(cls.parameters))
+    if unknown:
+        raise ReconstructionError(
+            f"reconstruct.{cls.name}: unknown parameter(s) {', '.join(unknown)}; "
+            f"allowed: {', '.join(sorted(cls.parameters)) or 'none'}"
+        )
+    from lfstudy.config import ConfigError, validate_section
+
+    try:
+        return validate_section(cls.schema(), params, f"reconstruct.{cls.name}")
+    except ConfigError as exc:
+        raise ReconstructionError(str(exc)) from None
+
+
+def reconstruct(
+    inputs: ReconstructionInputs | xr.DataArray,
+    method: str = "threshold",
+    *,
+    progress: bool = False,
+    **params: Any,
+) -> xr.DataArray:
+    """Reconstruct a particle volume with a method found by name.
 
     Parameters
     ----------
-    stack : xarray.DataArray
-        Focal stack, dims ``("z", "y", "x")`` (see :func:`lfstudy.lightfield.refocus.focal_stack`).
+    inputs : ReconstructionInputs or xarray.DataArray
+        What the method may use; a bare DataArray is taken as the focal stack
+        (enough for ``threshold``, ``none`` and ``deconvolution`` without a camera).
     method : str
-        A name from :func:`available_methods` (default ``"threshold"``).
-    **kwargs
-        Passed to the method.
+        A name from :func:`available_methods`.
+    progress : bool
+        Show the method's progress bar (iterations).
+    **params
+        The method's parameters (defaults from its ``parameters``).
 
     Returns
     -------
     xarray.DataArray
-        The volume with the stack's dims and coords, one dask chunk per plane.
+        The volume on the grid, dims (z, y, x), attrs ``method`` and the
+        parameters used.
 
     Raises
     ------
-    ValueError
-        Unknown method (the message lists the available ones).
+    ReconstructionError (a ValueError)
+        Unknown method, unknown or out-of-range parameter, a required input
+        missing, or inputs that do not fit together.
     """
-    try:
-        func = _METHODS[method]
-    except KeyError:
-        raise ValueError(
-            f"unknown reconstruction method {method!r}; available: {', '.join(available_methods())}"
-        ) from None
-    if not isinstance(stack, xr.DataArray) or stack.ndim != 3:
-        raise ValueError("stack must be a 3-D DataArray with dims ('z', 'y', 'x')")
-    return func(stack, **kwargs)
+    if isinstance(inputs, xr.DataArray):
+        inputs = ReconstructionInputs(stack=inputs)
+    if not isinstance(inputs, ReconstructionInputs):
+        raise ReconstructionError("inputs must be a ReconstructionInputs or a focal-stack DataArray")
+    cls = get_method(method)
+    missing = [r for r in cls.requires if getattr(inputs, r) is None]
+    if missing:
+        raise ReconstructionError(
+            f"reconstruct.method = {method!r} needs {', '.join(missing)} (it requires {', '.join(cls.requires)})"
+        )
+    full = _check_params(cls, dict(params))
+    vol = cls().run(inputs, progress=progress, **full)
+    vol.attrs.update({"method": cls.name, **{f"param_{k}": v for k, v in full.items()}})
+    return vol

@@ -9,13 +9,15 @@ into the stack. ``"none"`` correlates the focal stack itself.
 
 from __future__ import annotations
 
+from typing import Any, ClassVar
+
 import numpy as np
 import xarray as xr
 from scipy import ndimage
 
-from lfstudy.reconstruct.registry import register_method
+from lfstudy.reconstruct.registry import ReconstructionInputs, ReconstructionMethod
 
-__all__ = ["threshold_dilate", "focal_stack_as_is", "disk"]
+__all__ = ["Threshold", "FocalStack", "threshold_dilate", "focal_stack_as_is", "disk"]
 
 
 def disk(radius: int, ndim: int = 2) -> np.ndarray:
@@ -26,7 +28,6 @@ def disk(radius: int, ndim: int = 2) -> np.ndarray:
     return (g**2).sum(0) <= radius**2
 
 
-@register_method("none")
 def focal_stack_as_is(stack: xr.DataArray) -> xr.DataArray:
     """No reconstruction: correlate the refocused planes themselves.
 
@@ -41,7 +42,6 @@ def focal_stack_as_is(stack: xr.DataArray) -> xr.DataArray:
     return res
 
 
-@register_method("threshold")
 def threshold_dilate(
     stack: xr.DataArray,
     k: float = 3.0,
@@ -98,3 +98,56 @@ def threshold_dilate(
         kept_fraction=float(mask.mean()),
     )
     return res
+
+
+class FocalStack(ReconstructionMethod):
+    """``none``: the focal stack on the grid is the volume (no reconstruction)."""
+
+    name = "none"
+    description = "no reconstruction: PIV on the focal stack refocused onto the grid"
+    requires = ("stack",)
+    parameters: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    def run(self, inputs: ReconstructionInputs, *, progress: bool = False) -> xr.DataArray:
+        return focal_stack_as_is(inputs.stack)
+
+
+class Threshold(ReconstructionMethod):
+    """``threshold``: sec. 5.5, threshold at mean + k·σ, dilate, multiply back (the thesis)."""
+
+    name = "threshold"
+    description = "thesis sec. 5.5: keep voxels above mean + k·σ of the focal stack, dilate the mask"
+    requires = ("stack",)
+    parameters: ClassVar[dict[str, dict[str, Any]]] = {
+        "k": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 100,
+            "default": 3.0,
+            "description": "threshold in standard deviations above the volume mean (thesis: 3)",
+        },
+        "dilation_radius": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 10,
+            "default": 1,
+            "description": "radius [voxels] of the disk dilating the mask (thesis: 1)",
+        },
+        "dilation_ndim": {
+            "type": "integer",
+            "enum": [2, 3],
+            "default": 2,
+            "description": "2: dilate each plane (the thesis' imdilate); 3: a 3-D ball",
+        },
+    }
+
+    def run(
+        self,
+        inputs: ReconstructionInputs,
+        *,
+        k: float = 3.0,
+        dilation_radius: int = 1,
+        dilation_ndim: int = 2,
+        progress: bool = False,
+    ) -> xr.DataArray:
+        return threshold_dilate(inputs.stack, k=k, dilation_radius=dilation_radius, dilation_ndim=dilation_ndim)

@@ -30,11 +30,13 @@ __all__ = [
     "calib_id",
     "case_camera",
     "case_planes",
+    "truth_sigma",
     "case_particles",
     "case_displaced",
     "case_image",
     "case_pinhole",
     "simulate_case",
+    "case_grid",
     "case_stack",
     "case_volume",
     "render_volume",
@@ -64,6 +66,19 @@ def case_planes(ccfg: Mapping[str, Any], camera: PlenopticCamera | None = None) 
     cam = camera if camera is not None else case_camera(ccfg)
     r = ccfg["refocus"]  # a stage given no refocus section must fail loudly, not use defaults
     return cam.focal_planes(r["n_planes"], depth_scale=r["depth_scale"], cubic=bool(r["cubic"]))
+
+
+def truth_sigma(camera: PlenopticCamera) -> tuple[float, float, float]:
+    """σ (z, y, x) [mm] of the true particles for Q: half the camera's resolution cell.
+
+    In x, y the cell is one lenslet at the focal-plane magnification, pl/|M|; in z
+    the depth of focus of one refocus plane (the Table 5.1 plane spacing at the
+    focal plane). Fixed by the camera, the same for every method and grid.
+    """
+    from lfstudy.reconstruct.grid import default_voxel_z
+
+    dxy = camera.lenslet_pitch / abs(camera.magnification)
+    return (default_voxel_z(camera), dxy / 2.0, dxy / 2.0)
 
 
 def case_particles(ccfg: Mapping[str, Any]) -> xr.Dataset:
@@ -161,23 +176,61 @@ def simulate_case(ccfg: Mapping[str, Any], *, progress: bool = False) -> dict[st
     }
 
 
+def case_grid(ccfg: Mapping[str, Any], camera: PlenopticCamera | None = None) -> Any:
+    """The reconstruction grid of a case (``grid`` section; the depth of its refocus marching)."""
+    from lfstudy.reconstruct.grid import make_grid
+
+    cam = camera if camera is not None else case_camera(ccfg)
+    g = ccfg["grid"]
+    return make_grid(
+        cam,
+        case_planes(ccfg, cam),
+        voxel_xy=g["voxel_xy"],
+        voxel_z=g["voxel_z"],
+        spacing=g["spacing"],
+        max_bytes=g["max_bytes"],
+    )
+
+
 def case_stack(ccfg: Mapping[str, Any], lightfield: xr.DataArray) -> xr.DataArray:
-    """Light field → focal stack (z, y, x) of a case (lazy, one dask chunk per plane)."""
+    """Light field → focal stack of a case, refocused onto the planes of its reconstruction grid.
+
+    On a uniform grid every plane sits at a grid depth (refocusing at any t is
+    exact, eqs 5.10–5.15), so the focal-stack methods and the others share one
+    grid; with ``grid.spacing: planes`` the planes are the marching's own
+    (Table 5.1). Lazy, one dask chunk per plane.
+    """
     from lfstudy.lightfield.refocus import focal_stack
 
     cam = case_camera(ccfg)
-    return focal_stack(lightfield, cam, case_planes(ccfg, cam), resize=bool(ccfg["refocus"]["resize"]))
+    grid = case_grid(ccfg, cam)
+    planes = case_planes(ccfg, cam) if grid.spacing == "planes" else cam.planes_at(grid.z)
+    resize = bool(ccfg["refocus"]["resize"])
+    stack = focal_stack(lightfield, cam, planes, resize=resize, x=grid.x, y=grid.y)
+    stack.attrs.update(grid.attrs())
+    return stack
 
 
-def case_volume(ccfg: Mapping[str, Any], stack: xr.DataArray) -> xr.DataArray:
-    """Focal stack → particle volume with the case's reconstruction method and its parameters."""
-    from lfstudy.reconstruct import reconstruct
+def case_volume(
+    ccfg: Mapping[str, Any],
+    stack: xr.DataArray,
+    lightfield: xr.DataArray | None = None,
+    centers: xr.Dataset | None = None,
+    *,
+    progress: bool = False,
+) -> xr.DataArray:
+    """The particle volume of one frame with the case's reconstruction method (``reconstruct.method``)
+    and its parameters (``reconstruct.<method>``), on the case's grid."""
+    from lfstudy.reconstruct import ReconstructionInputs, reconstruct
 
-    r = dict(ccfg["reconstruct"])
-    method = r.pop("method")
-    if method == "none":  # k and dilation_radius belong to the threshold method
-        r = {}
-    return reconstruct(stack, method=method, **r)
+    cam = case_camera(ccfg)
+    grid = case_grid(ccfg, cam)
+    r = ccfg["reconstruct"]
+    method = r["method"]
+    inputs = ReconstructionInputs(stack=stack, lightfield=lightfield, centers=centers, camera=cam, grid=grid)
+    vol = reconstruct(inputs, method, progress=progress, **dict(r.get(method, {})))
+    vol.attrs.update({k: v for k, v in grid.attrs().items() if k not in vol.attrs})
+    return vol
 
 
 def render_volume(
@@ -188,12 +241,12 @@ def render_volume(
     Returns
     -------
     lightfield, stack, volume : xarray.DataArray
-        The stack (rendered once, persisted) and volume are dask-backed, one
-        chunk per plane.
+        The stack (rendered once, persisted) and the volume are on the case's
+        reconstruction grid.
     """
     from lfstudy.lightfield.registration import register
 
     lf = register(raw, centers, case_camera(ccfg))
-    # persist: the reconstruction's statistics and the caller's write both read the stack
+    # persist: the reconstruction and the caller's write both read the stack
     stack = case_stack(ccfg, lf).persist()
-    return lf, stack, case_volume(ccfg, stack)
+    return lf, stack, case_volume(ccfg, stack, lf, centers)

@@ -40,7 +40,7 @@ __all__ = [
     "peak_locking_c1",
     "locking_excess",
     "reconstruction_quality",
-    "render_particles",
+    "render_truth",
     "stage_times",
     "combine_cases",
     "to_csv",
@@ -376,85 +376,92 @@ def case_errors(
 
 
 # ----------------------------------------------------------- reconstruction Q
-def _fractional_index(coord: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Positions ``p`` as fractional indices along an ascending coordinate."""
+def _voxel_edges(coord: np.ndarray) -> np.ndarray:
+    """Voxel boundaries of ascending centres: midpoints, the end voxels symmetric."""
     c = np.asarray(coord, dtype=float)
     if c.size == 1:
-        return np.zeros_like(p)
-    idx = np.arange(c.size, dtype=float)
-    # Linear inside, extrapolated with the end steps outside the grid.
-    f = np.interp(p, c, idx)
-    lo, hi = p < c[0], p > c[-1]
-    f[lo] = (p[lo] - c[0]) / (c[1] - c[0])
-    f[hi] = c.size - 1 + (p[hi] - c[-1]) / (c[-1] - c[-2])
-    return f
+        return np.array([c[0] - 0.5, c[0] + 0.5])
+    mid = 0.5 * (c[1:] + c[:-1])
+    return np.concatenate([[2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]])
 
 
-def render_particles(
+def render_truth(
     coords: Mapping[str, np.ndarray],
     particles: xr.Dataset,
     *,
-    sigma_vox: float | Sequence[float] = 1.0,
-    truncate: float = 3.0,
+    sigma_mm: float | Sequence[float],
+    truncate: float = 4.0,
 ) -> np.ndarray:
-    """A "true" volume: one Gaussian blob per particle on a voxel grid.
+    """The true volume: every particle a Gaussian of physical size, integrated over each voxel.
 
     Parameters
     ----------
     coords : mapping with ``z``, ``y``, ``x``
-        Ascending voxel-centre coordinates [mm] (may be uneven; blobs are
-        Gaussian in *index* space, i.e. one voxel wide whatever its size).
+        Ascending voxel centres [mm] (may be uneven; voxels end half-way to
+        their neighbours).
     particles : xarray.Dataset
         ``x, y, z`` [mm] and optional ``intensity`` over ``particle``.
-    sigma_vox : float or (sz, sy, sx)
-        Blob standard deviation in voxels.
+    sigma_mm : float or (sz, sy, sx)
+        Gaussian standard deviation [mm] per axis.
     truncate : float
         Blobs are cut at ``truncate`` sigmas.
 
     Returns
     -------
     ndarray, shape (nz, ny, nx), float64
+        Each particle's intensity spread over the voxels by the integral of its
+        Gaussian over each voxel (exact for separable Gaussians), so the result
+        does not depend on where the particle sits relative to the voxel centres.
     """
     dims = ("z", "y", "x")
     shape = tuple(len(coords[d]) for d in dims)
-    sig = np.broadcast_to(np.asarray(sigma_vox, dtype=float), (3,))
-    if np.any(sig <= 0):
-        raise ValueError(f"sigma_vox = {sigma_vox!r}: must be > 0")
-    out = np.zeros(int(np.prod(shape)), dtype=np.float64)
+    sig = np.broadcast_to(np.asarray(sigma_mm, dtype=float), (3,))
+    if np.any(~np.isfinite(sig)) or np.any(sig <= 0):
+        raise ValueError(f"sigma_mm = {sigma_mm!r}: must be > 0 mm per axis")
+    out = np.zeros(shape, dtype=np.float64)
     n = particles.sizes.get("particle", len(particles["x"]))
     if n == 0:
-        return out.reshape(shape)
+        return out
     amp = np.asarray(particles["intensity"].values, float) if "intensity" in particles else np.ones(n)
-    f = [_fractional_index(coords[d], np.asarray(particles[d].values, float)) for d in dims]
-    r = [math.ceil(truncate * s) for s in sig]
-    # Per-axis 1-D weights on a (particle, offset) stencil, then an outer
-    # product: the blob is separable, no loop over particles or voxels.
     idx, wts = [], []
-    for a in range(3):
-        base = np.rint(f[a]).astype(np.int64)
-        off = np.arange(-r[a], r[a] + 1)
-        i = base[:, None] + off[None, :]
-        w = np.exp(-0.5 * ((i - f[a][:, None]) / sig[a]) ** 2)
-        w[(i < 0) | (i >= shape[a])] = 0.0
-        idx.append(np.clip(i, 0, shape[a] - 1))
-        wts.append(w)
-    flat = (idx[0][:, :, None, None] * shape[1] + idx[1][:, None, :, None]) * shape[2] + idx[2][:, None, None, :]
-    val = amp[:, None, None, None] * wts[0][:, :, None, None] * wts[1][:, None, :, None] * wts[2][:, None, None, :]
-    keep = val > 0
-    out += np.bincount(flat[keep], weights=val[keep], minlength=out.size)
-    return out.reshape(shape)
+    for a, d in enumerate(dims):
+        edges = _voxel_edges(coords[d])
+        p = np.asarray(particles[d].values, float)
+        lo = np.clip(np.searchsorted(edges, p - truncate * sig[a]) - 1, 0, shape[a] - 1)
+        hi = np.clip(np.searchsorted(edges, p + truncate * sig[a]), 1, shape[a])
+        span = int(max(1, (hi - lo).max()))
+        i = lo[:, None] + np.arange(span)[None, :]
+        valid = i < hi[:, None]
+        i = np.minimum(i, shape[a] - 1)
+        cdf = ndtr((edges[np.minimum(i + 1, shape[a])] - p[:, None]) / sig[a]) - ndtr((edges[i] - p[:, None]) / sig[a])
+        idx.append(i)
+        wts.append(np.where(valid, cdf, 0.0))
+    # separable: per-axis weights on a (particle, offset) stencil, outer product, one bincount
+    for k in range(0, n, 20000):  # bounded temporaries
+        s = slice(k, k + 20000)
+        flat = (idx[0][s, :, None, None] * shape[1] + idx[1][s, None, :, None]) * shape[2] + idx[2][s, None, None, :]
+        val = amp[s, None, None, None] * wts[0][s, :, None, None] * wts[1][s, None, :, None] * wts[2][s, None, None, :]
+        keep = val > 0
+        out += np.bincount(flat[keep], weights=val[keep], minlength=out.size).reshape(shape)
+    return out
 
 
 def reconstruction_quality(
-    volume: xr.DataArray, particles: xr.Dataset, *, sigma_vox: float | Sequence[float] = 1.0, planes_per_block: int = 8
+    volume: xr.DataArray,
+    particles: xr.Dataset,
+    *,
+    sigma_mm: float | Sequence[float],
+    planes_per_block: int = 8,
 ) -> float:
     """Reconstruction quality Q of Elsinga et al. (2006).
 
     Q = Σ E·E_true / sqrt(Σ E² · Σ E_true²), the normalised correlation of the
-    reconstructed volume E and a true volume E_true made of one Gaussian blob
-    per particle (:func:`render_particles`) on the same voxel grid (the
-    volume's coords). Elsinga et al. deem Q > 0.75 adequate for tomographic
-    PIV.
+    reconstructed volume E and the true volume E_true (:func:`render_truth`:
+    one Gaussian of physical size ``sigma_mm`` per particle, integrated over
+    the voxels of the volume's own grid). Elsinga et al. deem Q > 0.75 adequate
+    for tomographic PIV. With a physical size fixed by the camera (the study
+    uses half its resolution cell, :func:`lfstudy.study.case.truth_sigma`),
+    methods and grids are compared on one footing.
 
     Parameters
     ----------
@@ -463,8 +470,8 @@ def reconstruction_quality(
         it is read ``planes_per_block`` planes at a time.
     particles : xarray.Dataset
         Particle field of the same exposure (``x, y, z, intensity`` [mm]).
-    sigma_vox : float or (sz, sy, sx)
-        Standard deviation of the true blobs [voxels].
+    sigma_mm : float or (sz, sy, sx)
+        Standard deviation of the true particles [mm].
     planes_per_block : int
         Planes of ``volume`` computed at once.
 
@@ -479,12 +486,12 @@ def reconstruction_quality(
     for d, c in coords.items():
         if c.size > 1 and np.any(np.diff(c) <= 0):
             raise ValueError(f"reconstruction_quality: coordinate {d} must be strictly ascending")
-    truth = render_particles(coords, particles, sigma_vox=sigma_vox)
+    truth = render_truth(coords, particles, sigma_mm=sigma_mm)
     num = e2 = 0.0
     for k in range(0, truth.shape[0], max(1, int(planes_per_block))):
         e = np.asarray(vol.isel(z=slice(k, k + planes_per_block)).values, dtype=np.float64)
-        t = truth[k : k + e.shape[0]]
-        num += float(np.sum(e * t))
+        tr = truth[k : k + e.shape[0]]
+        num += float(np.sum(e * tr))
         e2 += float(np.sum(e * e))
     t2 = float(np.sum(truth * truth))
     if e2 == 0.0 or t2 == 0.0:

@@ -448,7 +448,7 @@ def _case_blocks(
 
     from lfstudy.study import figures as rf
 
-    k = float(cfg.get("reconstruct", {}).get("k", 3.0))
+    k = float(cfg.get("reconstruct", {}).get("threshold", {}).get("k", 3.0))
     items = list(case_dirs.items())
     if len(items) > max_cases:
         yield Block(

@@ -1,0 +1,469 @@
+"""The plenoptic projector: the registered light field as a linear function of a voxel volume.
+
+Every light-field sample (lenslet l, pixel p behind it) is a beam of rays: the
+rays that cross the lenslet's aperture (a pl × pl square at the lenslet plane)
+and reach the pixel (a pp × pp square at fl behind a lenslet focused at
+infinity, i.e. a box of slopes t = (pixel − lenslet centre)/fl ± pp/(2 fl),
+eqs 5.6–5.9). Everything here comes from the calibration and the camera
+model, never from the simulator's rays (no inverse crime): the lenslet
+centres and the pixel slopes are the light field's coordinates
+(:func:`lfstudy.lightfield.register`).
+
+Geometry (paraxial thin lenses, sec. 4.1). A ray at lenslet-plane position
+l with slope t left the main lens at a = l − si·t; before the lens its slope
+was t + a/fm, so at object distance d = so + z it passed
+
+    X(z) = α·l − β·t,   α = 1 − d/fm,   β = si·α + d,
+
+(α = 1/M, β = 0 at z = 0: the lenslet images onto one in-plane voxel). With l
+and t uniform over their boxes, the beam's cross-section at depth z is the
+sum of two uniform variables: a trapezoid of half-widths |α|·pl/2 and
+|β|·pp/(2 fl) per axis. The fraction F of the beam crossing voxel q of plane
+z is a difference of the trapezoid's CDF (exact, no sampling).
+
+Weights. Changing variables from (point, aperture point) to (l, t) has
+Jacobian d² per axis pair; with the collected solid angle ∝ (so/d)² (eq.
+4.14) the fraction of a voxel's light that a sample records is
+
+    w = K·v·Fx·Fy,   K = so²·(pl·pp/fl)² / (dx·dy·π·R²),
+
+R the main-lens aperture radius and v the fraction of the sample's rays that
+pass inside the aperture disc (vignetting; 0 for pixels outside the lenslet's
+image of the aperture). Summed over the samples of an in-focus lenslet, w = 1:
+a volume value is the image signal its light produces. The lenslet grid's
+rotation is neglected in the beam (the lenslet square is taken axis-aligned).
+
+Per-axis weight tables are precomputed per plane (a few voxels per beam per
+axis), so projection and back-projection are multiply-adds only. Forward
+projection runs in parallel over rays, back-projection over planes: every
+output element is written by one thread in a fixed order, so results do not
+depend on the thread count.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import xarray as xr
+from numba import njit, prange
+
+from lfstudy.optics import PlenopticCamera
+from lfstudy.reconstruct.grid import ReconstructionGrid
+
+__all__ = ["ProjectorError", "PlenopticProjector"]
+
+
+class ProjectorError(ValueError):
+    """Light field, calibration, camera and grid do not fit together."""
+
+
+# ------------------------------------------------------------------ kernels
+@njit(inline="always", cache=True)
+def _sum_uniform_cdf(d, a, b):
+    """CDF at d of U(−a, a) + U(−b, b) (a trapezoid), for a, b >= 0."""
+    if a < b:
+        a, b = b, a
+    if d <= -a - b:
+        return 0.0
+    if d >= a + b:
+        return 1.0
+    if b <= 1e-12 * a:  # one box only (in focus: β = 0)
+        return (d + a) / (2.0 * a)
+    if d <= b - a:
+        e = d + a + b
+        return e * e / (8.0 * a * b)
+    if d <= a - b:
+        return (d + a) / (2.0 * a)
+    e = a + b - d
+    return 1.0 - e * e / (8.0 * a * b)
+
+
+@njit(inline="always", cache=True)
+def _sum_uniform_cdf_integral(d, a, b):
+    """∫_{−∞}^{d} CDF(s) ds for the CDF of :func:`_sum_uniform_cdf` (piecewise cubic; → d for large d)."""
+    if a < b:
+        a, b = b, a
+    if d <= -a - b:
+        return 0.0
+    if d >= a + b:
+        return d
+    if b <= 1e-12 * a:
+        e = d + a
+        return e * e / (4.0 * a)
+    b2a = b * b / (3.0 * a)
+    if d <= b - a:
+        e = d + a + b
+        return e * e * e / (24.0 * a * b)
+    if d <= a - b:
+        e = d + a
+        return b2a + (e * e - b * b) / (4.0 * a)
+    e = a + b - d
+    return b2a + a - b + (d - a + b) - (8.0 * b * b * b - e * e * e) / (24.0 * a * b)
+
+
+@njit(parallel=True, cache=True)
+def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w):  # pragma: no cover - jitted
+    """Per pixel p (of a lenslet), plane k and lenslet l: first voxel and K weights of the beam along one axis.
+
+    Tables are laid out [p, k, l] so a view (one pixel under every lenslet) reads
+    them contiguously, plane by plane.
+
+    A voxel is a linear-interpolation (tent) basis function of half-width dc,
+    so a point between two voxel centres is shared between them and
+    reconstructions keep sub-voxel positions. The weight of voxel q is the
+    tent averaged over the beam's trapezoid profile: the second difference of
+    the profile's CDF integral, (G(e + dc) − 2 G(e) + G(e − dc))/dc with
+    e = x_q − beam centre (exact).
+    """
+    nz = alpha.shape[0]
+    nl, n = slope.shape
+    for k in prange(nz):
+        kk = kks[k]  # voxels a beam can touch in this plane
+        a = abs(alpha[k]) * half_l
+        b = abs(beta[k]) * half_t
+        for l in range(nl):
+            for p in range(n):
+                xc = alpha[k] * centre[l] - beta[k] * slope[l, p]
+                q0 = math.floor((xc - a - b - c0) / dc)
+                if q0 > nc - kk:
+                    q0 = nc - kk
+                if q0 < 0:
+                    q0 = 0
+                start[p, k, l] = q0
+                gm = _sum_uniform_cdf_integral(c0 + (q0 - 1) * dc - xc, a, b)
+                g0 = _sum_uniform_cdf_integral(c0 + q0 * dc - xc, a, b)
+                for j in range(kk):
+                    gp = _sum_uniform_cdf_integral(c0 + (q0 + j + 1) * dc - xc, a, b)
+                    w[p, k, l, j] = (gp - 2.0 * g0 + gm) / dc
+                    gm = g0
+                    g0 = gp
+
+
+@njit(parallel=True, cache=True)
+def _vignetting(lx, ly, sx, sy, si, half_l, half_t, radius, out):  # pragma: no cover - jitted
+    """Fraction of each sample's rays whose aperture point a = l − si·t lies in the disc."""
+    nl, n = sx.shape
+    reach = math.sqrt(2.0) * (half_l + si * half_t)
+    r2 = radius * radius
+    for l in prange(nl):
+        for pr in range(n):
+            ay0 = ly[l] - si * sy[l, pr]
+            for pc in range(n):
+                ax0 = lx[l] - si * sx[l, pc]
+                rc = math.sqrt(ax0 * ax0 + ay0 * ay0)
+                if rc + reach <= radius:
+                    out[l, pr, pc] = 1.0
+                    continue
+                if rc - reach >= radius:
+                    out[l, pr, pc] = 0.0
+                    continue
+                # 3 x 3 midpoints of each uniform (lenslet box, slope box) per axis: 81 rays
+                hit = 0
+                for i1 in range(3):
+                    for i2 in range(3):
+                        ax = ax0 + (i1 - 1) * (2.0 * half_l / 3.0) - si * (i2 - 1) * (2.0 * half_t / 3.0)
+                        for j1 in range(3):
+                            for j2 in range(3):
+                                ay = ay0 + (j1 - 1) * (2.0 * half_l / 3.0) - si * (j2 - 1) * (2.0 * half_t / 3.0)
+                                if ax * ax + ay * ay <= r2:
+                                    hit += 1
+                out[l, pr, pc] = hit / 81.0
+
+
+@njit(inline="always", cache=True)
+def _ray_sum(vol, k, y0, x0, wy, wx, ny, nx):
+    """Σ_a Σ_b wy[a]·wx[b]·vol[k, y0 + a, x0 + b] over the first ny x nx weights of one beam."""
+    s = 0.0
+    for a in range(ny):
+        wa = wy[a]
+        if wa == 0.0:
+            continue
+        acc = 0.0
+        for b in range(nx):
+            acc += wx[b] * vol[k, y0 + a, x0 + b]
+        s += wa * acc
+    return s
+
+
+@njit(parallel=True, cache=True)
+def _forward(vol, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no cover - jitted
+    """out[l, pr, pc] = gain[l, pr, pc] · Σ_k Σ_voxels Fy·Fx·vol, for the active lenslets ``lens``."""
+    nz = vol.shape[0]
+    n = out.shape[1]
+    for m in prange(lens.shape[0]):
+        l = lens[m]
+        for pr in range(n):
+            for pc in range(n):
+                g = gain[l, pr, pc]
+                if g == 0.0:
+                    continue
+                s = 0.0
+                for k in range(nz):
+                    s += _ray_sum(vol, k, sys_[pr, k, l], sxs[pc, k, l], wys[pr, k, l], wxs[pc, k, l], kys[k], kxs[k])
+                out[l, pr, pc] = g * s
+
+
+@njit(parallel=True, cache=True)
+def _adjoint(vals, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no cover - jitted
+    """out += Aᵀ vals: every sample's gain·value spread over its voxels (planes in parallel)."""
+    nz = out.shape[0]
+    n = vals.shape[1]
+    for k in prange(nz):
+        kx = kxs[k]
+        ky = kys[k]
+        for m in range(lens.shape[0]):
+            l = lens[m]
+            for pr in range(n):
+                y0 = sys_[pr, k, l]
+                for pc in range(n):
+                    g = gain[l, pr, pc] * vals[l, pr, pc]
+                    if g == 0.0:
+                        continue
+                    x0 = sxs[pc, k, l]
+                    for a in range(ky):
+                        wa = wys[pr, k, l, a] * g
+                        if wa == 0.0:
+                            continue
+                        for b in range(kx):
+                            out[k, y0 + a, x0 + b] += wa * wxs[pc, k, l, b]
+
+
+@njit(parallel=True, cache=True)
+def _view_forward(vol, lens, pr, pc, sxs, wxs, kxs, sys_, wys, kys, partial):  # pragma: no cover - jitted
+    """Projection of one view (pixel pr, pc under every lenslet), plane by plane: partial[k, m]."""
+    nz = vol.shape[0]
+    for k in prange(nz):
+        kx = kxs[k]
+        ky = kys[k]
+        for m in range(lens.shape[0]):
+            l = lens[m]
+            partial[k, m] = _ray_sum(vol, k, sys_[pr, k, l], sxs[pc, k, l], wys[pr, k, l], wxs[pc, k, l], ky, kx)
+
+
+@njit(parallel=True, cache=True)
+def _view_accumulate(lens, pr, pc, vals, use, sxs, wxs, kxs, sys_, wys, kys, num):  # pragma: no cover - jitted
+    """num += Σ F·vals over the beams of one view (fractions F = Fy·Fx; planes in parallel)."""
+    nz = num.shape[0]
+    for k in prange(nz):
+        kx = kxs[k]
+        ky = kys[k]
+        for m in range(lens.shape[0]):
+            if not use[m]:
+                continue
+            l = lens[m]
+            v = vals[m]
+            y0 = sys_[pr, k, l]
+            x0 = sxs[pc, k, l]
+            for a in range(ky):
+                wa = wys[pr, k, l, a] * v
+                if wa == 0.0:
+                    continue
+                for b in range(kx):
+                    num[k, y0 + a, x0 + b] += wa * wxs[pc, k, l, b]
+
+
+@njit(cache=True)
+def _impulse(k, j, i, lens, sxs, wxs, sys_, wys, gain, out):  # pragma: no cover - jitted
+    """out[l, pr, pc] = gain · Fy(j) · Fx(i) of plane k: the light field of one unit voxel."""
+    n = out.shape[1]
+    kx = wxs.shape[3]
+    ky = wys.shape[3]
+    for m in range(lens.shape[0]):
+        l = lens[m]
+        for pr in range(n):
+            a = j - sys_[pr, k, l]
+            if a < 0 or a >= ky:
+                continue
+            wa = wys[pr, k, l, a]
+            if wa == 0.0:
+                continue
+            for pc in range(n):
+                b = i - sxs[pc, k, l]
+                if b < 0 or b >= kx:
+                    continue
+                out[l, pr, pc] = gain[l, pr, pc] * wa * wxs[pc, k, l, b]
+
+
+# ------------------------------------------------------------------ the projector
+class PlenopticProjector:
+    """Matrix-free plenoptic projector A: volume on a grid ↔ registered light field.
+
+    Parameters
+    ----------
+    lightfield : xarray.DataArray
+        A registered light field (:func:`lfstudy.lightfield.register`); only its
+        coordinates are used here (lenslet centres ``x``, ``y``, ray angles
+        ``theta``, ``phi``, bulk angles, ``valid``).
+    camera : PlenopticCamera
+        Main-lens focal length, aperture, si, so, lenslet pitch and focal
+        length, pixel pitch.
+    grid : ReconstructionGrid
+        The voxel grid (x, y uniform).
+    min_vignetting : float
+        Samples whose rays are less than this fraction inside the aperture are
+        left out (their measurement says little and the vignetting model is
+        coarsest there).
+    max_bytes : float
+        Refuse weight tables larger than this.
+
+    Notes
+    -----
+    ``forward(vol)`` returns the light field A·vol with the layout of
+    ``lightfield``; ``adjoint(lf)`` returns Aᵀ·lf on the grid. They are exact
+    transposes of each other (same tables, same gains).
+    """
+
+    def __init__(
+        self,
+        lightfield: xr.DataArray,
+        camera: PlenopticCamera,
+        grid: ReconstructionGrid,
+        *,
+        min_vignetting: float = 0.25,
+        max_bytes: float = 6e9,
+    ) -> None:
+        lf = lightfield.transpose("lrow", "lcol", "prow", "pcol")
+        for c in ("x", "y", "theta", "phi", "theta_bulk", "phi_bulk"):
+            if c not in lf.coords:
+                raise ProjectorError(
+                    f"light field lacks the coordinate {c!r}; register it with lfstudy.lightfield.register"
+                )
+        if not (0.0 <= min_vignetting <= 1.0):
+            raise ProjectorError(f"min_vignetting = {min_vignetting!r}: allowed range is [0, 1]")
+        pp = float(lf.attrs.get("pixel_pitch", camera.pixel_pitch))
+        if not math.isclose(pp, camera.pixel_pitch, rel_tol=1e-9):
+            raise ProjectorError(f"light field pixel pitch {pp} mm does not match the camera's {camera.pixel_pitch} mm")
+        for key, val in (("image_distance", camera.si), ("lenslet_focal_length", camera.lenslet_focal_length)):
+            if key in lf.attrs and not math.isclose(float(lf.attrs[key]), val, rel_tol=1e-6):
+                raise ProjectorError(f"light field {key} = {lf.attrs[key]} mm does not match the camera's {val} mm")
+        self.camera = camera
+        self.grid = grid
+        self.shape_lf = (lf.sizes["lrow"], lf.sizes["lcol"], lf.sizes["prow"], lf.sizes["pcol"])
+        nly, nlx, n, n2 = self.shape_lf
+        if n != n2:
+            raise ProjectorError(f"light field blocks must be square; got {n} x {n2} pixels")
+        nl = nly * nlx
+        self.n = n
+        lx = np.ascontiguousarray(lf["x"].values, dtype=np.float64).ravel()
+        ly = np.ascontiguousarray(lf["y"].values, dtype=np.float64).ravel()
+        # Ray slopes at the lenslet plane: tan(local) + tan(bulk) = (pixel − lenslet centre)/fl.
+        sx = np.ascontiguousarray(
+            np.tan(lf["theta"].transpose("lrow", "lcol", "pcol").values) + np.tan(lf["theta_bulk"].values)[..., None]
+        ).reshape(nl, n)
+        sy = np.ascontiguousarray(
+            np.tan(lf["phi"].transpose("lrow", "lcol", "prow").values) + np.tan(lf["phi_bulk"].values)[..., None]
+        ).reshape(nl, n)
+        valid = np.asarray(lf["valid"].values, bool).ravel() if "valid" in lf.coords else np.ones(nl, bool)
+        f, si, so = camera.main_focal_length, camera.si, camera.so
+        fl, pl = camera.lenslet_focal_length, camera.lenslet_pitch
+        half_l, half_t = pl / 2.0, camera.pixel_pitch / (2.0 * fl)
+        d = so + grid.z
+        self.alpha = 1.0 - d / f
+        self.beta = si * self.alpha + d
+        # voxels a beam can touch along an axis, over all planes
+        reach = np.abs(self.alpha) * half_l + np.abs(self.beta) * half_t
+        dx, dy = grid.dx, grid.dy
+        # tent voxels touched by a beam: its width plus one voxel each side, per plane
+        self.kxs = np.minimum(grid.x.size, np.ceil(2.0 * reach / dx).astype(np.int64) + 3)
+        self.kys = np.minimum(grid.y.size, np.ceil(2.0 * reach / dy).astype(np.int64) + 3)
+        self.kx, self.ky = int(self.kxs.max()), int(self.kys.max())
+        nz = grid.z.size
+        need = nz * nl * n * (self.kx + self.ky) * 4 + 2 * nz * nl * n * 4
+        if need > max_bytes:
+            raise ProjectorError(
+                f"projector: weight tables of {need / 1e9:.3g} GB exceed {max_bytes / 1e9:.3g} GB "
+                f"({nz} planes x {nl} lenslets x {n} pixels); use a coarser grid (grid.voxel_z)"
+            )
+        self.sxs = np.empty((n, nz, nl), np.int32)
+        self.wxs = np.zeros((n, nz, nl, self.kx), np.float32)
+        self.sys = np.empty((n, nz, nl), np.int32)
+        self.wys = np.zeros((n, nz, nl, self.ky), np.float32)
+        # Grid y ascends with the array index like object +y, and the sensor frame's y points up too.
+        _axis_tables(
+            lx, sx, self.alpha, self.beta, half_l, half_t, grid.x[0], dx, grid.x.size, self.kxs, self.sxs, self.wxs
+        )
+        _axis_tables(
+            ly, sy, self.alpha, self.beta, half_l, half_t, grid.y[0], dy, grid.y.size, self.kys, self.sys, self.wys
+        )
+        vig = np.zeros((nl, n, n), np.float64)
+        radius = camera.aperture_diameter / 2.0
+        _vignetting(lx, ly, sx, sy, si, half_l, half_t, radius, vig)
+        vig[~valid] = 0.0
+        vig[vig < min_vignetting] = 0.0
+        self.vignetting = vig
+        k_const = so**2 * (pl * camera.pixel_pitch / fl) ** 2 / (dx * dy * math.pi * radius**2)
+        self.gain = np.ascontiguousarray(k_const * vig)
+        self.lenses = np.flatnonzero(vig.reshape(nl, -1).max(axis=1) > 0).astype(np.int64)
+        self._partial: np.ndarray | None = None
+        self.min_vignetting = float(min_vignetting)
+
+    # ---------------------------------------------------------------- info
+    @property
+    def n_rays(self) -> int:
+        """Samples that take part (inside the aperture, on valid lenslets)."""
+        return int(np.count_nonzero(self.gain))
+
+    @property
+    def table_bytes(self) -> int:
+        return int(self.wxs.nbytes + self.wys.nbytes + self.sxs.nbytes + self.sys.nbytes)
+
+    def _lf_array(self, lf: Any) -> np.ndarray:
+        arr = lf.transpose("lrow", "lcol", "prow", "pcol").values if isinstance(lf, xr.DataArray) else np.asarray(lf)
+        if tuple(arr.shape) != self.shape_lf:
+            raise ProjectorError(
+                f"light field of shape {tuple(arr.shape)} does not match the calibration's {self.shape_lf}"
+            )
+        return np.ascontiguousarray(arr, dtype=np.float64).reshape(self.shape_lf[0] * self.shape_lf[1], self.n, self.n)
+
+    def _vol_array(self, vol: Any) -> np.ndarray:
+        arr = vol.values if isinstance(vol, xr.DataArray) else np.asarray(vol)
+        if tuple(arr.shape) != self.grid.shape:
+            raise ProjectorError(f"volume of shape {tuple(arr.shape)} does not fit the grid {self.grid.shape}")
+        return np.ascontiguousarray(arr, dtype=np.float64)
+
+    # ---------------------------------------------------------------- A, Aᵀ
+    def forward(self, vol: Any) -> np.ndarray:
+        """A·vol: the light field (lrow, lcol, prow, pcol) a volume produces."""
+        v = self._vol_array(vol)
+        out = np.zeros((self.shape_lf[0] * self.shape_lf[1], self.n, self.n))
+        _forward(v, self.lenses, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self.gain, out)
+        return out.reshape(self.shape_lf)
+
+    def adjoint(self, lf: Any) -> np.ndarray:
+        """Aᵀ·lf: a light field spread back over the grid (nz, ny, nx)."""
+        g = self._lf_array(lf)
+        out = np.zeros(self.grid.shape)
+        _adjoint(g, self.lenses, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self.gain, out)
+        return out
+
+    def impulse(self, k: int, j: int, i: int) -> np.ndarray:
+        """A·e for the unit voxel (k, j, i): its light field (lrow, lcol, prow, pcol), from plane k's tables."""
+        out = np.zeros((self.shape_lf[0] * self.shape_lf[1], self.n, self.n))
+        _impulse(int(k), int(j), int(i), self.lenses, self.sxs, self.wxs, self.sys, self.wys, self.gain, out)
+        return out.reshape(self.shape_lf)
+
+    # ---------------------------------------------------------------- views
+    def views(self) -> list[tuple[int, int]]:
+        """The (pixel row, pixel column) of every sub-aperture view that holds a sample."""
+        nl = self.shape_lf[0] * self.shape_lf[1]
+        used = self.gain.reshape(nl, self.n, self.n).max(axis=0) > 0
+        return [(int(r), int(c)) for r, c in zip(*np.nonzero(used))]
+
+    def view_forward(self, vol: np.ndarray, pr: int, pc: int, out: np.ndarray) -> np.ndarray:
+        """Projection of view (pr, pc) for every active lenslet (``self.lenses`` order)."""
+        if self._partial is None or self._partial.shape != (self.grid.shape[0], self.lenses.size):
+            self._partial = np.empty((self.grid.shape[0], self.lenses.size))
+        _view_forward(
+            vol, self.lenses, pr, pc, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self._partial
+        )
+        np.sum(self._partial, axis=0, out=out)  # planes in a fixed order: thread-count independent
+        out *= self.gain[self.lenses, pr, pc]
+        return out
+
+    def view_accumulate(self, pr: int, pc: int, vals: np.ndarray, use: np.ndarray, num: np.ndarray) -> None:
+        """num += Σ_beams F·vals over view (pr, pc), for the beams with ``use`` (F: beam fraction per voxel)."""
+        _view_accumulate(
+            self.lenses, pr, pc, vals, use, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, num
+        )
