@@ -192,7 +192,14 @@ def run_piv(ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: 
     b = io.open_array(vol_b).load()
     t0 = time.perf_counter()
     res = widim(
-        a, b, window=tuple(p["window"]), spacing=tuple(p["spacing"]), levels=p["levels"], mode=p["mode"], progress=True
+        a,
+        b,
+        window=tuple(p["window"]),
+        spacing=tuple(p["spacing"]),
+        levels=p["levels"],
+        mode=p["mode"],
+        subpixel=p["subpixel"],
+        progress=True,
     )
     res.attrs.update(io.provenance(ccfg, None), piv_seconds=time.perf_counter() - t0)
     io.write_zarr(res, out)

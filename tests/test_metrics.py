@@ -45,7 +45,7 @@ def synthetic_piv(
     data["valid"] = (("z", "y", "x"), np.ones(shape, bool) if valid is None else valid)
     data["peak"] = (("z", "y", "x"), np.full(shape, 0.8))
     data["corrector_rms"] = ("pass", [1.0, 0.2, 0.05])
-    data["valid_fraction"] = ("pass", [90.0, 97.0, 99.0])
+    data["valid_percent"] = ("pass", [90.0, 97.0, 99.0])
     ds = xr.Dataset(data, coords=coords, attrs={"final_spacing": list(spacing)})
     return ds.assign_coords({"pass": ("pass", [1, 2, 3]), "level": ("pass", [1, 2, 2])})
 

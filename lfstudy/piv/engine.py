@@ -26,6 +26,7 @@ import itertools
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 from typing import Any
 
 import numpy as np
@@ -36,7 +37,7 @@ from tqdm.auto import tqdm
 
 from lfstudy.piv.deform import deform, dense_predictor, spline_coefficients
 
-__all__ = ["widim", "peak_locking_index", "grid_nodes"]
+__all__ = ["widim", "WidimSettings", "peak_locking_index", "grid_nodes"]
 
 _COMP = ("u", "v", "w")  # component of array axis -1, -2, -3
 _DIMS3 = ("z", "y", "x")
@@ -157,6 +158,108 @@ def _level_sizes(window: tuple[int, ...], spacing: tuple[int, ...], rf: int) -> 
     return w, s
 
 
+# --------------------------------------------------------------------------- settings
+_SUBPIXEL = ("auto", "gauss3")
+
+
+@dataclass(frozen=True)
+class WidimSettings:
+    """Validated settings of one WIDIM run (see :func:`widim` for their meaning)."""
+
+    window: tuple[int, ...]
+    spacing: tuple[int, ...]
+    levels: int = 1
+    mode: str = "deform"
+    order: int = 5
+    subpixel: str = "auto"
+    zero_pad: bool = False
+    max_passes: int = 10
+    tol: float = 0.01
+    nmt_eps: float = 0.1
+    nmt_threshold: float = 2.0
+    chunk_windows: int | None = None
+    workers: int | None = None
+
+    @classmethod
+    def build(cls, shape: Sequence[int], *, window: Any, spacing: Any = None, **kw: Any) -> WidimSettings:
+        """Check every setting against the domain ``shape``; one clear ValueError per problem."""
+        nd = len(shape)
+        dims = _DIMS3[-nd:]
+        window_t = _as_tuple(window, nd, "window", minimum=4)
+        spacing_t = (
+            tuple(max(1, x // 2) for x in window_t) if spacing is None else _as_tuple(spacing, nd, "spacing", minimum=1)
+        )
+        for ax in range(nd):
+            if spacing_t[ax] > window_t[ax]:
+                raise ValueError(
+                    f"`spacing` must be <= `window` along axis {ax} ('{dims[ax]}'): "
+                    f"allowed 1..{window_t[ax]}, got {spacing_t[ax]}"
+                )
+            if window_t[ax] > shape[ax]:
+                raise ValueError(
+                    f"`window` {window_t[ax]} along axis {ax} ('{dims[ax]}') exceeds the domain size {shape[ax]}"
+                )
+        d = cls(window_t, spacing_t)
+        levels = _check_int(kw.get("levels", d.levels), "levels", 1)
+        mode = kw.get("mode", d.mode)
+        if mode not in _MODES:
+            raise ValueError(f"`mode` must be one of {_MODES}; got {mode!r}")
+        order = _check_int(kw.get("order", d.order), "order", 1)
+        if order > 5:
+            raise ValueError(f"`order` must be an integer in 1..5; got {order}")
+        subpixel = kw.get("subpixel", d.subpixel)
+        if subpixel not in _SUBPIXEL:
+            raise ValueError(f"`subpixel` must be one of {_SUBPIXEL}; got {subpixel!r}")
+        zero_pad = kw.get("zero_pad", d.zero_pad)
+        if not isinstance(zero_pad, (bool, np.bool_)):
+            raise ValueError(f"`zero_pad` must be True or False; got {zero_pad!r}")
+        chunk = kw.get("chunk_windows")
+        workers = kw.get("workers")
+        s = cls(
+            window_t,
+            spacing_t,
+            levels=levels,
+            mode=mode,
+            order=order,
+            subpixel=subpixel,
+            zero_pad=bool(zero_pad),
+            max_passes=_check_int(kw.get("max_passes", d.max_passes), "max_passes", 1),
+            tol=_check_number(kw.get("tol", d.tol), "tol", 0.0, strict=False),
+            nmt_eps=_check_number(kw.get("nmt_eps", d.nmt_eps), "nmt_eps", 0.0),
+            nmt_threshold=_check_number(kw.get("nmt_threshold", d.nmt_threshold), "nmt_threshold", 0.0),
+            chunk_windows=None if chunk is None else _check_int(chunk, "chunk_windows", 1),
+            workers=None if workers is None else _check_int(workers, "workers", 1),
+        )
+        for rf, (w, _) in enumerate(s.sizes, start=1):
+            if min(w) < 4:
+                raise ValueError(
+                    f"`levels` = {levels} refines `window` {window_t} to {w} at level {rf}; "
+                    f"every window side must stay >= 4 voxels: use fewer levels"
+                )
+        return s
+
+    @property
+    def sizes(self) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
+        """(window, spacing) of every grid level (eqs 6.5–6.8)."""
+        return [_level_sizes(self.window, self.spacing, rf) for rf in range(1, self.levels + 1)]
+
+    def batch(self, w: Sequence[int]) -> int:
+        """Windows correlated at once for windows of size ``w``."""
+        if self.chunk_windows is not None:
+            return self.chunk_windows
+        plane = int(np.prod([2 * x if self.zero_pad else x for x in w]))
+        return max(1, _AUTO_BATCH_VOXELS // plane)
+
+    def attrs(self) -> dict[str, Any]:
+        """The settings as netCDF/zarr-safe attributes."""
+        out: dict[str, Any] = {}
+        for k, v in self.__dict__.items():
+            if k == "workers":
+                continue  # results do not depend on it
+            out[k] = list(v) if isinstance(v, tuple) else int(v) if isinstance(v, bool) else "auto" if v is None else v
+        return out
+
+
 # --------------------------------------------------------------------------- correlation
 def _subpixel(rm: np.ndarray, r0: np.ndarray, rp: np.ndarray) -> np.ndarray:
     """Three-point peak offset: Gaussian (eq. 6.2), parabolic where it cannot apply."""
@@ -174,8 +277,35 @@ def _subpixel(rm: np.ndarray, r0: np.ndarray, rp: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(eps, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
 
 
+#: 3-point Gaussian widths (σ², voxels²) above which the 5-point fit takes over.
+_BROAD_SIGMA2 = 1.2**2
+
+
+def _subpixel5(y: list[np.ndarray], eps3: np.ndarray) -> np.ndarray:
+    """Peak offset of a broad peak: least-squares Gaussian through five points, else ``eps3``.
+
+    ``y`` holds the correlation at lags −2..2 about the integer peak. A parabola
+    fitted to ln y over the five points (equal weights: b = Σ i·ln y / 10, c =
+    Σ (i² − 2)·ln y / 14) gives the offset −b/2c. Eq. 6.2 uses three points and
+    is exact for a sampled Gaussian; for the broad, flat-topped peaks of
+    particles elongated in depth (a plenoptic reconstruction's z, window
+    truncation) it reads short, so the multi-pass loop converges slowly and
+    stops short of the truth. Used only where the peak is broad (3-point
+    width σ > 1.2 voxel) and all five values are positive.
+    """
+    pos = np.logical_and.reduce([v > 0 for v in y])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lm2, lm1, l0, lp1, lp2 = (np.log(np.where(pos, v, 1.0)) for v in y)
+        b = (-2.0 * lm2 - lm1 + lp1 + 2.0 * lp2) / 10.0
+        c = (2.0 * lm2 - lm1 - 2.0 * l0 - lp1 + 2.0 * lp2) / 14.0
+        c3 = 0.5 * (lm1 - 2.0 * l0 + lp1)
+        broad = pos & (c < 0) & (c3 < 0) & (-0.5 / np.where(c3 < 0, c3, -1.0) > _BROAD_SIGMA2)
+        eps5 = np.clip(np.nan_to_num(-b / (2.0 * c), nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
+    return np.where(broad, eps5, eps3)
+
+
 def _correlate(
-    wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | None
+    wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | None, subpixel: str = "auto"
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Batched normalised FFT cross-correlation (sec. 6.1.2).
 
@@ -226,11 +356,15 @@ def _correlate(
     disp = np.empty((n, nd), dtype=np.float64)
     for ax in range(nd):  # loop over axes, not windows
         sz = shape[ax]
-        im = list(peak_idx)
-        ip = list(peak_idx)
-        im[ax] = (im[ax] - 1) % sz  # circular neighbours = neighbours in the shifted plane
-        ip[ax] = (ip[ax] + 1) % sz
-        eps = _subpixel(r[(rows, *im)], r0, r[(rows, *ip)])
+        # circular neighbours = neighbours in the shifted plane
+        nb = {}
+        for o in (-2, -1, 1, 2) if (subpixel == "auto" and sz >= 5) else (-1, 1):
+            idx = list(peak_idx)
+            idx[ax] = (idx[ax] + o) % sz
+            nb[o] = r[(rows, *idx)]
+        eps = _subpixel(nb[-1], r0, nb[1])
+        if 2 in nb:
+            eps = _subpixel5([nb[-2], nb[-1], r0, nb[1], nb[2]], eps)
         lag = (peak_idx[ax] + sz // 2) % sz - sz // 2  # eqs 6.3-6.4 (0-based, unshifted)
         disp[:, ax] = lag + eps
     peak = np.where(nonempty, r0, 0.0).astype(np.float64)
@@ -335,11 +469,6 @@ def _validate(
 
 
 # --------------------------------------------------------------------------- one pass
-def _load(inp: _Input, lo: Sequence[int], hi: Sequence[int]) -> np.ndarray:
-    sl = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
-    return np.asarray(inp.data[sl], dtype=np.float64)
-
-
 def _load_pair(a: _Input, b: _Input, lo_a, hi_a, lo_b, hi_b) -> tuple[np.ndarray, np.ndarray]:
     sla = tuple(slice(int(x), int(y)) for x, y in zip(lo_a, hi_a))
     slb = tuple(slice(int(x), int(y)) for x, y in zip(lo_b, hi_b))
@@ -360,14 +489,11 @@ def _pass(
     w: tuple[int, ...],
     pred: np.ndarray,
     centres: list[np.ndarray],
-    mode: str,
-    zero_pad: bool,
-    batch: int,
-    workers: int | None,
-    order: int,
+    settings: WidimSettings,
     cache: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Correlate every window once; returns corrector (nd, *grid), peak, nonempty."""
+    mode, order, batch = settings.mode, settings.order, settings.batch(w)
     full = tuple(int(s) for s in a.data.shape)
     nd = len(full)
     grid = tuple(len(n) for n in nodes)
@@ -431,7 +557,7 @@ def _pass(
             # the spline prefilter rings faintly into empty regions; judge emptiness on
             # the raw windows so an all-zero input window stays empty (peak 0, invalid)
             raw_ok = (_ptp(_gather(sa, slo, st, w)) > 0) & (_ptp(_gather(sb, slo, st, w)) > 0)
-        c, p, ne = _correlate(wa, wb, zero_pad, workers)
+        c, p, ne = _correlate(wa, wb, settings.zero_pad, settings.workers, settings.subpixel)
         if mode != "offset":
             ne &= raw_ok
             p = np.where(raw_ok, p, 0.0)
@@ -451,6 +577,7 @@ def widim(
     levels: int = 1,
     mode: str = "deform",
     order: int = 5,
+    subpixel: str = "auto",
     zero_pad: bool = False,
     max_passes: int = 10,
     tol: float = 0.01,
@@ -487,6 +614,11 @@ def widim(
         3 and 5 use a numba kernel). Quintic is the default: its interpolation
         bias is ~0.003 vox against ~0.01 vox for cubic (2.8-voxel particles,
         benchmarks/bench_piv.py) at about twice the deformation cost.
+    subpixel : {"auto", "gauss3"}
+        Sub-voxel peak estimator: ``"gauss3"`` is the three-point Gaussian of eq.
+        6.2; ``"auto"`` (default) fits a Gaussian through five points where the
+        peak is broad (particles elongated in depth, as a plenoptic
+        reconstruction makes them), which keeps the estimate unbiased there.
     zero_pad : bool
         Zero-pad windows to twice their size before the FFT (sec. 6.1.2).
     max_passes : int
@@ -510,7 +642,7 @@ def widim(
         ``u, v[, w]`` (voxels), ``valid``, ``peak``, optional ``u_mm, v_mm[, w_mm]``,
         window-centre coordinates ``x, y[, z]`` (physical if available, else voxel
         index) and ``x_index, y_index[, z_index]``, and per-pass ``corrector_rms``,
-        ``valid_fraction`` and ``level`` over dimension ``pass``.
+        ``valid_percent`` and ``level`` over dimension ``pass``.
 
     Raises
     ------
@@ -526,44 +658,22 @@ def widim(
         )
     shape = tuple(int(s) for s in ia.data.shape)
     nd = len(shape)
-    dims = _DIMS3[-nd:]
-    window_t = _as_tuple(window, nd, "window", minimum=4)
-    spacing_t = (
-        tuple(max(1, x // 2) for x in window_t) if spacing is None else _as_tuple(spacing, nd, "spacing", minimum=1)
+    st = WidimSettings.build(
+        shape,
+        window=window,
+        spacing=spacing,
+        levels=levels,
+        mode=mode,
+        order=order,
+        subpixel=subpixel,
+        zero_pad=zero_pad,
+        max_passes=max_passes,
+        tol=tol,
+        nmt_eps=nmt_eps,
+        nmt_threshold=nmt_threshold,
+        chunk_windows=chunk_windows,
+        workers=workers,
     )
-    for ax in range(nd):
-        if spacing_t[ax] > window_t[ax]:
-            raise ValueError(
-                f"`spacing` must be <= `window` along axis {ax} ('{dims[ax]}'): "
-                f"allowed 1..{window_t[ax]}, got {spacing_t[ax]}"
-            )
-        if window_t[ax] > shape[ax]:
-            raise ValueError(
-                f"`window` {window_t[ax]} along axis {ax} ('{dims[ax]}') exceeds the domain size {shape[ax]}"
-            )
-    levels = _check_int(levels, "levels", 1)
-    if mode not in _MODES:
-        raise ValueError(f"`mode` must be one of {_MODES}; got {mode!r}")
-    order = _check_int(order, "order", 1)
-    if order > 5:
-        raise ValueError(f"`order` must be an integer in 1..5; got {order}")
-    if not isinstance(zero_pad, (bool, np.bool_)):
-        raise ValueError(f"`zero_pad` must be True or False; got {zero_pad!r}")
-    max_passes = _check_int(max_passes, "max_passes", 1)
-    tol = _check_number(tol, "tol", 0.0, strict=False)
-    nmt_eps = _check_number(nmt_eps, "nmt_eps", 0.0)
-    nmt_threshold = _check_number(nmt_threshold, "nmt_threshold", 0.0)
-    if chunk_windows is not None:
-        chunk_windows = _check_int(chunk_windows, "chunk_windows", 1)
-    if workers is not None:
-        workers = _check_int(workers, "workers", 1)
-    sizes = [_level_sizes(window_t, spacing_t, rf) for rf in range(1, levels + 1)]
-    for rf, (w, _) in enumerate(sizes, start=1):
-        if min(w) < 4:
-            raise ValueError(
-                f"`levels` = {levels} refines `window` {window_t} to {w} at level {rf}; "
-                f"every window side must stay >= 4 voxels: use fewer levels"
-            )
     for name, inp in (("a", ia), ("b", ib)):
         bad = _count_nonfinite(inp)
         if bad:
@@ -579,10 +689,10 @@ def widim(
     field = None
     cache: dict = {}
     centres_prev: list[np.ndarray] | None = None
-    rec_rms, rec_valid, rec_level = [], [], []
+    history = _History()
     # the bar's total is the pass budget; levels that converge early finish it sooner
-    bar = tqdm(total=levels * max_passes, desc="PIV passes", unit="pass", disable=not progress, mininterval=1.0)
-    for level, (w, s) in enumerate(sizes, start=1):  # grid refinement (sec. 6.1.5)
+    bar = tqdm(total=st.levels * st.max_passes, desc="PIV passes", unit="pass", disable=not progress, mininterval=1.0)
+    for level, (w, s) in enumerate(st.sizes, start=1):  # grid refinement (sec. 6.1.5)
         nodes = [grid_nodes(shape[ax], w[ax], s[ax]) for ax in range(nd)]
         centres = [n + (w[ax] - 1) / 2.0 for ax, n in enumerate(nodes)]
         grid = tuple(len(n) for n in nodes)
@@ -590,63 +700,53 @@ def widim(
             field = np.zeros((nd, *grid))  # no predictor on the first pass
         else:  # predictor interpolated onto the finer grid (sec. 6.1.4)
             field = dense_predictor(field, centres_prev, centres)
-        if chunk_windows is not None:
-            batch = chunk_windows
-        else:
-            plane = int(np.prod([2 * x if zero_pad else x for x in w]))
-            batch = max(1, _AUTO_BATCH_VOXELS // plane)
         rms_old = None
-        for _ in range(max_passes):  # multi-pass (sec. 6.1.4, Fig. 6.1)
-            pred = np.rint(field) if mode == "offset" else field
-            corr, peak, nonempty = _pass(ia, ib, nodes, w, pred, centres, mode, zero_pad, batch, workers, order, cache)
+        for _ in range(st.max_passes):  # multi-pass (sec. 6.1.4, Fig. 6.1)
+            pred = np.rint(field) if st.mode == "offset" else field
+            corr, peak, nonempty = _pass(ia, ib, nodes, w, pred, centres, st, cache)
             d = pred + corr  # d = p + c (Fig. 6.1)
-            field, valid = _validate(d, nonempty, nmt_eps, nmt_threshold)
+            field, valid = _validate(d, nonempty, st.nmt_eps, st.nmt_threshold)
             rms = float(np.sqrt(np.mean(np.sum(corr[:, nonempty] ** 2, axis=0)))) if nonempty.any() else 0.0
-            rec_rms.append(rms)
-            rec_valid.append(100.0 * float(valid.mean()))
-            rec_level.append(level)
+            history.add(rms, 100.0 * float(valid.mean()), level)
             bar.update(1)
-            bar.set_postfix(level=level, corrector_rms=f"{rms:.3f}", valid=f"{rec_valid[-1]:.1f}%")
-            if rms < tol or (rms_old is not None and abs(rms - rms_old) < tol):
+            bar.set_postfix(level=level, corrector_rms=f"{rms:.3f}", valid=f"{history.valid[-1]:.1f}%")
+            if rms < st.tol or (rms_old is not None and abs(rms - rms_old) < st.tol):
                 break
             rms_old = rms
         centres_prev = centres
     bar.total = bar.n  # converged early: the bar ends full, at the passes actually run
     bar.refresh()
     bar.close()
+    return _to_dataset(field, valid, peak, centres, ia, shape, st, history)
 
-    return _to_dataset(
-        field,
-        valid,
-        peak,
-        centres,
-        ia,
-        dims,
-        shape,
-        sizes,
-        rec_rms,
-        rec_valid,
-        rec_level,
-        {
-            "window": window_t,
-            "spacing": spacing_t,
-            "levels": levels,
-            "mode": mode,
-            "order": order,
-            "zero_pad": zero_pad,
-            "max_passes": max_passes,
-            "tol": tol,
-            "nmt_eps": nmt_eps,
-            "nmt_threshold": nmt_threshold,
-            "chunk_windows": chunk_windows,
-        },
-    )
+
+@dataclass
+class _History:
+    """Per-pass records: corrector RMS, valid %, grid level."""
+
+    rms: list[float] = dc_field(default_factory=list)
+    valid: list[float] = dc_field(default_factory=list)
+    level: list[int] = dc_field(default_factory=list)
+
+    def add(self, rms: float, valid: float, level: int) -> None:
+        self.rms.append(rms)
+        self.valid.append(valid)
+        self.level.append(level)
 
 
 def _to_dataset(
-    field, valid, peak, centres, ia: _Input, dims, shape, sizes, rec_rms, rec_valid, rec_level, settings
+    field: np.ndarray,
+    valid: np.ndarray,
+    peak: np.ndarray,
+    centres: list[np.ndarray],
+    ia: _Input,
+    shape: tuple[int, ...],
+    settings: WidimSettings,
+    history: _History,
 ) -> xr.Dataset:
     nd = len(shape)
+    dims = _DIMS3[-nd:]
+    rec_rms, rec_valid, rec_level = history.rms, history.valid, history.level
     comp = _COMP[:nd][::-1]  # array axis order: (w, v, u) or (v, u)
     data_vars: dict[str, Any] = {}
     coords: dict[str, Any] = {}
@@ -703,7 +803,7 @@ def _to_dataset(
         np.asarray(rec_rms),
         {"units": "voxel", "long_name": "RMS of the corrector over all windows and components"},
     )
-    data_vars["valid_fraction"] = (
+    data_vars["valid_percent"] = (
         "pass",
         np.asarray(rec_valid),
         {"units": "percent", "long_name": "vectors passing the normalised median test"},
@@ -723,27 +823,20 @@ def _to_dataset(
         "title": "WIDIM PIV result",
         "method": "WIDIM (Lynch 2011, ch. 6) with "
         + (
-            f"symmetric order-{settings['order']} B-spline image deformation"
-            if settings["mode"] == "deform"
+            f"symmetric order-{settings.order} B-spline image deformation"
+            if settings.mode == "deform"
             else "discrete integer window offset"
         ),
         "lfstudy_version": ver,
         "input_shape": list(shape),
         "input_dims": list(ia.dims),
-        "final_window": list(sizes[-1][0]),
-        "final_spacing": list(sizes[-1][1]),
+        "final_window": list(settings.sizes[-1][0]),
+        "final_spacing": list(settings.sizes[-1][1]),
         "sign_convention": "+d along an array axis of b relative to a gives +d; u: axis -1 (x), "
         "v: axis -2 (y), w: axis 0 (z)",
         "n_passes": npass,
+        **settings.attrs(),
     }
-    for k, v in settings.items():
-        if isinstance(v, tuple):
-            v = list(v)
-        elif isinstance(v, (bool, np.bool_)):
-            v = int(v)
-        elif v is None:
-            v = "auto"
-        attrs[k] = v
     return xr.Dataset(data_vars, coords=coords, attrs=attrs)
 
 

@@ -21,7 +21,7 @@ def render_particles(
     positions: np.ndarray,
     shape: Sequence[int],
     *,
-    diameter: float = 2.8,
+    diameter: float | Sequence[float] = 2.8,
     intensity: np.ndarray | float = 1.0,
 ) -> np.ndarray:
     """Render Gaussian particles into a 2-D or 3-D array.
@@ -32,8 +32,9 @@ def render_particles(
         Particle centres in array-index units (voxel ``i`` spans ``[i-0.5, i+0.5]``).
     shape : sequence of int
         Output array shape (``ndim`` = 2 or 3).
-    diameter : float
-        e^-2 particle image diameter in voxels (sigma = diameter / 4).
+    diameter : float or sequence of float
+        e^-2 particle image diameter in voxels (sigma = diameter / 4), or one per
+        axis (an elongated particle, as a plenoptic reconstruction makes in z).
     intensity : float or ndarray, shape (P,)
         Integrated intensity of each particle.
 
@@ -45,13 +46,13 @@ def render_particles(
     shape = tuple(int(s) for s in shape)
     nd = len(shape)
     pos = np.asarray(positions, dtype=float).reshape(-1, nd)
-    sigma = diameter / 4.0
-    half = int(np.ceil(4.0 * sigma)) + 1  # support well beyond the Gaussian tail
-    offs = np.arange(-half, half + 1)
-    s2 = sqrt(2.0) * sigma
+    sigmas = np.broadcast_to(np.asarray(diameter, dtype=float) / 4.0, (nd,))
     weights = np.broadcast_to(np.asarray(intensity, dtype=float), (pos.shape[0],))
     prof_list, idx_list, ok_list = [], [], []
     for ax in range(nd):  # loop over axes, not particles
+        half = int(np.ceil(4.0 * sigmas[ax])) + 1  # support well beyond the Gaussian tail
+        offs = np.arange(-half, half + 1)
+        s2 = sqrt(2.0) * sigmas[ax]
         i = np.floor(pos[:, ax] + 0.5).astype(np.int64)[:, None] + offs  # (P, K)
         d = i - pos[:, ax, None]
         prof = 0.5 * (erf((d + 0.5) / s2) - erf((d - 0.5) / s2))
@@ -75,7 +76,7 @@ def particle_pair(
     displacement: Sequence[float] | Callable[[np.ndarray], np.ndarray],
     *,
     density: float = 0.01,
-    diameter: float = 2.8,
+    diameter: float | Sequence[float] = 2.8,
     seed: int = 0,
     margin: int = 8,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -95,8 +96,8 @@ def particle_pair(
         positions (P, ndim) in index units to displacements (P, ndim).
     density : float
         Particles per voxel (pixel in 2-D).
-    diameter : float
-        e^-2 particle image diameter in voxels.
+    diameter : float or sequence of float
+        e^-2 particle image diameter in voxels (one per axis for elongated particles).
     seed : int
         Seed of the random positions and intensities.
     margin : int

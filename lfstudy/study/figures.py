@@ -194,7 +194,7 @@ def piv_convergence(piv: xr.Dataset) -> Figure:
     axes = fig.subplots(1, 2)
     for ax, name, ylabel, log in (
         (axes[0], "corrector_rms", "corrector RMS [voxel]", True),
-        (axes[1], "valid_fraction", "valid vectors [%]", False),
+        (axes[1], "valid_percent", "valid vectors [%]", False),
     ):
         if name in piv:
             ax.plot(p, piv[name].values, "o-", color="C0")
