@@ -2,34 +2,39 @@
 #
 #   snakemake --cores all --configfile config/demo.yaml
 #
-# Per case (results/<name>/<case id>/): camera -> particles -> displace ->
-# simulate (a, b) -> register -> refocus -> reconstruct -> piv -> errors.
-# The pinhole image and lenslet calibration are shared by all cases with the
-# same magnification and lenslet pitch (results/<name>/calib/...). The study
-# combines every case into study.zarr / study.csv and report.html.
+# Per case: camera -> particles -> displace -> simulate (a, b) -> register ->
+# refocus -> reconstruct -> piv -> errors; the pinhole image and the lenslet
+# calibration are shared (results/<name>/calib/<calib id>/...). The study combines
+# every case into study.zarr / study.csv and report.html.
+#
+# Where a stage writes is given by the sweep table (lfstudy/study/sweep.py): the
+# case-id prefix holding exactly the settings the stage depends on. Cases that
+# differ only in, say, reconstruct.method share their images, light fields and
+# focal stacks; the calibration is shared by every case with the same camera
+# (bar the working f-number).
+#
 # Rule bodies live in lfstudy/workflow.py. Per-case rules are shell commands
-# (python -m lfstudy.workflow STAGE ...): far cheaper to start than a run:
-# block, which Snakemake executes by spawning a whole new Snakemake. Each gets
-# the config sections its stage reads as params, so editing the config reruns
-# exactly the stages that depend on the change.
+# (python -m lfstudy.workflow STAGE ...): far cheaper to start than a run: block,
+# which Snakemake executes by spawning a whole new Snakemake. Each gets the config
+# sections its stage reads as params, so editing the config reruns exactly the
+# stages that depend on the change.
 import json
 import os
 import sys
 
 from snakemake.exceptions import WorkflowError
 
-from lfstudy.config import expand_cases, validate_config
-from lfstudy.study.case import calib_id
-from lfstudy.workflow import logged, stage_config
+from lfstudy.config import stage_config, validate_config
+from lfstudy.study.sweep import STAGES, Sweep
+from lfstudy.workflow import logged
 
 configfile: "config/demo.yaml"
 
 CFG = validate_config(config)           # one clear error on a bad config, defaults filled
 NAME = CFG["name"]
-CASES = [c.case_id for c in expand_cases(CFG)]
-CASE_OF_CALIB = {}
-for _c in CASES:
-    CASE_OF_CALIB.setdefault(calib_id(_c), _c)
+SWEEP = Sweep(CFG)
+CASES = [c.case_id for c in SWEEP.cases()]
+IDS = {stage: SWEEP.stage_ids(stage) for stage in STAGES}  # stage -> {where it writes: a case}
 OUT = f"results/{NAME}"
 LOG = f"{OUT}/logs"
 BENCH = f"{OUT}/benchmarks"
@@ -41,8 +46,8 @@ except WorkflowError:  # no --cores: 'snakemake --report', --lint; no job runs
 HEAVY = min(CORES, CFG["workflow"]["threads_per_job"] or CORES)
 
 wildcard_constraints:
-    case=r"mag~[^/]+/fnum~[^/]+/pitch~[^/]+/ppp~[^/]+/flow~[^/]+",
-    calib=r"mag~[^/]+/pitch~[^/]+",
+    sid=r"[^/~]+~[^/]+(/[^/~]+~[^/]+)*",
+    cid=r"[^/~]+~[^/]+(/[^/~]+~[^/]+)*",
     frame=r"[ab]",
 
 
@@ -53,22 +58,30 @@ wildcard_constraints:
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
 STAGE = "python -m lfstudy.workflow --config {params.cfg:q} --log {log:q} --threads {threads}"
 
-
 # study and report read the whole config: they rerun on any change to it
 STUDY_CFG = json.dumps(CFG, sort_keys=True, default=str)
 
 
-def stage_params(stage, calib=False):
-    """params.cfg of a per-case rule: the stage's config sections as JSON."""
+def _case(stage, wildcards):
+    """A case whose `stage` output lives at this rule's {sid} (or {cid} for the calibration)."""
+    key = wildcards.cid if stage in ("pinhole", "calibrate") else wildcards.sid
+    return IDS[stage][key]
+
+
+def stage_params(stage):
+    """params.cfg of a per-stage rule: the stage's config sections as JSON."""
     def cfg(wildcards):
-        case = CASE_OF_CALIB[wildcards.calib] if calib else wildcards.case
-        return json.dumps(stage_config(CFG, case, stage), sort_keys=True)
+        return json.dumps(stage_config(CFG, _case(stage, wildcards), stage), sort_keys=True)
     return cfg
 
 
-def centers_of(wildcards):
-    """The shared calibration of a case (same magnification and pitch)."""
-    return f"{OUT}/calib/{calib_id(wildcards.case)}/centers.zarr"
+def at(name, of):
+    """Input function: file `name` (FILES says which stage writes it) for the case behind this rule
+    of stage `of`."""
+    def path(wildcards):
+        loc = SWEEP.locate(_case(of, wildcards), name.format(frame=getattr(wildcards, "frame", "")))
+        return f"{OUT}/{loc}"
+    return path
 
 
 localrules: all
@@ -77,11 +90,10 @@ localrules: all
 # Every intermediate is a target too: Snakemake (>= 7.7) ignores a deleted
 # intermediate whose downstream outputs exist, but regenerates a missing
 # target, and the newer file then reruns exactly what depends on it.
-PER_CASE = ["camera.json", "focal_planes.zarr", "particles_a.zarr", "particles_b.zarr",
-            "raw_a.zarr", "raw_b.zarr", "raw_a.tif", "raw_b.tif", "lightfield_a.zarr",
-            "lightfield_b.zarr", "stack_a.zarr", "stack_b.zarr", "volume_a.zarr", "volume_b.zarr",
-            "piv.zarr", "errors.zarr"]
-PER_CALIB = ["pinhole.zarr", "pinhole.tif", "centers.zarr"]
+def every(stage, *names):
+    ids = sorted(IDS[stage])
+    root = f"{OUT}/calib" if stage in ("pinhole", "calibrate") else OUT
+    return [f"{root}/{i}/{n}" for i in ids for n in names]
 
 
 rule all:
@@ -89,48 +101,57 @@ rule all:
         f"{OUT}/study.zarr",
         f"{OUT}/study.csv",
         f"{OUT}/report.html",
-        expand(f"{OUT}/{{case}}/{{name}}", case=CASES, name=PER_CASE),
-        expand(f"{OUT}/calib/{{calib}}/{{name}}", calib=sorted(CASE_OF_CALIB), name=PER_CALIB),
+        every("camera", "camera.json", "focal_planes.zarr"),
+        every("particles", "particles_a.zarr"),
+        every("displace", "particles_b.zarr"),
+        every("simulate", "raw_a.zarr", "raw_b.zarr", "raw_a.tif", "raw_b.tif"),
+        every("pinhole", "pinhole.zarr", "pinhole.tif"),
+        every("calibrate", "centers.zarr"),
+        every("register", "lightfield_a.zarr", "lightfield_b.zarr"),
+        every("refocus", "stack_a.zarr", "stack_b.zarr"),
+        every("reconstruct", "volume_a.zarr", "volume_b.zarr"),
+        every("piv", "piv.zarr"),
+        every("errors", "errors.zarr"),
 
 
 rule camera:
     output:
-        json=f"{OUT}/{{case}}/camera.json",
-        planes=directory(f"{OUT}/{{case}}/focal_planes.zarr"),
-    log: f"{LOG}/camera/{{case}}.log"
-    benchmark: f"{BENCH}/camera/{{case}}.tsv"
+        json=f"{OUT}/{{sid}}/camera.json",
+        planes=directory(f"{OUT}/{{sid}}/focal_planes.zarr"),
+    log: f"{LOG}/camera/{{sid}}.log"
+    benchmark: f"{BENCH}/camera/{{sid}}.tsv"
     threads: 1
     params: cfg=stage_params("camera")
     shell: STAGE + " camera {output.json:q} {output.planes:q}"
 
 
 rule particles:
-    input: rules.camera.output.json
-    output: directory(f"{OUT}/{{case}}/particles_a.zarr")
-    log: f"{LOG}/particles/{{case}}.log"
-    benchmark: f"{BENCH}/particles/{{case}}.tsv"
+    input: at("camera.json", "particles")
+    output: directory(f"{OUT}/{{sid}}/particles_a.zarr")
+    log: f"{LOG}/particles/{{sid}}.log"
+    benchmark: f"{BENCH}/particles/{{sid}}.tsv"
     threads: 1
     params: cfg=stage_params("particles")
     shell: STAGE + " particles {output[0]:q}"
 
 
 rule displace:
-    input: f"{OUT}/{{case}}/particles_a.zarr"
-    output: directory(f"{OUT}/{{case}}/particles_b.zarr")
-    log: f"{LOG}/displace/{{case}}.log"
-    benchmark: f"{BENCH}/displace/{{case}}.tsv"
+    input: at("particles_a.zarr", "displace")
+    output: directory(f"{OUT}/{{sid}}/particles_b.zarr")
+    log: f"{LOG}/displace/{{sid}}.log"
+    benchmark: f"{BENCH}/displace/{{sid}}.tsv"
     threads: 1
     params: cfg=stage_params("displace")
     shell: STAGE + " displace {input[0]:q} {output[0]:q}"
 
 
 rule simulate:
-    input: f"{OUT}/{{case}}/particles_{{frame}}.zarr"
+    input: at("particles_{frame}.zarr", "simulate")
     output:
-        zarr=directory(f"{OUT}/{{case}}/raw_{{frame}}.zarr"),
-        tiff=f"{OUT}/{{case}}/raw_{{frame}}.tif",
-    log: f"{LOG}/simulate/{{case}}_{{frame}}.log"
-    benchmark: f"{BENCH}/simulate/{{case}}_{{frame}}.tsv"
+        zarr=directory(f"{OUT}/{{sid}}/raw_{{frame}}.zarr"),
+        tiff=f"{OUT}/{{sid}}/raw_{{frame}}.tif",
+    log: f"{LOG}/simulate/{{sid}}_{{frame}}.log"
+    benchmark: f"{BENCH}/simulate/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("simulate")
     shell: STAGE + " simulate {wildcards.frame} {input[0]:q} {output.zarr:q} {output.tiff:q}"
@@ -138,42 +159,42 @@ rule simulate:
 
 rule pinhole:
     output:
-        zarr=directory(f"{OUT}/calib/{{calib}}/pinhole.zarr"),
-        tiff=f"{OUT}/calib/{{calib}}/pinhole.tif",
-    log: f"{LOG}/pinhole/{{calib}}.log"
-    benchmark: f"{BENCH}/pinhole/{{calib}}.tsv"
+        zarr=directory(f"{OUT}/calib/{{cid}}/pinhole.zarr"),
+        tiff=f"{OUT}/calib/{{cid}}/pinhole.tif",
+    log: f"{LOG}/pinhole/{{cid}}.log"
+    benchmark: f"{BENCH}/pinhole/{{cid}}.tsv"
     threads: HEAVY
-    params: cfg=stage_params("pinhole", calib=True)
+    params: cfg=stage_params("pinhole")
     shell: STAGE + " pinhole {output.zarr:q} {output.tiff:q}"
 
 
 rule calibrate:
-    input: f"{OUT}/calib/{{calib}}/pinhole.zarr"
-    output: directory(f"{OUT}/calib/{{calib}}/centers.zarr")
-    log: f"{LOG}/calibrate/{{calib}}.log"
-    benchmark: f"{BENCH}/calibrate/{{calib}}.tsv"
+    input: f"{OUT}/calib/{{cid}}/pinhole.zarr"
+    output: directory(f"{OUT}/calib/{{cid}}/centers.zarr")
+    log: f"{LOG}/calibrate/{{cid}}.log"
+    benchmark: f"{BENCH}/calibrate/{{cid}}.tsv"
     threads: HEAVY
-    params: cfg=stage_params("calibrate", calib=True)
+    params: cfg=stage_params("calibrate")
     shell: STAGE + " calibrate {input[0]:q} {output[0]:q}"
 
 
 rule register:
     input:
-        raw=f"{OUT}/{{case}}/raw_{{frame}}.zarr",
-        centers=centers_of,
-    output: directory(f"{OUT}/{{case}}/lightfield_{{frame}}.zarr")
-    log: f"{LOG}/register/{{case}}_{{frame}}.log"
-    benchmark: f"{BENCH}/register/{{case}}_{{frame}}.tsv"
+        raw=at("raw_{frame}.zarr", "register"),
+        centers=at("centers.zarr", "register"),
+    output: directory(f"{OUT}/{{sid}}/lightfield_{{frame}}.zarr")
+    log: f"{LOG}/register/{{sid}}_{{frame}}.log"
+    benchmark: f"{BENCH}/register/{{sid}}_{{frame}}.tsv"
     threads: 1
     params: cfg=stage_params("register")
     shell: STAGE + " register {input.raw:q} {input.centers:q} {output[0]:q}"
 
 
 rule refocus:
-    input: f"{OUT}/{{case}}/lightfield_{{frame}}.zarr"
-    output: directory(f"{OUT}/{{case}}/stack_{{frame}}.zarr")
-    log: f"{LOG}/refocus/{{case}}_{{frame}}.log"
-    benchmark: f"{BENCH}/refocus/{{case}}_{{frame}}.tsv"
+    input: at("lightfield_{frame}.zarr", "refocus")
+    output: directory(f"{OUT}/{{sid}}/stack_{{frame}}.zarr")
+    log: f"{LOG}/refocus/{{sid}}_{{frame}}.log"
+    benchmark: f"{BENCH}/refocus/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("refocus")
     shell: STAGE + " refocus {input[0]:q} {output[0]:q}"
@@ -181,12 +202,12 @@ rule refocus:
 
 rule reconstruct:
     input:
-        stack=f"{OUT}/{{case}}/stack_{{frame}}.zarr",
-        lightfield=f"{OUT}/{{case}}/lightfield_{{frame}}.zarr",
-        centers=centers_of,
-    output: directory(f"{OUT}/{{case}}/volume_{{frame}}.zarr")
-    log: f"{LOG}/reconstruct/{{case}}_{{frame}}.log"
-    benchmark: f"{BENCH}/reconstruct/{{case}}_{{frame}}.tsv"
+        stack=at("stack_{frame}.zarr", "reconstruct"),
+        lightfield=at("lightfield_{frame}.zarr", "reconstruct"),
+        centers=at("centers.zarr", "reconstruct"),
+    output: directory(f"{OUT}/{{sid}}/volume_{{frame}}.zarr")
+    log: f"{LOG}/reconstruct/{{sid}}_{{frame}}.log"
+    benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("reconstruct")
     shell: STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
@@ -194,11 +215,11 @@ rule reconstruct:
 
 rule piv:
     input:
-        a=f"{OUT}/{{case}}/volume_a.zarr",
-        b=f"{OUT}/{{case}}/volume_b.zarr",
-    output: directory(f"{OUT}/{{case}}/piv.zarr")
-    log: f"{LOG}/piv/{{case}}.log"
-    benchmark: f"{BENCH}/piv/{{case}}.tsv"
+        a=at("volume_a.zarr", "piv"),
+        b=at("volume_b.zarr", "piv"),
+    output: directory(f"{OUT}/{{sid}}/piv.zarr")
+    log: f"{LOG}/piv/{{sid}}.log"
+    benchmark: f"{BENCH}/piv/{{sid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("piv")
     shell: STAGE + " piv {input.a:q} {input.b:q} {output[0]:q}"
@@ -206,19 +227,19 @@ rule piv:
 
 rule errors:
     input:
-        piv=f"{OUT}/{{case}}/piv.zarr",
-        volume=f"{OUT}/{{case}}/volume_a.zarr",
-        particles=f"{OUT}/{{case}}/particles_a.zarr",
-    output: directory(f"{OUT}/{{case}}/errors.zarr")
-    log: f"{LOG}/errors/{{case}}.log"
-    benchmark: f"{BENCH}/errors/{{case}}.tsv"
+        piv=at("piv.zarr", "errors"),
+        volume=at("volume_a.zarr", "errors"),
+        particles=at("particles_a.zarr", "errors"),
+    output: directory(f"{OUT}/{{sid}}/errors.zarr")
+    log: f"{LOG}/errors/{{sid}}.log"
+    benchmark: f"{BENCH}/errors/{{sid}}.tsv"
     threads: 1
     params: cfg=stage_params("errors")
     shell: STAGE + " errors {input.piv:q} {input.volume:q} {input.particles:q} {output[0]:q}"
 
 
 rule study:
-    input: expand(f"{OUT}/{{case}}/errors.zarr", case=CASES)
+    input: [f"{OUT}/{SWEEP.locate(c, 'errors.zarr')}" for c in CASES]
     output:
         zarr=directory(f"{OUT}/study.zarr"),
         csv=f"{OUT}/study.csv",
@@ -234,7 +255,7 @@ rule study:
 rule report:
     input:
         study=f"{OUT}/study.zarr",
-        errors=expand(f"{OUT}/{{case}}/errors.zarr", case=CASES),
+        errors=[f"{OUT}/{SWEEP.locate(c, 'errors.zarr')}" for c in CASES],
     output: report(f"{OUT}/report.html", caption="reports/report.rst", category="Study")
     log: f"{LOG}/report.log"
     threads: 1
@@ -247,27 +268,33 @@ rule report:
 
 # Optional, not part of `all`: ParaView and Fiji files of every case.
 #   snakemake export --cores all --configfile config/demo.yaml
-# (the target before --configfile, which takes several values). piv.vtr and volume_a.vtr
-# are rectilinear grids in mm; volume_a.tif is an ImageJ hyperstack with the voxel size.
+# (the target before --configfile, which takes several values). piv.vtr is a
+# rectilinear grid in mm; volume_a.vtr and volume_a.tif (an ImageJ hyperstack with
+# the voxel size) are written beside the volume they come from.
 localrules: export
 
 
 rule export:
-    input: expand(f"{OUT}/{{case}}/{{name}}", case=CASES, name=["piv.vtr", "volume_a.vtr", "volume_a.tif"])
-
-
-rule export_case:
     input:
-        piv=f"{OUT}/{{case}}/piv.zarr",
-        volume=f"{OUT}/{{case}}/volume_a.zarr",
+        every("piv", "piv.vtr"),
+        every("reconstruct", "volume_a.vtr", "volume_a.tif"),
+
+
+rule export_piv:
+    input: f"{OUT}/{{sid}}/piv.zarr"
+    output: f"{OUT}/{{sid}}/piv.vtr"
+    log: f"{LOG}/export/{{sid}}_piv.log"
+    threads: 1
+    shell: "python -m lfstudy.cli export {input:q} --out {output:q} > {log:q} 2>&1"
+
+
+rule export_volume:
+    input: f"{OUT}/{{sid}}/volume_a.zarr"
     output:
-        piv=f"{OUT}/{{case}}/piv.vtr",
-        volume_vtk=f"{OUT}/{{case}}/volume_a.vtr",
-        volume_tif=f"{OUT}/{{case}}/volume_a.tif",
-    log: f"{LOG}/export/{{case}}.log"
+        vtk=f"{OUT}/{{sid}}/volume_a.vtr",
+        tif=f"{OUT}/{{sid}}/volume_a.tif",
+    log: f"{LOG}/export/{{sid}}_volume.log"
     threads: 1
     shell:
-        "(python -m lfstudy.cli export {input.piv:q} --out {output.piv:q}"
-        " && python -m lfstudy.cli export {input.volume:q} --out {output.volume_vtk:q}"
-        " && python -m lfstudy.cli export {input.volume:q} --out {output.volume_tif:q} --resample-z)"
-        " > {log:q} 2>&1"
+        "(python -m lfstudy.cli export {input:q} --out {output.vtk:q}"
+        " && python -m lfstudy.cli export {input:q} --out {output.tif:q} --resample-z) > {log:q} 2>&1"

@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import copy
 import functools
-import itertools
-from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -23,27 +21,16 @@ from lfstudy.optics import OpticsError, PlenopticCamera
 
 __all__ = [
     "ConfigError",
-    "SWEEP_KEYS",
-    "Case",
     "load_schema",
     "load_config",
     "validate_config",
     "validate_section",
+    "sweep_of",
     "expand_cases",
     "case_config",
+    "stage_config",
     "cases_table",
 ]
-
-#: Swept parameters, in the order of case ids and of the sweep Dataset's dimensions.
-SWEEP_KEYS: tuple[str, ...] = ("magnification", "fnumber", "lenslet_pitch", "ppp", "flow")
-#: Short names used in case ids / paths (``mag~-1/fnum~matched/...``).
-SHORT: dict[str, str] = {
-    "magnification": "mag",
-    "fnumber": "fnum",
-    "lenslet_pitch": "pitch",
-    "ppp": "ppp",
-    "flow": "flow",
-}
 
 
 class ConfigError(ValueError):
@@ -155,8 +142,7 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
     lens = cfg["camera"]["lenslet"]
     if lens.get("focal_length") is None and lens.get("fnumber") is None:
         raise ConfigError("config key 'camera.lenslet': give focal_length or fnumber (fl = N·pl)")
-    sweep = cfg["sweep"]
-    for name in sweep.get("flow", []):
+    for name in cfg["sweep"].get("flow", []):
         if name not in cfg["flows"]:
             raise ConfigError(
                 f"config key 'sweep.flow' = {name!r}: unknown flow; allowed values are "
@@ -167,11 +153,29 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
             raise ConfigError(f"config key 'flows.{name}.displacement': required for kind 'uniform' ([dx, dy, dz] mm)")
         if spec["kind"] == "hill" and ("radius" not in spec or "u0" not in spec):
             raise ConfigError(f"config key 'flows.{name}': kind 'hill' needs radius (> 0 mm) and u0")
-    for case in _iter_params(cfg):
+    count = cfg["particles"].get("count")
+    if count is not None and len(cfg["sweep"].get("ppp", [])) > 1:
+        raise ConfigError(
+            f"config key 'particles.count' = {count}: a fixed particle count overrides ppp, so every swept "
+            "ppp value would image the same field; drop particles.count or sweep.ppp"
+        )
+    from lfstudy.study.sweep import NAMED
+
+    sweep = sweep_of(cfg)
+    schema = load_schema()
+    dotted = [s for s in sweep.settings if s.key not in NAMED]
+    for case in sweep.cases():
+        ccfg = sweep.apply(case)
+        if dotted:  # a value the sweep sets must be valid where it lands (e.g. piv.window)
+            try:
+                validate_section(schema, {k: v for k, v in ccfg.items() if k not in ("flow", "case_id")})
+            except ConfigError as exc:
+                where = ", ".join(f"{s.key}={case[s.key]}" for s in sweep.swept)
+                raise ConfigError(f"{exc} (case {where})") from None
         try:
-            PlenopticCamera.from_config(_apply(cfg, case))
+            PlenopticCamera.from_config(ccfg)
         except OpticsError as exc:
-            where = ", ".join(f"{k}={v}" for k, v in case.items() if k != "flow")
+            where = ", ".join(f"{k}={v}" for k, v in case.params.items() if k != "flow")
             raise ConfigError(f"config key 'camera' (case {where}): {exc}") from None
     return cfg
 
@@ -190,112 +194,58 @@ def load_config(path: str | Path) -> dict[str, Any]:
     return validate_config(raw)
 
 
-def _base_params(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    cam = cfg["camera"]
-    flows = list(cfg["flows"])
+def sweep_of(cfg: Mapping[str, Any]) -> Any:
+    """The :class:`~lfstudy.study.sweep.Sweep` of a validated config."""
+    from lfstudy.study.sweep import Sweep
+
+    return Sweep(cfg)
+
+
+def expand_cases(cfg: Mapping[str, Any]) -> list[Any]:
+    """All cases of the sweep (Cartesian product of its lists), in a stable order.
+
+    A named parameter that is not swept keeps the single value of the base config.
+    """
+    return sweep_of(cfg).cases()
+
+
+def case_config(cfg: Mapping[str, Any], case: Any) -> dict[str, Any]:
+    """The full config of one case: the base config with the case's swept values set.
+
+    The chosen flow's spec is placed under ``flow`` (with its name); ``case_id``,
+    ``calib_id`` and ``stage_ids`` (where each stage's outputs live) are added.
+    """
+    sweep = sweep_of(cfg)
+    case = sweep.case(case)
+    out = sweep.apply(case)
+    out["calib_id"] = sweep.calib_id(case)
+    out["stage_ids"] = sweep.ids(case)
+    return out
+
+
+def stage_config(cfg: Mapping[str, Any], case: Any, stage: str) -> dict[str, Any]:
+    """The part of a case's config that ``stage`` reads (:data:`lfstudy.study.sweep.STAGES`),
+    plus ``case_id``, ``stage_id`` (where the stage's outputs live) and ``calib_id``."""
+    from lfstudy.study.sweep import STAGES
+
+    ccfg = case_config(cfg, case)
+    sections = {p.split(".")[0] for p in STAGES[stage].reads}
     return {
-        "magnification": cam["magnification"],
-        "fnumber": cam["main_lens"].get("fnumber", "matched"),
-        "lenslet_pitch": cam["lenslet"]["pitch"],
-        "ppp": cfg["particles"]["ppp"],
-        "flow": flows[0],
+        "case_id": ccfg["case_id"],
+        "stage_id": ccfg["stage_ids"][stage],
+        "calib_id": ccfg["calib_id"],
+        **{k: ccfg[k] for k in sorted(sections)},
     }
-
-
-def _iter_params(cfg: Mapping[str, Any]) -> Iterator[dict[str, Any]]:
-    base = _base_params(cfg)
-    axes = [cfg["sweep"].get(k, [base[k]]) for k in SWEEP_KEYS]
-    for combo in itertools.product(*axes):
-        yield dict(zip(SWEEP_KEYS, combo))
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:g}"
-    return str(v)
-
-
-@dataclass(frozen=True)
-class Case:
-    """One point of the sweep."""
-
-    magnification: float
-    fnumber: float | str
-    lenslet_pitch: float
-    ppp: float
-    flow: str
-
-    @property
-    def params(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in SWEEP_KEYS}
-
-    @property
-    def case_id(self) -> str:
-        """Stable, readable id, also the results sub-path: ``mag~-1/fnum~matched/...``."""
-        return "/".join(f"{SHORT[k]}~{_fmt(getattr(self, k))}" for k in SWEEP_KEYS)
-
-    @classmethod
-    def from_id(cls, case_id: str) -> Case:
-        """Parse a case id back (inverse of :attr:`case_id`)."""
-        inv = {v: k for k, v in SHORT.items()}
-        vals: dict[str, Any] = {}
-        for part in case_id.strip("/").split("/"):
-            if "~" not in part:
-                raise ConfigError(f"case id {case_id!r}: part {part!r} is not key~value")
-            k, v = part.split("~", 1)
-            if k not in inv:
-                raise ConfigError(f"case id {case_id!r}: unknown key {k!r}; allowed {sorted(inv)}")
-            key = inv[k]
-            if key == "flow" or (key == "fnumber" and v == "matched"):
-                vals[key] = v
-            else:
-                vals[key] = float(v)
-        missing = set(SWEEP_KEYS) - set(vals)
-        if missing:
-            raise ConfigError(f"case id {case_id!r}: missing {sorted(missing)}")
-        return cls(**vals)
-
-
-def expand_cases(cfg: Mapping[str, Any]) -> list[Case]:
-    """All sweep cases (Cartesian product of the sweep lists), in a stable order.
-
-    A sweep key that is absent keeps the single value of the base config.
-    """
-    return [Case(**p) for p in _iter_params(cfg)]
-
-
-def _apply(cfg: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
-    out = copy.deepcopy(dict(cfg))
-    cam = out["camera"]
-    cam["magnification"] = params["magnification"]
-    cam["main_lens"]["fnumber"] = params["fnumber"]
-    cam["lenslet"]["pitch"] = params["lenslet_pitch"]
-    out["particles"]["ppp"] = params["ppp"]
-    return out
-
-
-def case_config(cfg: Mapping[str, Any], case: Case | str) -> dict[str, Any]:
-    """The full config of one case: base config with the case's swept values applied.
-
-    The chosen flow's spec is placed under ``flow`` (with its name).
-    """
-    if isinstance(case, str):
-        case = Case.from_id(case)
-    if case.flow not in cfg["flows"]:
-        raise ConfigError(f"case flow {case.flow!r}: unknown; allowed values are {sorted(cfg['flows'])}")
-    out = _apply(cfg, case.params)
-    out["flow"] = {"name": case.flow, **cfg["flows"][case.flow]}
-    out["case_id"] = case.case_id
-    return out
 
 
 def cases_table(cfg: Mapping[str, Any]):
     """The expanded sweep as a pandas DataFrame indexed by case id, with derived camera columns."""
     import pandas as pd
 
+    sweep = sweep_of(cfg)
     rows = []
-    for case in expand_cases(cfg):
-        cam = PlenopticCamera.from_config(case_config(cfg, case))
+    for case in sweep.cases():
+        cam = PlenopticCamera.from_config(sweep.apply(case))
         rows.append(
             {
                 "case_id": case.case_id,

@@ -21,14 +21,11 @@ from pathlib import Path
 from typing import Any
 
 from lfstudy import io
-from lfstudy.config import Case, case_config
 from lfstudy.study import case as cl
 
 __all__ = [
     "logged",
     "set_threads",
-    "STAGE_SECTIONS",
-    "stage_config",
     "main",
     "run_optics",
     "run_particles",
@@ -77,31 +74,6 @@ def set_threads(n: int) -> None:
     n = max(1, int(n))
     numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
     dask.config.set(scheduler="threads", num_workers=n)
-
-
-#: The config sections each per-case stage reads. The Snakefile passes a
-#: stage only these (``stage_config``) and declares them as the rule's
-#: ``params``, so Snakemake reruns a stage exactly when a section it depends
-#: on changes; a stage reading anything else fails loudly (KeyError).
-STAGE_SECTIONS: dict[str, tuple[str, ...]] = {
-    "camera": ("camera", "refocus"),
-    "particles": ("seed", "camera", "particles"),
-    "displace": ("flow",),
-    "simulate": ("seed", "camera", "raytrace"),
-    "pinhole": ("seed", "camera", "pinhole", "raytrace"),
-    "calibrate": ("camera",),
-    "register": ("camera",),
-    "refocus": ("camera", "refocus", "grid"),
-    "reconstruct": ("camera", "refocus", "grid", "reconstruct"),
-    "piv": ("piv",),
-    "errors": ("flow", "camera"),
-}
-
-
-def stage_config(cfg: Mapping[str, Any], case_id: str, stage: str) -> dict[str, Any]:
-    """The part of case ``case_id``'s config that ``stage`` reads (plus ``case_id``)."""
-    ccfg = case_config(cfg, case_id)
-    return {"case_id": ccfg["case_id"], **{k: ccfg[k] for k in STAGE_SECTIONS[stage]}}
 
 
 def _write_json(obj: Mapping[str, Any], path: str | Path) -> None:
@@ -239,17 +211,20 @@ def run_study(
     out_zarr: str | Path,
     out_csv: str | Path,
 ) -> None:
-    """Combine every case's scalar errors into one Dataset over the swept parameters."""
-    from lfstudy.study.metrics import combine_cases, stage_times, to_csv
+    """Combine every case's scalar results into one Dataset over the swept settings."""
+    from lfstudy.study.sweep import Sweep
+    from lfstudy.study.table import combine_cases, stage_times, to_csv
 
+    sweep = Sweep(cfg)
     rows = []
     for cid, path in zip(case_ids, error_paths):
+        case = sweep.case(cid)
         err = io.open_zarr(path).load()
         scalars = err[[v for v in err.data_vars if err[v].ndim == 0]]
-        for stage, secs in stage_times(benchmark_dir, cid).items():
+        for stage, secs in stage_times(benchmark_dir, sweep.ids(case)).items():
             scalars[f"time_{stage}"] = ((), float(secs), {"units": "s", "long_name": f"{stage} run time"})
-        rows.append((Case.from_id(cid).params, scalars))
-    study = combine_cases(rows)
+        rows.append((case, scalars))
+    study = combine_cases(rows, sweep.settings)
     study.attrs.update(io.provenance(dict(cfg), cfg.get("seed")))
     io.write_zarr(study, out_zarr)
     to_csv(study, out_csv)
@@ -260,9 +235,11 @@ def run_report(
 ) -> None:
     """The self-contained HTML report of the study."""
     from lfstudy.study.report import write_report
+    from lfstudy.study.sweep import FILES, Sweep
 
-    case_dirs = {cid: Path(out_dir) / cid for cid in case_ids}
-    write_report(io.open_zarr(study).load(), case_dirs, dict(cfg), Path(out_html))
+    sweep = Sweep(cfg)
+    files = {cid: {name: Path(out_dir) / sweep.locate(cid, name) for name in FILES} for cid in case_ids}
+    write_report(io.open_zarr(study).load(), files, dict(cfg), Path(out_html))
 
 
 _RUNNERS = {
@@ -286,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     The Snakefile's shell rules call this: a plain interpreter start is
     several times cheaper than Snakemake spawning itself for a ``run:`` job,
     which matters for sweeps of many small cases. ``--config`` is the
-    stage's JSON config (:func:`stage_config`); ARGS are the stage function's
+    stage's JSON config (:func:`lfstudy.config.stage_config`); ARGS are the stage function's
     remaining arguments (frame and paths) in order.
     """
     import argparse

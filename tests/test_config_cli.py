@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from lfstudy.cli import main
-from lfstudy.config import Case, ConfigError, case_config, expand_cases, load_config, validate_config
+from lfstudy.config import ConfigError, case_config, expand_cases, load_config, sweep_of, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,7 +33,7 @@ def test_demo_sweep_has_two_values_of_each(demo_raw):
     ids = [c.case_id for c in cases]
     assert len(set(ids)) == len(ids)
     assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.001/flow~uniform_x"
-    assert Case.from_id(ids[5]) == cases[5]
+    assert sweep_of(cfg).case(ids[5]) == cases[5]
     one = case_config(cfg, ids[-1])
     assert one["camera"]["magnification"] == cases[-1].magnification
     assert one["flow"]["name"] == "uniform_x"

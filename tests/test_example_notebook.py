@@ -10,8 +10,8 @@ import pytest
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import Case
-from lfstudy.study.metrics import combine_cases
+from lfstudy.study.sweep import Case
+from lfstudy.study.table import combine_cases
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "explore_results.ipynb"
 
@@ -37,10 +37,10 @@ def results(tmp_path):
             for fl in ("uniform_x", "hill")
         ][:-1]
     ):  # one case missing
-        case = Case(-1.0, fn, pitch, ppp, flow)
+        case = Case.of(magnification=-1.0, fnumber=fn, lenslet_pitch=pitch, ppp=ppp, flow=flow)
         rms = 0.05 + 10 * ppp + 0.1 * pitch + 0.01 * i
         rows.append((case, _scalars(rms)))
-    io.write_zarr(combine_cases([(c.params, s) for c, s in rows]), tmp_path / "study.zarr")
+    io.write_zarr(combine_cases(rows), tmp_path / "study.zarr")
     case = min(rows, key=lambda r: float(r[1]["rms_total"]))[0]  # the notebook opens this case
     shape = (3, 4, 5)
     co = {d: (d, np.arange(n) * 0.7) for d, n in zip("zyx", shape)}

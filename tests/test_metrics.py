@@ -10,19 +10,16 @@ import pytest
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import Case
 from lfstudy.simulate.flows import HillVortex, UniformFlow
 from lfstudy.study.metrics import (
     case_errors,
-    combine_cases,
-    from_csv,
     locking_excess,
     peak_locking_c1,
     reconstruction_quality,
     render_truth,
-    stage_times,
-    to_csv,
 )
+from lfstudy.study.sweep import Case
+from lfstudy.study.table import combine_cases, from_csv, stage_times, to_csv
 
 VOX = 0.125  # mm, the thesis' lenslet pitch at M = -1
 
@@ -197,8 +194,12 @@ def test_render_truth_is_voxel_integrated():
         render_truth(coords, p, sigma_mm=0.0)
 
 
+def _case(mag, fnum, pitch, ppp, flow, **dotted):
+    return Case.of(magnification=mag, fnumber=fnum, lenslet_pitch=pitch, ppp=ppp, flow=flow, **dotted)
+
+
 def test_stage_times(tmp_path):
-    cid = Case(-1.0, "matched", 0.125, 0.001, "uniform_x").case_id
+    cid = _case(-1.0, "matched", 0.125, 0.001, "uniform_x").case_id
     for rule, names, secs in (("piv", [""], [3.0]), ("simulate", ["_a", "_b"], [1.0, 2.0])):
         for nm, s in zip(names, secs):
             f = tmp_path / rule / f"{cid}{nm}.tsv"
@@ -206,9 +207,9 @@ def test_stage_times(tmp_path):
             f.write_text(f"s\th:m:s\tmax_rss\n{s}\t0:00:0{int(s)}\t100.0\n")
     other = tmp_path / "piv" / (cid + "_fast.tsv")  # another flow's table: not ours
     other.write_text("s\th:m:s\n50\t0:00:50\n")
-    t = stage_times(tmp_path, cid)
+    t = stage_times(tmp_path, {"piv": cid, "simulate": cid, "refocus": cid})
     assert t == {"piv": 3.0, "simulate": 3.0, "total": 6.0}
-    assert stage_times(tmp_path / "missing", cid) == {}
+    assert stage_times(tmp_path / "missing", {"piv": cid}) == {}
 
 
 def _scalars(rms, q):
@@ -222,10 +223,10 @@ def _scalars(rms, q):
 
 def test_combine_cases_dims_sel_and_csv(tmp_path):
     rows = [
-        (Case(-1.0, "matched", 0.125, 0.001, "uniform_x").params, _scalars(0.07, 0.8)),
-        (Case(-1.0, 4.0, 0.125, 0.001, "uniform_x").params, _scalars(0.09, 0.7)),
-        (Case(-1.0, "matched", 0.125, 0.005, "uniform_x").params, _scalars(0.2, 0.5)),
-        (Case(-0.8, "matched", 0.125, 0.001, "hill").params, _scalars(0.3, 0.6)),
+        (_case(-1.0, "matched", 0.125, 0.001, "uniform_x"), _scalars(0.07, 0.8)),
+        (_case(-1.0, 4.0, 0.125, 0.001, "uniform_x"), _scalars(0.09, 0.7)),
+        (_case(-1.0, "matched", 0.125, 0.005, "uniform_x"), _scalars(0.2, 0.5)),
+        (_case(-0.8, "matched", 0.125, 0.001, "hill"), _scalars(0.3, 0.6)),
     ]
     study = combine_cases(rows)
     assert study["rms_x"].dims == ("magnification", "fnumber", "lenslet_pitch", "ppp", "flow")

@@ -12,8 +12,9 @@ import xarray as xr
 from lfstudy import io
 from lfstudy.config import expand_cases, load_config
 from lfstudy.simulate.flows import flow_from_config
-from lfstudy.study.metrics import case_errors, combine_cases
+from lfstudy.study.metrics import case_errors
 from lfstudy.study.report import SECTIONS, best_designs, write_figures, write_report
+from lfstudy.study.table import combine_cases
 
 ROOT = Path(__file__).resolve().parents[1]
 VOX = 0.0888  # demo lenslet pitch at M = -1
@@ -84,7 +85,7 @@ def study_dirs(tmp_path_factory):
         if i != len(cases) - 3:  # this one has only piv.zarr
             io.write_zarr(err, d / "errors.zarr")
             fake_images(d, i)
-        rows.append((case.params, err[[v for v in err.data_vars if err[v].ndim == 0]]))
+        rows.append((case, err[[v for v in err.data_vars if err[v].ndim == 0]]))
     return combine_cases(rows), dirs, cfg
 
 

@@ -77,7 +77,7 @@ def test_study_runs_end_to_end(study_dir):
 
 def test_simulate_case_reproduces_the_workflow(study_dir):
     """`lfstudy simulate` (simulate_case) gives the same bytes as the Snakemake rules."""
-    from lfstudy.study.case import calib_id, simulate_case
+    from lfstudy.study.case import simulate_case
 
     out = study_dir / "results" / "tiny"
     cid = expand_cases(load_config(TINY))[-1].case_id
@@ -85,7 +85,10 @@ def test_simulate_case_reproduces_the_workflow(study_dir):
     for frame in "ab":
         raw = io.open_zarr(out / cid / f"raw_{frame}.zarr", name="intensity").values
         assert np.array_equal(res[f"image_{frame}"].values, raw)
-    pin = io.open_zarr(out / "calib" / calib_id(cid) / "pinhole.zarr", name="intensity").values
+    pin = io.open_zarr(
+        out / "calib" / case_config(load_config(TINY), cid)["calib_id"] / "pinhole.zarr", name="intensity"
+    )
+    pin = pin.values
     assert np.array_equal(res["pinhole"].values, pin)
     parts = io.open_zarr(out / cid / "particles_b.zarr").load()
     assert np.array_equal(res["particles_b"]["x"].values, parts["x"].values)
@@ -180,7 +183,7 @@ def test_stage_entry_point(tmp_path):
     exit 1, the traceback in the log and no output left behind."""
     import json
 
-    from lfstudy.workflow import stage_config
+    from lfstudy.config import stage_config
 
     cfg = load_config(TINY)
     cid = expand_cases(cfg)[0].case_id
@@ -224,3 +227,37 @@ def test_stage_entry_point(tmp_path):
     assert r.returncode == 1
     assert "KeyError: 'refocus'" in (tmp_path / "bad.log").read_text() and "bad.log" in r.stderr
     assert not (tmp_path / "c2.json").exists() and not (tmp_path / "p2.zarr").exists()
+
+
+def test_sweep_over_dotted_settings_shares_the_upstream_stages(tmp_path):
+    """reconstruct.method and piv.spacing swept by their dotted paths: the images, light fields and
+    stacks are made once and shared, each method reconstructs once and feeds two PIV spacings, and
+    the study has a dimension per swept setting."""
+    import yaml
+
+    raw = yaml.safe_load(TINY.read_text())
+    raw["sweep"] = {
+        "ppp": [0.004],
+        "reconstruct.method": ["threshold", "mart"],
+        "piv.spacing": [[4, 8, 8], [4, 6, 6]],
+    }
+    raw["reconstruct"] = {"method": "threshold", "mart": {"iterations": 2}}
+    cfg_path = tmp_path / "dotted.yaml"
+    cfg_path.write_text(yaml.safe_dump(raw))
+    work = tmp_path / "work"
+    jobs = _planned_jobs(work, config=cfg_path)
+    assert jobs["simulate"] == 2 and jobs["register"] == 2 and jobs["refocus"] == 2  # shared by all 4 cases
+    assert jobs["reconstruct"] == 4 and jobs["piv"] == 4 and jobs["errors"] == 4
+    r = _snakemake(work, config=cfg_path)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
+    study = io.open_zarr(work / "results" / "tiny" / "study.zarr").load()
+    assert list(study["reconstruct_method"].values) == ["threshold", "mart"]
+    assert list(study["piv_spacing"].values) == ["4x8x8", "4x6x6"]
+    assert study["reconstruct_method"].attrs["sweep_key"] == "reconstruct.method"
+    assert int(study["computed"].sum()) == 4
+    rms = study["rms_total_mm"].squeeze()
+    assert np.all(np.isfinite(rms.values)), rms
+    mart_id = str(study["case_id"].sel(reconstruct_method="mart", piv_spacing="4x6x6").squeeze().values)
+    assert mart_id.endswith("/reconstruct.method~mart/piv.spacing~4x6x6")
+    vol = io.open_array(work / "results" / "tiny" / Path(mart_id).parent / "volume_a.zarr")
+    assert vol.attrs["method"] == "mart" and float(vol.min()) >= 0.0

@@ -1,9 +1,11 @@
 """The study (thesis ch. 7): errors against the truth, the sweep table and the report.
 
-Modules: :mod:`~lfstudy.study.case` (one case's config → its science: the
-layer the workflow, the CLI and notebooks share), :mod:`~lfstudy.study.metrics`
-(per-case errors, Q, the sweep Dataset), :mod:`~lfstudy.study.report` and :mod:`~lfstudy.study.figures`
-(the HTML report). The report (matplotlib) is imported on first use, so the
+Modules: :mod:`~lfstudy.study.sweep` (the sweep table: settings, cases, where
+each stage's outputs live), :mod:`~lfstudy.study.case` (one case's config → its
+science: the layer the workflow, the CLI and notebooks share),
+:mod:`~lfstudy.study.metrics` (per-case errors, Q), :mod:`~lfstudy.study.table`
+(the study Dataset and CSV), :mod:`~lfstudy.study.report` and
+:mod:`~lfstudy.study.figures` (the HTML report). The report (matplotlib) is imported on first use, so the
 per-case stages that only need the metrics start fast.
 """
 
@@ -11,21 +13,19 @@ from __future__ import annotations
 
 from typing import Any
 
-from lfstudy.study.case import calib_id, derive_seed, render_volume, simulate_case
+from lfstudy.study.case import derive_seed, render_volume, simulate_case
 from lfstudy.study.metrics import (
     AXES,
     METRIC_LABELS,
     case_errors,
-    combine_cases,
     error_statistics,
-    format_param,
-    from_csv,
     locking_excess,
     peak_locking_c1,
     reconstruction_quality,
-    stage_times,
-    to_csv,
+    render_truth,
 )
+from lfstudy.study.sweep import NAMED, Case, Setting, Sweep
+from lfstudy.study.table import combine_cases, from_csv, stage_times, to_csv
 
 _REPORT = ("write_report", "write_figures", "report_blocks", "best_designs", "case_table")
 
@@ -33,7 +33,6 @@ __all__ = [
     "simulate_case",
     "render_volume",
     "derive_seed",
-    "calib_id",
     "AXES",
     "METRIC_LABELS",
     "case_errors",
@@ -45,7 +44,11 @@ __all__ = [
     "combine_cases",
     "to_csv",
     "from_csv",
-    "format_param",
+    "render_truth",
+    "Sweep",
+    "Setting",
+    "Case",
+    "NAMED",
     *_REPORT,
 ]
 

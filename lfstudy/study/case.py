@@ -10,7 +10,8 @@ Seeds are derived, never drawn from the clock: the particle field depends on
 (study seed, magnification, ppp) only, so every f-number and lenslet pitch of
 a sweep images the *same* particles (sec. 4.3.2 keeps the particle field
 apart from the optics for exactly this reason); ray-tracing streams depend on
-the full case id and the frame.
+the images' own location (the settings the simulation reads) and the frame,
+so cases that differ only in processing share their images.
 """
 
 from __future__ import annotations
@@ -22,12 +23,10 @@ from typing import Any
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import Case
 from lfstudy.optics import PlenopticCamera
 
 __all__ = [
     "derive_seed",
-    "calib_id",
     "case_camera",
     "case_planes",
     "truth_sigma",
@@ -49,11 +48,10 @@ def derive_seed(base: int, *parts: Any) -> int:
     return zlib.crc32(text.encode()) & 0x7FFFFFFF
 
 
-def calib_id(case: Case | str) -> str:
-    """Calibration is shared by all cases with the same magnification and pitch
-    (the pinhole image is taken at f/16 whatever the working f-number)."""
-    case = Case.from_id(case) if isinstance(case, str) else case
-    return case.case_id.split("/fnum~")[0] + "/pitch~" + case.case_id.split("/pitch~")[1].split("/")[0]
+def _stage_id(ccfg: Mapping[str, Any], stage: str) -> str:
+    """Where ``stage``'s outputs live, from a case config or a stage config."""
+    ids = ccfg.get("stage_ids")
+    return ids[stage] if ids else ccfg["stage_id"]
 
 
 def case_camera(ccfg: Mapping[str, Any]) -> PlenopticCamera:
@@ -87,8 +85,9 @@ def case_particles(ccfg: Mapping[str, Any]) -> xr.Dataset:
 
     cam = case_camera(ccfg)
     p = ccfg["particles"]
-    case = Case.from_id(ccfg["case_id"])
-    seed = derive_seed(ccfg["seed"], "particles", case.magnification, case.ppp)
+    # the field depends on the seed, magnification and ppp only: every f-number and pitch
+    # of a sweep images the same particles
+    seed = derive_seed(ccfg["seed"], "particles", float(ccfg["camera"]["magnification"]), float(p["ppp"]))
     kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
     field = seed_particles(
         cam,
@@ -118,7 +117,7 @@ def case_image(ccfg: Mapping[str, Any], field: xr.Dataset, frame: str, *, progre
     from lfstudy.simulate.raytrace import render
 
     rt = ccfg["raytrace"]
-    seed = derive_seed(ccfg["seed"], "raytrace", ccfg["case_id"], frame)
+    seed = derive_seed(ccfg["seed"], "raytrace", _stage_id(ccfg, "simulate"), frame)
     img = render(
         case_camera(ccfg),
         field,
@@ -137,7 +136,7 @@ def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> xr.DataA
     from lfstudy.simulate.raytrace import render_pinhole
 
     ph = ccfg["pinhole"]
-    seed = derive_seed(ccfg["seed"], "pinhole", calib_id(ccfg["case_id"]))
+    seed = derive_seed(ccfg["seed"], "pinhole", ccfg["calib_id"])
     img = render_pinhole(
         case_camera(ccfg),
         fnumber=ph["fnumber"],

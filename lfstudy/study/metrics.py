@@ -1,17 +1,14 @@
 """Errors of a light-field PIV case against the known flow (thesis ch. 7).
 
-Pure computations over xarray objects (no file I/O except :func:`stage_times`,
-which reads Snakemake benchmark tables, and :func:`to_csv` / :func:`from_csv`):
+Pure computations over xarray objects, no file I/O (the study table and the
+stage times are in :mod:`lfstudy.study.table`):
 
 - :func:`case_errors`: true displacement at every PIV window centre, the error
   field per component (measured − true) in voxels and mm, and per-case
   scalars (bias, RMS, standard deviation, valid %, mean and spread of the
   measured displacement, peak locking) as in sec. 7.1–7.4;
 - :func:`reconstruction_quality`: the reconstruction quality factor Q of
-  Elsinga et al. (2006);
-- :func:`stage_times`: run time of every workflow stage of a case;
-- :func:`combine_cases` / :func:`to_csv`: the sweep Dataset whose dimensions
-  are the swept parameters (``study.sel(ppp=0.001)``) and its flat table.
+  Elsinga et al. (2006) against :func:`render_truth`.
 
 Sign convention: everything is in the object frame (+z away from the camera).
 A particle moved +0.5625 mm in x images as +4.5 voxels of 0.125 mm; the
@@ -21,16 +18,13 @@ thesis' histograms (Fig. 7.2: mean −4.45 px) carry the opposite sign.
 from __future__ import annotations
 
 import math
-import re
-from collections.abc import Iterable, Mapping, Sequence
-from pathlib import Path
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import xarray as xr
 from scipy.special import ndtr
 
-from lfstudy.config import SWEEP_KEYS
 from lfstudy.simulate.flows import Flow, true_displacement
 
 __all__ = [
@@ -41,11 +35,6 @@ __all__ = [
     "locking_excess",
     "reconstruction_quality",
     "render_truth",
-    "stage_times",
-    "combine_cases",
-    "to_csv",
-    "from_csv",
-    "format_param",
     "METRIC_LABELS",
 ]
 
@@ -497,177 +486,3 @@ def reconstruction_quality(
     if e2 == 0.0 or t2 == 0.0:
         return math.nan
     return num / math.sqrt(e2 * t2)
-
-
-# --------------------------------------------------------------- run times
-def stage_times(benchmark_dir: str | Path, case_id: str) -> dict[str, float]:
-    """Wall-clock seconds of every workflow rule of one case, from Snakemake benchmarks.
-
-    Reads ``<benchmark_dir>/<rule>/<case_id>.tsv`` and the per-frame tables
-    ``<case_id>_<f>.tsv`` (one lowercase letter, e.g. ``_a``, ``_b``), which
-    are summed. Repeated benchmark runs (several rows) are averaged. Rules
-    keyed by something other than the case (shared calibration) are not
-    attributed to the case.
-
-    Returns
-    -------
-    dict
-        ``{rule: seconds}`` plus ``"total"`` (sum), empty if nothing is found.
-    """
-    import pandas as pd
-
-    root = Path(benchmark_dir)
-    out: dict[str, float] = {}
-    if not root.is_dir():
-        return out
-    head, name = Path(case_id).parent, Path(case_id).name
-    pat = re.compile(rf"^{re.escape(name)}(_[a-z])?\.tsv$")
-    for rule_dir in sorted(p for p in root.iterdir() if p.is_dir()):
-        d = rule_dir / head
-        if not d.is_dir():
-            continue
-        total, found = 0.0, False
-        for f in sorted(d.iterdir()):
-            if pat.match(f.name):
-                try:
-                    s = pd.read_csv(f, sep="\t")["s"].astype(float)
-                except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError):
-                    continue
-                if len(s):
-                    total += float(s.mean())
-                    found = True
-        if found:
-            out[rule_dir.name] = total
-    if out:
-        out["total"] = float(sum(out.values()))
-    return out
-
-
-# ----------------------------------------------------------------- the sweep
-def format_param(key: str, value: Any) -> Any:
-    """A swept value as stored in the study Dataset.
-
-    ``fnumber`` becomes a string ("matched" or "4", as in case ids, because a
-    sweep mixes both), ``flow`` a string, everything else a float.
-    """
-    if key in ("fnumber", "flow"):
-        if isinstance(value, str):
-            try:
-                return f"{float(value):g}" if key == "fnumber" and value != "matched" else value
-            except ValueError:
-                return value
-        return f"{float(value):g}"
-    return float(value)
-
-
-_PARAM_ATTRS: dict[str, dict[str, str]] = {
-    "magnification": _attrs("1", "magnification M"),
-    "fnumber": _attrs("1", "main-lens f-number (matched or explicit)"),
-    "lenslet_pitch": _attrs("mm", "lenslet pitch"),
-    "ppp": _attrs("1", "seeding density (particles per sensor pixel)"),
-    "flow": _attrs("1", "flow case"),
-}
-
-
-def _sort_values(key: str, values: Iterable[Any]) -> list[Any]:
-    vals = set(values)
-    if key == "fnumber":  # "matched" first, then numbers ascending
-        return sorted(vals, key=lambda v: (v != "matched", float(v) if v != "matched" else 0.0))
-    return sorted(vals)
-
-
-def combine_cases(per_case: Iterable[tuple[Mapping[str, Any], xr.Dataset]]) -> xr.Dataset:
-    """One Dataset whose dimensions are the swept parameters.
-
-    Parameters
-    ----------
-    per_case : iterable of (params, scalars)
-        ``params``: the case's swept values (``Case.params``); ``scalars``: a
-        Dataset of 0-d variables (e.g. the scalars of :func:`case_errors` plus
-        ``Q`` and ``time_<rule>``). Non-scalar variables are ignored.
-
-    Returns
-    -------
-    xarray.Dataset
-        Dims ``magnification, fnumber, lenslet_pitch, ppp, flow`` (coords
-        sorted; fnumber and flow as strings), one float variable per scalar,
-        NaN for combinations (or variables) that were not computed, and
-        ``computed`` (bool) marking the cases present. Attrs (units,
-        long_name) are taken from the first case that has the variable.
-    """
-    rows = [({k: format_param(k, p[k]) for k in SWEEP_KEYS}, s) for p, s in per_case]
-    coords = {k: _sort_values(k, (r[0][k] for r in rows)) for k in SWEEP_KEYS}
-    shape = tuple(len(coords[k]) for k in SWEEP_KEYS)
-    pos = {k: {v: i for i, v in enumerate(coords[k])} for k in SWEEP_KEYS}
-    data: dict[str, np.ndarray] = {}
-    attrs: dict[str, dict[str, Any]] = {}
-    computed = np.zeros(shape, bool)
-    for params, s in rows:
-        at = tuple(pos[k][params[k]] for k in SWEEP_KEYS)
-        computed[at] = True
-        for name, var in s.data_vars.items():
-            if var.ndim != 0 or var.dtype.kind not in "biuf":  # numeric scalars only
-                continue
-            if name not in data:
-                data[name] = np.full(shape, np.nan)
-                attrs[name] = dict(var.attrs)
-            data[name][at] = float(var.values)
-    # Stable, readable variable order: headline metrics first, then by name.
-    order = [m for m in METRIC_LABELS if m in data] + sorted(n for n in data if n not in METRIC_LABELS)
-    ds = xr.Dataset(
-        {n: (SWEEP_KEYS, data[n], attrs[n]) for n in order},
-        # Object (variable-length) strings: zarr v3 stores them as vlen-utf8,
-        # fixed-width '<U' has no v3 specification yet.
-        coords={
-            k: (k, np.asarray(coords[k], dtype=object if k in ("fnumber", "flow") else float), _PARAM_ATTRS[k])
-            for k in SWEEP_KEYS
-        },
-    )
-    ds["computed"] = (SWEEP_KEYS, computed, _attrs("1", "case computed"))
-    ds.attrs["title"] = "light-field PIV parametric study: errors per case"
-    return ds
-
-
-def to_csv(study: xr.Dataset, path: str | Path) -> Path:
-    """Write the study as a flat table, one row per computed case.
-
-    Columns: ``case_id``, the swept parameters, then every variable. Units
-    stay in the zarr store (variable attrs), so the file reads straight back
-    with :func:`from_csv` or ``pandas.read_csv``.
-    """
-    from lfstudy.config import Case
-    from lfstudy.io import atomic_path
-
-    df = study.to_dataframe().reset_index()
-    if "computed" in df:
-        df = df[df["computed"].astype(bool)].drop(columns="computed")
-    ids = []
-    for _, r in df.iterrows():
-        fn = r["fnumber"]
-        ids.append(
-            Case(
-                magnification=float(r["magnification"]),
-                fnumber=fn if fn == "matched" else float(fn),
-                lenslet_pitch=float(r["lenslet_pitch"]),
-                ppp=float(r["ppp"]),
-                flow=str(r["flow"]),
-            ).case_id
-        )
-    df.insert(0, "case_id", ids)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        df.to_csv(tmp, index=False)
-    return path
-
-
-def from_csv(path: str | Path) -> xr.Dataset:
-    """Read a table written by :func:`to_csv` back into a study Dataset (no units)."""
-    import pandas as pd
-
-    df = pd.read_csv(path, dtype={"fnumber": str, "flow": str})
-    rows = []
-    for _, r in df.iterrows():
-        params = {k: r[k] for k in SWEEP_KEYS}
-        vals = {c: ((), float(r[c])) for c in df.columns if c not in SWEEP_KEYS and c != "case_id"}
-        rows.append((params, xr.Dataset(vals)))
-    return combine_cases(rows)

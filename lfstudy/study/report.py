@@ -30,9 +30,10 @@ import pandas as pd
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import SWEEP_KEYS, Case, case_config
+from lfstudy.config import case_config
 from lfstudy.optics import PlenopticCamera
-from lfstudy.study.metrics import METRIC_LABELS, format_param
+from lfstudy.study.metrics import METRIC_LABELS
+from lfstudy.study.sweep import format_value
 
 __all__ = ["write_report", "write_figures", "report_blocks", "best_designs", "case_table", "SECTIONS"]
 
@@ -107,9 +108,21 @@ def _try(section: str, name: str, caption: str, what: str, make: Callable[[], An
     return Block(section, name, caption=caption, figure=fig, case=case)
 
 
-def _open(case_dir: Path, store: str, var: str | None = None) -> xr.Dataset | xr.DataArray:
-    """Open ``case_dir/store`` lazily; with ``var=""`` return its first data variable."""
-    ds = io.open_zarr(Path(case_dir) / store)
+#: Where a case's files are: a directory holding all of them, or ``{file name: path}``.
+CaseFiles = Path | Mapping[str, Path]
+
+
+def _path(files: CaseFiles, store: str) -> Path:
+    return Path(files[store]) if isinstance(files, Mapping) else Path(files) / store
+
+
+def _exists(files: CaseFiles) -> bool:
+    return any(Path(p).exists() for p in files.values()) if isinstance(files, Mapping) else Path(files).is_dir()
+
+
+def _open(files: CaseFiles, store: str, var: str | None = None) -> xr.Dataset | xr.DataArray:
+    """Open a case's ``store`` lazily; with ``var=""`` return its first data variable."""
+    ds = io.open_zarr(_path(files, store))
     if var is None:
         return ds
     name = var or (next(iter(ds.data_vars)))
@@ -156,7 +169,7 @@ def best_designs(study: xr.Dataset) -> pd.DataFrame:
     highest valid %, highest Q, shortest run time. Returns an empty table for
     an empty study.
     """
-    df = case_table(study, [c for c in study.data_vars if c != "computed" and study[c].ndim == len(SWEEP_KEYS)])
+    df = case_table(study, [c for c in study.data_vars if c != "computed" and study[c].dtype.kind in "biuf"])
     if df.empty:
         return df
     if all(f"bias_{a}" in df for a in "xyz"):
@@ -184,10 +197,7 @@ def best_designs(study: xr.Dataset) -> pd.DataFrame:
                     "criterion": label,
                     "value": float(sub.loc[idx, col]),
                     "unit": unit,
-                    "magnification": p["magnification"],
-                    "fnumber": p["fnumber"],
-                    "lenslet_pitch [mm]": p["lenslet_pitch"],
-                    "ppp": p["ppp"],
+                    **{k: v for k, v in p.items() if k != "flow"},
                     "total RMS [voxel]": float(sub.loc[idx, "rms_total"]) if "rms_total" in sub else math.nan,
                 }
             )
@@ -195,52 +205,48 @@ def best_designs(study: xr.Dataset) -> pd.DataFrame:
 
 
 def _varied(study: xr.Dataset) -> list[str]:
-    return [k for k in SWEEP_KEYS if k in study.dims and study.sizes[k] > 1 and k != "flow"]
+    return [str(k) for k in study.dims if study.sizes[k] > 1 and k != "flow"]
+
+
+def _computed_ids(study: xr.Dataset) -> list[str]:
+    """Case ids of the computed cases, in the study's order."""
+    if "case_id" not in study:
+        return []
+    ids = np.asarray(study["case_id"].values).ravel()
+    comp = np.asarray(study["computed"].values).ravel() if "computed" in study else np.ones(ids.size, bool)
+    return [str(c) for c, ok in zip(ids, comp) if ok and c]
 
 
 def _cameras(study: xr.Dataset, cfg: Mapping[str, Any]) -> dict[str, PlenopticCamera]:
-    """The distinct cameras (magnification × f-number × lenslet pitch) of the computed cases."""
-    flow = next(iter(cfg["flows"]))
-    comp = study.get("computed", None)
+    """The distinct cameras of the computed cases, labelled by their magnification, f-number and pitch."""
     out: dict[str, PlenopticCamera] = {}
-    for m in study["magnification"].values:
-        for fn in study["fnumber"].values:
-            for pl in study["lenslet_pitch"].values:
-                if comp is not None and not bool(comp.sel(magnification=m, fnumber=fn, lenslet_pitch=pl).any()):
-                    continue
-                fnv = fn if fn == "matched" else float(fn)
-                case = Case(float(m), fnv, float(pl), float(study["ppp"].values[0]), flow)
-                label = f"M={float(m):g}, f/{fn}, pl={float(pl):g} mm"
-                out[label] = PlenopticCamera.from_config(case_config(cfg, case))
+    for cid in _computed_ids(study):
+        cam = PlenopticCamera.from_config(case_config(cfg, cid))
+        label = f"M={cam.magnification:g}, f/{format_value(cam.fnumber)}, pl={cam.lenslet_pitch:g} mm" + (
+            f", pp={cam.pixel_pitch:g} mm" if cam.pixel_pitch != 0.0074 else ""
+        )
+        out.setdefault(label, cam)
     return out
 
 
-def _representative(study: xr.Dataset, case_dirs: Mapping[str, Path]) -> str | None:
-    """The case with the lowest total RMS error whose directory exists, else the first existing."""
-    existing = [c for c, d in case_dirs.items() if Path(d).is_dir()]
+def _representative(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> str | None:
+    """The case with the lowest total RMS error whose files exist, else the first existing."""
+    existing = [c for c, d in case_dirs.items() if _exists(d)]
     if not existing:
         return None
-    if "rms_total" in study:
-        df = case_table(study, ["rms_total"]).dropna()
-        for idx in df.sort_values("rms_total").index:
-            p = dict(zip(df.index.names, idx))
-            fn = p["fnumber"]
-            cid = Case(
-                float(p["magnification"]),
-                fn if fn == "matched" else float(fn),
-                float(p["lenslet_pitch"]),
-                float(p["ppp"]),
-                str(p["flow"]),
-            ).case_id
-            if cid in existing:
-                return cid
+    if "rms_total" in study and "case_id" in study:
+        ids = np.asarray(study["case_id"].values).ravel()
+        rms = np.asarray(study["rms_total"].values, dtype=float).ravel()
+        for k in np.argsort(np.where(np.isfinite(rms), rms, np.inf), kind="stable"):
+            if np.isfinite(rms[k]) and ids[k] in existing:
+                return str(ids[k])
     return existing[0]
 
 
 # ------------------------------------------------------------------ blocks
 def report_blocks(
     study: xr.Dataset,
-    case_dirs: Mapping[str, Path],
+    case_dirs: Mapping[str, CaseFiles],
     cfg: Mapping[str, Any],
     *,
     max_cases: int = 50,
@@ -252,7 +258,7 @@ def report_blocks(
     ----------
     study : xarray.Dataset
         The sweep Dataset (dims = swept parameters).
-    case_dirs : mapping case id -> directory
+    case_dirs : mapping case id -> directory or {file name: path}
         Per-case result directories (``results/<name>/<case_id>``).
     cfg : mapping
         The validated study config.
@@ -266,14 +272,10 @@ def report_blocks(
     cfg = dict(cfg)
     # ---------------------------------------------------------- overview
     n_comp = int(study["computed"].sum()) if "computed" in study else len(case_dirs)
-    n_total = int(np.prod([study.sizes[k] for k in SWEEP_KEYS if k in study.dims]))
+    n_total = int(np.prod([study.sizes[k] for k in study.dims]))
     sweep = pd.DataFrame(
-        {
-            "values": [
-                ", ".join(str(format_param(k, v)) for v in study[k].values) for k in SWEEP_KEYS if k in study.coords
-            ]
-        },
-        index=[k for k in SWEEP_KEYS if k in study.coords],
+        {"values": [", ".join(format_value(v) for v in study[k].values.tolist()) for k in study.dims]},
+        index=[str(k) for k in study.dims],
     )
     yield Block(
         "overview",
@@ -316,7 +318,7 @@ def report_blocks(
         if cols:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                red = [d for d in SWEEP_KEYS if d not in (p, "flow") and d in study.dims]
+                red = [d for d in study.dims if d not in (p, "flow")]
                 marg = study[cols].mean(red, skipna=True).to_dataframe()
             yield Block(
                 "comparison",
@@ -417,7 +419,7 @@ def report_blocks(
     if rep is None:
         yield Block("representative", "none", note="Representative case: not available (no case directory).")
     else:
-        d = Path(case_dirs[rep])
+        d = case_dirs[rep]
         yield Block(
             "representative",
             "id",
@@ -442,7 +444,7 @@ def report_blocks(
 
 
 def _case_blocks(
-    study: xr.Dataset, case_dirs: Mapping[str, Path], cfg: Mapping[str, Any], *, max_cases: int, progress: bool
+    study: xr.Dataset, case_dirs: Mapping[str, CaseFiles], cfg: Mapping[str, Any], *, max_cases: int, progress: bool
 ) -> Iterator[Block]:
     from tqdm.auto import tqdm
 
@@ -458,9 +460,8 @@ def _case_blocks(
             f"{len(items)} cases; every case is in the tables above.",
         )
     for cid, d in tqdm(items[:max_cases], desc="report: cases", unit="case", disable=not progress):
-        d = Path(d)
-        if not d.is_dir():
-            yield _na("cases", "dir", "Case directory", "missing", case=cid)
+        if not _exists(d):
+            yield _na("cases", "dir", "Case files", "missing", case=cid)
             continue
         try:
             piv = _open(d, "piv.zarr").load()
@@ -537,7 +538,7 @@ def _render(b: Block) -> str:
 
 def write_report(
     study: xr.Dataset,
-    case_dirs: Mapping[str, Path],
+    case_dirs: Mapping[str, CaseFiles],
     cfg: Mapping[str, Any],
     out_html: Path,
     *,
@@ -550,7 +551,7 @@ def write_report(
     ----------
     study : xarray.Dataset
         Output of :func:`lfstudy.study.metrics.combine_cases` (dims = swept parameters).
-    case_dirs : mapping case id -> Path
+    case_dirs : mapping case id -> directory or {file name: path}
         Per-case result directories; missing artefacts are reported as "not
         available".
     cfg : mapping
@@ -603,7 +604,7 @@ def write_report(
 
 def write_figures(
     study: xr.Dataset,
-    case_dirs: Mapping[str, Path],
+    case_dirs: Mapping[str, CaseFiles],
     cfg: Mapping[str, Any],
     out_dir: Path,
     *,
