@@ -264,6 +264,91 @@ def _view_accumulate(lens, pr, pc, vals, use, sxs, wxs, kxs, sys_, wys, kys, num
                     num[k, y0 + a, x0 + b] += wa * wxs[pc, k, l, b]
 
 
+#: Plane blocks of the column projection: a fixed count, so the sum over planes is done in
+#: the same order whatever the number of threads.
+_PLANE_BLOCKS = 8
+
+
+@njit(parallel=True, cache=True)
+def _column_forward(vol, lens, pc, prs, sxs, wxs, kxs, sys_, wys, kys, out):  # pragma: no cover - jitted
+    """Projection of the views (prs[j], pc) of one pixel column: out[block, j, m] for lenslet lens[m].
+
+    The views of a column share their x weights, so per plane and lenslet the
+    volume is first interpolated in x along the rows any of them crosses, then
+    each view sums its y weights over that column. Planes are split into
+    ``out.shape[0]`` fixed blocks (one partial sum each), read in table order.
+    """
+    nz = vol.shape[0]
+    nb = out.shape[0]
+    nv = prs.shape[0]
+    for blk in prange(nb):
+        col = np.empty(vol.shape[1])
+        for j in range(nv):
+            for m in range(lens.shape[0]):
+                out[blk, j, m] = 0.0
+        for k in range(blk * nz // nb, (blk + 1) * nz // nb):
+            kx = kxs[k]
+            ky = kys[k]
+            for m in range(lens.shape[0]):
+                l = lens[m]
+                x0 = sxs[pc, k, l]
+                ylo = sys_[prs[0], k, l]
+                yhi = ylo
+                for j in range(1, nv):
+                    y0 = sys_[prs[j], k, l]
+                    ylo = min(ylo, y0)
+                    yhi = max(yhi, y0)
+                for y in range(ylo, yhi + ky):
+                    acc = 0.0
+                    for b in range(kx):
+                        acc += wxs[pc, k, l, b] * vol[k, y, x0 + b]
+                    col[y] = acc
+                for j in range(nv):
+                    y0 = sys_[prs[j], k, l]
+                    s = 0.0
+                    for a in range(ky):
+                        s += wys[prs[j], k, l, a] * col[y0 + a]
+                    out[blk, j, m] += s
+
+
+@njit(parallel=True, cache=True)
+def _column_accumulate(lens, pc, prs, vals, sxs, wxs, kxs, sys_, wys, kys, num):  # pragma: no cover - jitted
+    """num += Σ F·vals[j, m] over the beams of the views (prs[j], pc) of one column (planes in parallel)."""
+    nz = num.shape[0]
+    nv = prs.shape[0]
+    for k in prange(nz):
+        kx = kxs[k]
+        ky = kys[k]
+        col = np.zeros(num.shape[1])
+        for m in range(lens.shape[0]):
+            l = lens[m]
+            ylo = sys_[prs[0], k, l]
+            yhi = ylo
+            any_v = False
+            for j in range(nv):
+                y0 = sys_[prs[j], k, l]
+                ylo = min(ylo, y0)
+                yhi = max(yhi, y0)
+                if vals[j, m] != 0.0:
+                    any_v = True
+            if not any_v:
+                continue
+            for j in range(nv):
+                v = vals[j, m]
+                if v == 0.0:
+                    continue
+                y0 = sys_[prs[j], k, l]
+                for a in range(ky):
+                    col[y0 + a] += wys[prs[j], k, l, a] * v
+            x0 = sxs[pc, k, l]
+            for y in range(ylo, yhi + ky):
+                c = col[y]
+                if c != 0.0:
+                    for b in range(kx):
+                        num[k, y, x0 + b] += c * wxs[pc, k, l, b]
+                    col[y] = 0.0
+
+
 @njit(cache=True)
 def _impulse(k, j, i, lens, sxs, wxs, sys_, wys, gain, out):  # pragma: no cover - jitted
     """out[l, pr, pc] = gain · Fy(j) · Fx(i) of plane k: the light field of one unit voxel."""
@@ -461,6 +546,26 @@ class PlenopticProjector:
         np.sum(self._partial, axis=0, out=out)  # planes in a fixed order: thread-count independent
         out *= self.gain[self.lenses, pr, pc]
         return out
+
+    def columns(self) -> list[tuple[int, np.ndarray]]:
+        """Views grouped by pixel column: ``[(pc, rows pr of the active views), ...]``."""
+        cols: dict[int, list[int]] = {}
+        for pr, pc in self.views():
+            cols.setdefault(pc, []).append(pr)
+        return [(pc, np.asarray(prs, dtype=np.int64)) for pc, prs in sorted(cols.items())]
+
+    def column_forward(self, vol: np.ndarray, pc: int, prs: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Projections of the views (prs[j], pc): ``out[j, m]`` for lenslet ``self.lenses[m]``."""
+        nb = min(_PLANE_BLOCKS, self.grid.shape[0])
+        part = np.empty((nb, prs.size, self.lenses.size))
+        _column_forward(vol, self.lenses, pc, prs, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, part)
+        np.sum(part, axis=0, out=out)  # blocks in a fixed order: thread-count independent
+        out *= self.gain[self.lenses][:, prs, pc].T
+        return out
+
+    def column_accumulate(self, pc: int, prs: np.ndarray, vals: np.ndarray, num: np.ndarray) -> None:
+        """num += Σ_beams F·vals[j, m] over the views (prs[j], pc); a zero value skips its beam."""
+        _column_accumulate(self.lenses, pc, prs, vals, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, num)
 
     def view_accumulate(self, pr: int, pc: int, vals: np.ndarray, use: np.ndarray, num: np.ndarray) -> None:
         """num += Σ_beams F·vals over view (pr, pc), for the beams with ``use`` (F: beam fraction per voxel)."""
