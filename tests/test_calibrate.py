@@ -156,3 +156,16 @@ def test_raytraced_disk_spots_within_005_px():
     ds = find_lenslet_centers(img, cam)
     assert ds.attrs["estimator"] == "centroid"
     assert _rms(ds, cam) < 0.05
+
+
+def test_fit_start_points_are_replaced_as_a_pair():
+    """A centroid far from its lattice point is replaced in both coordinates, judged by one
+    distance (the second coordinate must not be tested against the first's replacement)."""
+    from lfstudy.lightfield.calibrate import _start_points
+
+    lc, lr = np.array([10.0, 20.0]), np.array([10.0, 20.0])
+    ccx = np.array([14.0, 20.5])  # first: 4 px off in x only; second: close
+    ccy = np.array([10.5, 20.5])
+    x, y = _start_points(ccx, ccy, lc, lr, h=3.0)
+    np.testing.assert_array_equal(x, [10.0, 20.5])
+    np.testing.assert_array_equal(y, [10.0, 20.5])  # the old code kept 10.5 here

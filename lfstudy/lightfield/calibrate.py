@@ -37,6 +37,7 @@ frame has its origin at the sensor centre, x right, y up (row 0 at the top).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -395,7 +396,8 @@ def find_lenslet_centers(
         Wrong size for the camera, non-finite pixels, blank image, or no grid.
     """
     img = _as_array(image, camera)
-    ny, nx = img.shape
+    if estimator not in ("auto", "gauss", "centroid"):
+        raise ValueError(f"estimator = {estimator!r}: allowed values are 'auto', 'gauss', 'centroid'")
     if pixel_pitch is None:
         if camera is not None:
             pixel_pitch = camera.pixel_pitch
@@ -403,75 +405,163 @@ def find_lenslet_centers(
             pixel_pitch = float(abs(image["x"].values[1] - image["x"].values[0]))
     if pitch_px is None and camera is not None:
         pitch_px = camera.pixels_per_lenslet * (camera.si + camera.lenslet_focal_length) / camera.si
+    guess = _lattice_guess(img, pitch_px)
+    lattice = _fit_lattice_to_spots(img, guess, window, min_amplitude)
+    grid = _lenslet_grid(lattice, camera, img.shape)
+    spots = _refine_spots(img, grid, lattice, n_iter, min_amplitude, estimator)
+    return _centers_dataset(img.shape, guess, lattice, grid, spots, pixel_pitch, camera)
 
+
+@dataclass
+class _Guess:
+    """Lattice from the spectrum: reciprocal vectors K, basis A (columns a1, a2), a lattice point."""
+
+    K: np.ndarray
+    A: np.ndarray
+    origin: np.ndarray
+    prominence: float
+    pitch: float
+    crop: int  # side of the central crop used
+    centre: np.ndarray  # its centre (col, row)
+
+
+@dataclass
+class _Lattice:
+    """The affine lattice fitted to spot centroids (rows: origin, a1, a2) and the spot window."""
+
+    coef: np.ndarray
+    half_window: int
+    sigma: float
+
+
+@dataclass
+class _Grid:
+    """Lattice indices (n, m) of the output grid, its shape and the lattice positions."""
+
+    n: np.ndarray
+    m: np.ndarray
+    shape: tuple[int, int]
+    col: np.ndarray
+    row: np.ndarray
+
+
+def _lattice_guess(img: np.ndarray, pitch_px: float | None) -> _Guess:
+    """Step 1: pitch and rotation from the power spectrum, offset from the DFT phase."""
+    ny, nx = img.shape
     K, prominence = _detect_reciprocal(img, pitch_px)
     A = np.linalg.inv(K)  # columns a1, a2 in (col, row)
-    pitch = float(np.mean(np.hypot(A[0], A[1])))
     s = int(min(1024, ny, nx)) // 2 * 2
     r0, c0 = (ny - s) // 2, (nx - s) // 2
     centre = np.array([c0 + s / 2.0, r0 + s / 2.0])
     ph = np.array([_dft_phase(img, K[i], slice(r0, r0 + s), slice(c0, c0 + s), centre) for i in range(2)])
     origin = centre + A @ (-ph / (2 * np.pi))  # a lattice point near the crop centre
+    return _Guess(K, A, origin, prominence, float(np.mean(np.hypot(A[0], A[1]))), s, centre)
 
-    # Lattice indices covering the image (or the camera grid).
+
+def _predict(coef: np.ndarray, n: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lattice positions (col, row) of indices (n, m): origin + n·a1 + m·a2."""
+    p = coef[0][None, :] + np.outer(n, coef[1]) + np.outer(m, coef[2])
+    return p[:, 0], p[:, 1]
+
+
+def _fit_lattice_to_spots(img: np.ndarray, g: _Guess, window: int | None, min_amplitude: float) -> _Lattice:
+    """Step 2: affine lattice fitted to windowed centroids, first near the crop (where the FFT
+    prediction is good), then over the whole sensor."""
+    ny, nx = img.shape
     corners = np.array([[-0.5, -0.5], [nx - 0.5, -0.5], [-0.5, ny - 0.5], [nx - 0.5, ny - 0.5]])
-    lat = (corners - origin) @ K.T  # (n, m) of the corners
-    nlo, nhi = int(np.floor(lat[:, 0].min())), int(np.ceil(lat[:, 0].max()))
-    mlo, mhi = int(np.floor(lat[:, 1].min())), int(np.ceil(lat[:, 1].max()))
-    nn, mm = np.meshgrid(np.arange(nlo, nhi + 1), np.arange(mlo, mhi + 1))
+    lat = (corners - g.origin) @ g.K.T  # (n, m) of the corners
+    nn, mm = np.meshgrid(
+        np.arange(int(np.floor(lat[:, 0].min())), int(np.ceil(lat[:, 0].max())) + 1),
+        np.arange(int(np.floor(lat[:, 1].min())), int(np.ceil(lat[:, 1].max())) + 1),
+    )
     nf, mf = nn.ravel().astype(float), mm.ravel().astype(float)
-
-    def predict(coef_or_none):
-        if coef_or_none is None:
-            p = origin[None, :] + np.outer(nf, A[:, 0]) + np.outer(mf, A[:, 1])
-        else:
-            p = coef_or_none[0][None, :] + np.outer(nf, coef_or_none[1]) + np.outer(mf, coef_or_none[2])
-        return p[:, 0], p[:, 1]
-
-    pc, pr = predict(None)
-    sigma = _spot_sigma(img, *(a[np.hypot(pc - centre[0], pr - centre[1]) < 0.25 * s] for a in (pc, pr)), pitch)
-    h = int(window) if window is not None else int(np.clip(np.ceil(2.5 * sigma), 1, max(1, int(0.45 * pitch))))
-
-    # Affine lattice fit: first near the crop (where the FFT prediction is good), then everywhere.
-    coef = None
-    for radius in (0.5 * s, np.inf):
-        qc, qr = predict(coef)
-        sel = np.hypot(qc - centre[0], qr - centre[1]) <= radius
+    coef = np.vstack([g.origin, g.A[:, 0], g.A[:, 1]])
+    pc, pr = _predict(coef, nf, mf)
+    near = np.hypot(pc - g.centre[0], pr - g.centre[1]) < 0.25 * g.crop
+    sigma = _spot_sigma(img, pc[near], pr[near], g.pitch)
+    h = int(window) if window is not None else int(np.clip(np.ceil(2.5 * sigma), 1, max(1, int(0.45 * g.pitch))))
+    fitted = None
+    for radius in (0.5 * g.crop, np.inf):
+        qc, qr = _predict(coef, nf, mf)
+        sel = np.hypot(qc - g.centre[0], qr - g.centre[1]) <= radius
         ccx, ccy, tot, inside = _centroid(img, qc, qr, h)
         good = sel & inside & (tot > 0)
         if good.sum() < 3:
             break
-        amp = tot[good]
-        good[good] &= amp > min_amplitude * np.median(amp)
+        good[good] &= tot[good] > min_amplitude * np.median(tot[good])
         if good.sum() < 3:
             break
-        coef = _fit_lattice(nf[good], mf[good], ccx[good], ccy[good])
-    if coef is None:
+        coef = fitted = _fit_lattice(nf[good], mf[good], ccx[good], ccy[good])
+    if fitted is None:
         raise CalibrationError("no lenslet grid detected: too few spots found in the image")
-    lc, lr = predict(coef)
-    a1, a2 = coef[1], coef[2]
+    return _Lattice(fitted, h, sigma)
 
+
+def _lenslet_grid(lat: _Lattice, camera: PlenopticCamera | None, shape: tuple[int, int]) -> _Grid:
+    """Step 3: the output grid: the camera's lenslet grid, or every lattice row and column on the sensor."""
+    ny, nx = shape
+    coef = lat.coef
     if camera is not None:
         ex, ey = expected_centers(camera)
         i0, j0 = camera.n_lenslets_y // 2, camera.n_lenslets_x // 2
         q0 = np.array([ex[i0, j0], ey[i0, j0]])
-        nm0 = np.rint(np.linalg.solve(np.column_stack([a1, a2]), q0 - coef[0])).astype(int)
+        nm0 = np.rint(np.linalg.solve(np.column_stack([coef[1], coef[2]]), q0 - coef[0])).astype(int)
         jj, ii = np.meshgrid(np.arange(camera.n_lenslets_x) - j0, np.arange(camera.n_lenslets_y) - i0)
         nf, mf = (jj + nm0[0]).ravel().astype(float), (ii + nm0[1]).ravel().astype(float)
-        shape = (camera.n_lenslets_y, camera.n_lenslets_x)
-        lc, lr = predict(coef)
-    else:
-        on = (lc >= -0.5) & (lc <= nx - 0.5) & (lr >= -0.5) & (lr <= ny - 0.5)
-        rows_any = on.reshape(nn.shape).any(1)
-        cols_any = on.reshape(nn.shape).any(0)
-        keep = (rows_any[:, None] & cols_any[None, :]).ravel()
-        shape = (int(rows_any.sum()), int(cols_any.sum()))
-        nf, mf, lc, lr = nf[keep], mf[keep], lc[keep], lr[keep]
+        lc, lr = _predict(coef, nf, mf)
+        return _Grid(nf, mf, (camera.n_lenslets_y, camera.n_lenslets_x), lc, lr)
+    # lattice indices of the sensor corners, then the rows and columns with a spot on the sensor
+    inv = np.linalg.inv(np.column_stack([coef[1], coef[2]]))
+    corners = np.array([[-0.5, -0.5], [nx - 0.5, -0.5], [-0.5, ny - 0.5], [nx - 0.5, ny - 0.5]])
+    lat_c = (corners - coef[0]) @ inv.T
+    nn, mm = np.meshgrid(
+        np.arange(int(np.floor(lat_c[:, 0].min())) - 1, int(np.ceil(lat_c[:, 0].max())) + 2),
+        np.arange(int(np.floor(lat_c[:, 1].min())) - 1, int(np.ceil(lat_c[:, 1].max())) + 2),
+    )
+    nf, mf = nn.ravel().astype(float), mm.ravel().astype(float)
+    lc, lr = _predict(coef, nf, mf)
+    on = (lc >= -0.5) & (lc <= nx - 0.5) & (lr >= -0.5) & (lr <= ny - 0.5)
+    rows_any = on.reshape(nn.shape).any(1)
+    cols_any = on.reshape(nn.shape).any(0)
+    keep = (rows_any[:, None] & cols_any[None, :]).ravel()
+    return _Grid(nf[keep], mf[keep], (int(rows_any.sum()), int(cols_any.sum())), lc[keep], lr[keep])
 
+
+def _start_points(
+    ccx: np.ndarray, ccy: np.ndarray, lc: np.ndarray, lr: np.ndarray, h: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Starting centres of the fits: the centroid where it lies within ``h`` of the lattice
+    position, else the lattice position (both coordinates from the same test)."""
+    near = np.hypot(ccx - lc, ccy - lr) < h
+    return np.where(near, ccx, lc), np.where(near, ccy, lr)
+
+
+@dataclass
+class _Spots:
+    cx: np.ndarray
+    cy: np.ndarray
+    valid: np.ndarray
+    amp: np.ndarray
+    sx: np.ndarray
+    sy: np.ndarray
+    conv: np.ndarray
+    resid: np.ndarray
+    sig_med: float
+    rms_g: float
+    rms_c: float
+    use_c: bool
+
+
+def _refine_spots(
+    img: np.ndarray, grid: _Grid, lat: _Lattice, n_iter: int, min_amplitude: float, estimator: str
+) -> _Spots:
+    """Step 4: sub-pixel centres: eq. 5.1 Gaussian fit and a ±2σ centroid; keep the estimator
+    that scatters less about the lattice (flat-topped aperture-disk spots favour the centroid)."""
+    lc, lr, h = grid.col, grid.row, lat.half_window
+    pitch = float(0.5 * (np.hypot(*lat.coef[1]) + np.hypot(*lat.coef[2])))
     ccx, ccy, _, _ = _centroid(img, lc, lr, h, n_iter=1)
-    ccx = np.where(np.hypot(ccx - lc, ccy - lr) < h, ccx, lc)
-    ccy = np.where(np.hypot(ccx - lc, ccy - lr) < h, ccy, lr)
-    fx, fy, amp, sx, sy, conv, inside = _gauss_fit(img, ccx, ccy, h, sigma, n_iter)
+    ccx, ccy = _start_points(ccx, ccy, lc, lr, h)
+    fx, fy, amp, sx, sy, conv, inside = _gauss_fit(img, ccx, ccy, h, lat.sigma, n_iter)
     med = np.median(amp[conv & inside]) if (conv & inside).any() else 0.0
     valid = conv & inside & (amp >= min_amplitude * med) & (np.hypot(fx - lc, fy - lr) < max(1.0, 0.2 * pitch))
     if valid.sum() < 0.5 * inside.sum() or valid.sum() < 4:
@@ -479,41 +569,53 @@ def find_lenslet_centers(
             f"no lenslet grid detected: only {int(valid.sum())} of {int(inside.sum())} lattice "
             "points hold a spot that fits eq. 5.1"
         )
-    # Second estimator: background-subtracted centroid in a ±2σ window. It is
-    # nearly unbiased for flat-topped spots (the aperture disk of a ray-traced
-    # or real pinhole image), where the Gaussian model of eq. 5.1 is biased by
-    # the sub-pixel phase; the Gaussian fit is better for Gaussian spots in
-    # noise. "auto" keeps the one scattering less about the fitted lattice.
-    sig_med = float(np.median(np.sqrt(sx * sy)[valid])) if valid.any() else sigma
+    # The centroid is nearly unbiased for flat-topped spots (the aperture disk of a ray-traced
+    # or real pinhole image), where the Gaussian model of eq. 5.1 is biased by the sub-pixel
+    # phase; the Gaussian fit is better for Gaussian spots in noise.
+    sig_med = float(np.median(np.sqrt(sx * sy)[valid])) if valid.any() else lat.sigma
     hc = int(np.clip(np.ceil(2.0 * sig_med), 1, max(1, int(0.45 * pitch))))
     gx, gy, _, _ = _centroid(img, lc, lr, hc, n_iter=2)
     rms_g = float(np.sqrt(np.mean(((fx - lc) ** 2 + (fy - lr) ** 2)[valid])))
     okc = valid & np.isfinite(gx) & np.isfinite(gy)
     rms_c = float(np.sqrt(np.mean(((gx - lc) ** 2 + (gy - lr) ** 2)[okc]))) if okc.any() else np.inf
-    if estimator not in ("auto", "gauss", "centroid"):
-        raise ValueError(f"estimator = {estimator!r}: allowed values are 'auto', 'gauss', 'centroid'")
     use_c = estimator == "centroid" or (estimator == "auto" and rms_c < rms_g)
     if use_c:
         fx, fy, valid = np.where(okc, gx, lc), np.where(okc, gy, lr), okc
-    cx = np.where(valid, fx, lc).reshape(shape)
-    cy = np.where(valid, fy, lr).reshape(shape)
     resid = np.hypot(fx - lc, fy - lr)[valid]
+    return _Spots(
+        np.where(valid, fx, lc), np.where(valid, fy, lr), valid, amp, sx, sy, conv, resid, sig_med, rms_g, rms_c, use_c
+    )
 
+
+def _centers_dataset(
+    shape_img: tuple[int, int],
+    g: _Guess,
+    lat: _Lattice,
+    grid: _Grid,
+    sp: _Spots,
+    pixel_pitch: float | None,
+    camera: PlenopticCamera | None,
+) -> xr.Dataset:
+    """Step 5: the labelled result."""
+    ny, nx = shape_img
+    shape = grid.shape
+    a1, a2 = lat.coef[1], lat.coef[2]
+    cx, cy = sp.cx.reshape(shape), sp.cy.reshape(shape)
     dims = ("lenslet_row", "lenslet_col")
     px = lambda ln: {"units": "px", "long_name": ln}  # noqa: E731
     data: dict[str, Any] = {
         "cx": (dims, cx, px("lenslet-image centre column (pixel centres at integers)")),
         "cy": (dims, cy, px("lenslet-image centre row (row 0 at the top)")),
-        "valid": (dims, valid.reshape(shape), {"units": "1", "long_name": "spot found and fitted"}),
+        "valid": (dims, sp.valid.reshape(shape), {"units": "1", "long_name": "spot found and fitted"}),
         "amplitude": (
             dims,
-            np.where(conv, amp, 0.0).reshape(shape),
+            np.where(sp.conv, sp.amp, 0.0).reshape(shape),
             {"units": "counts", "long_name": "fitted spot amplitude c (eq. 5.1)"},
         ),
-        "sigma_x": (dims, sx.reshape(shape), px("fitted spot sigma_x (eq. 5.1)")),
-        "sigma_y": (dims, sy.reshape(shape), px("fitted spot sigma_y (eq. 5.1)")),
-        "cx_lattice": (dims, lc.reshape(shape), px("affine-lattice column")),
-        "cy_lattice": (dims, lr.reshape(shape), px("affine-lattice row")),
+        "sigma_x": (dims, sp.sx.reshape(shape), px("fitted spot sigma_x (eq. 5.1)")),
+        "sigma_y": (dims, sp.sy.reshape(shape), px("fitted spot sigma_y (eq. 5.1)")),
+        "cx_lattice": (dims, grid.col.reshape(shape), px("affine-lattice column")),
+        "cy_lattice": (dims, grid.row.reshape(shape), px("affine-lattice row")),
     }
     if pixel_pitch is not None:
         x, y = pixel_to_sensor(cx, cy, (ny, nx), pixel_pitch)
@@ -521,8 +623,8 @@ def find_lenslet_centers(
         data["y"] = (dims, y, {"units": "mm", "long_name": "lenslet-image centre y (sensor frame, y up, eq. 5.3)"})
     # Offset: the lattice point nearest the image centre, relative to it.
     ic = np.array([(nx - 1) / 2.0, (ny - 1) / 2.0])
-    nm = np.rint(np.linalg.solve(np.column_stack([a1, a2]), ic - coef[0]))
-    onear = coef[0] + nm[0] * a1 + nm[1] * a2 - ic
+    nm = np.rint(np.linalg.solve(np.column_stack([a1, a2]), ic - lat.coef[0]))
+    onear = lat.coef[0] + nm[0] * a1 + nm[1] * a2 - ic
     attrs: dict[str, Any] = {
         "quantity": (
             "lenslet-image (spot) centres as measured: the lenslet centres projected from the "
@@ -535,14 +637,14 @@ def find_lenslet_centers(
         "rotation_units": "rad (sensor frame, counter-clockwise, y up)",
         "offset_x_px": float(onear[0]),
         "offset_y_px": float(-onear[1]),
-        "spot_sigma_px": float(sig_med),
-        "estimator": "centroid" if use_c else "gauss (eq. 5.1)",
-        "rms_about_lattice_gauss_px": rms_g,
-        "rms_about_lattice_centroid_px": rms_c,
-        "window_half_width_px": int(h),
-        "lattice_rms_px": float(np.sqrt(np.mean(resid**2))) if resid.size else float("nan"),
-        "n_valid": int(valid.sum()),
-        "grid_prominence": float(prominence),
+        "spot_sigma_px": float(sp.sig_med),
+        "estimator": "centroid" if sp.use_c else "gauss (eq. 5.1)",
+        "rms_about_lattice_gauss_px": sp.rms_g,
+        "rms_about_lattice_centroid_px": sp.rms_c,
+        "window_half_width_px": int(lat.half_window),
+        "lattice_rms_px": float(np.sqrt(np.mean(sp.resid**2))) if sp.resid.size else float("nan"),
+        "n_valid": int(sp.valid.sum()),
+        "grid_prominence": float(g.prominence),
         "image_rows": int(ny),
         "image_cols": int(nx),
         "y_direction": "lenslet_row 0 is the top row; y (mm) points up",
