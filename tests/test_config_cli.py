@@ -20,7 +20,9 @@ def demo_raw():
 def test_shipped_configs_valid():
     for name in ("demo.yaml", "thesis.yaml"):
         cfg = load_config(ROOT / "config" / name)
-        assert cfg["refocus"]["resize"] is True  # defaults filled
+        # defaults filled where neither config sets them
+        assert cfg["grid"]["spacing"] == "uniform" and cfg["piv"]["subpixel"] == "auto"
+        assert cfg["reconstruct"]["mart"]["iterations"] == 3 and cfg["refocus"]["cubic"] is False
     thesis = load_config(ROOT / "config" / "thesis.yaml")
     assert {c.flow for c in expand_cases(thesis)} == {"uniform_x", "uniform_z", "hill"}
 

@@ -292,3 +292,33 @@ def test_five_point_estimator_keeps_elongated_particles_unbiased():
         bias[est] = float(np.mean(np.abs(errs)))
     assert bias["auto"] < 0.02, bias
     assert bias["gauss3"] > 1.5 * bias["auto"], bias
+
+
+def test_normalised_median_test_flags_and_replaces_an_injected_outlier():
+    """Sec. 6.1.3: a vector that disagrees with its neighbours is flagged and replaced by their mean."""
+    from lfstudy.piv.engine import _validate
+
+    rng = np.random.default_rng(1)
+    d = np.array([1.0, 0.5, 0.2])[:, None, None, None] + rng.normal(0, 0.02, (3, 6, 7, 8))
+    truth = d.copy()
+    d[:, 3, 3, 3] = (5.0, -4.0, 2.0)  # the outlier
+    d[:, 0, 0, 0] = (1.3, 0.5, 0.2)  # a corner vector off by 0.3: also flagged (few neighbours)
+    field, valid = _validate(d, np.ones((6, 7, 8), bool), eps=0.1, threshold=2.0)
+    assert not valid[3, 3, 3] and not valid[0, 0, 0]
+    assert valid.sum() == valid.size - 2  # nothing else
+    nb = truth[:, 2:5, 2:5, 2:5].reshape(3, -1)
+    np.testing.assert_allclose(field[:, 3, 3, 3], nb.mean(axis=1), atol=0.02)
+    np.testing.assert_array_equal(field[:, valid], d[:, valid])  # valid vectors untouched
+
+
+def test_outliers_in_the_images_are_replaced_in_widim():
+    """A window whose second frame holds a foreign pattern gives a wrong peak: widim flags it and
+    the final field there stays near the true displacement."""
+    a, b = particle_pair((48, 48), (1.4, 2.6), density=0.02, seed=5)
+    b = b.copy()
+    rng = np.random.default_rng(9)
+    b[16:32, 16:32] = rng.random((16, 16)) * b.max()  # noise where particles were
+    r = widim(a, b, window=16, spacing=8, levels=1)
+    iy, ix = int(np.argmin(np.abs(r["y"].values - 23.5))), int(np.argmin(np.abs(r["x"].values - 23.5)))
+    assert not bool(r["valid"].values[iy, ix])
+    assert abs(float(r["v"].values[iy, ix]) - 1.4) < 0.3 and abs(float(r["u"].values[iy, ix]) - 2.6) < 0.3

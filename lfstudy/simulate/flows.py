@@ -3,7 +3,7 @@
 Flows are vectorised, steady velocity fields ``flow.velocity(x, y, z)`` in the
 object frame (mm per unit time). Particles are displaced over Δt by classic
 fourth-order Runge–Kutta with many sub-steps (the thesis used 1,000 Euler
-sub-steps; RK4 converges far faster, see ``tests/test_flows.py``).
+sub-steps; RK4 converges far faster, see ``tests/test_particles_flows.py``).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ import re
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,7 @@ import xarray as xr
 from lfstudy import io
 from lfstudy.config import case_config
 from lfstudy.optics import PlenopticCamera
+from lfstudy.study.case import case_planes
 from lfstudy.study.metrics import METRIC_LABELS
 from lfstudy.study.sweep import format_value
 
@@ -82,7 +83,6 @@ class Block:
     html: str = ""  # trusted fragment built here (tables are escaped by pandas)
     note: str = ""  # plain text, escaped on output
     case: str | None = None  # per-case blocks are grouped under their case id
-    extras: dict[str, Any] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------- helpers
@@ -393,18 +393,9 @@ def report_blocks(
             "ambiguity against magnification",
             lambda: rf.ambiguity_vs_magnification(cam0, marked=[float(m) for m in study["magnification"].values]),
         )
-        r = cfg.get("refocus", {})
 
         def diamonds():
-            planes = {
-                k: (
-                    c,
-                    c.focal_planes(
-                        r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0), cubic=bool(r.get("cubic", False))
-                    ),
-                )
-                for k, c in list(cams.items())[:8]
-            }
+            planes = {k: (c, case_planes(cfg, c)) for k, c in list(cams.items())[:8]}
             return rf.focal_plane_diamonds(planes)
 
         yield _try(
