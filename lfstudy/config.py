@@ -87,6 +87,9 @@ def _describe(err: jsonschema.ValidationError) -> str:
         lo_s = "-inf" if lo is None else f"{lo}"
         hi_s = "inf" if hi is None else f"{hi}"
         return f"allowed range is {lb}{lo_s}, {hi_s}{rb}"
+    if err.validator == "minItems":
+        n = s["minItems"]
+        return f"give at least {n} value{'s' if n > 1 else ''}"
     if err.validator == "enum":
         return "allowed values are " + ", ".join(repr(e) for e in s["enum"])
     if err.validator == "additionalProperties":
@@ -159,7 +162,8 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
             f"config key 'particles.count' = {count}: a fixed particle count overrides ppp, so every swept "
             "ppp value would image the same field; drop particles.count or sweep.ppp"
         )
-    from lfstudy.study.sweep import NAMED
+    from lfstudy.study.resources import check_memory
+    from lfstudy.study.sweep import NAMED, format_value
 
     sweep = sweep_of(cfg)
     schema = load_schema()
@@ -170,13 +174,14 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
             try:
                 validate_section(schema, {k: v for k, v in ccfg.items() if k not in ("flow", "case_id")})
             except ConfigError as exc:
-                where = ", ".join(f"{s.key}={case[s.key]}" for s in sweep.swept)
+                where = ", ".join(f"{s.key}={format_value(case[s.key])}" for s in dotted)
                 raise ConfigError(f"{exc} (case {where})") from None
         try:
             PlenopticCamera.from_config(ccfg)
         except OpticsError as exc:
             where = ", ".join(f"{k}={v}" for k, v in case.params.items() if k != "flow")
             raise ConfigError(f"config key 'camera' (case {where}): {exc}") from None
+        check_memory(ccfg, where=f"case {case.case_id}")
     return cfg
 
 

@@ -135,10 +135,18 @@ def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.D
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"zarr store {str(path)!r} does not exist")
-    with warnings.catch_warnings():
-        # Snakemake drops a .snakemake_timestamp file into directory() outputs.
-        warnings.filterwarnings("ignore", message=".*snakemake_timestamp.*")
-        ds = xr.open_zarr(path, zarr_format=3, consolidated=False)
+    try:
+        with warnings.catch_warnings():
+            # Snakemake drops a .snakemake_timestamp file into directory() outputs.
+            warnings.filterwarnings("ignore", message=".*snakemake_timestamp.*")
+            ds = xr.open_zarr(path, zarr_format=3, consolidated=False)
+    except Exception as exc:  # a damaged store: say which, not a traceback from deep in zarr
+        raise ValueError(
+            f"zarr store {str(path)!r} cannot be read ({type(exc).__name__}: {exc}); it is damaged or not a "
+            "zarr v3 store: delete it and run again to remake it"
+        ) from None
+    if name is not None and name not in ds:
+        raise ValueError(f"zarr store {str(path)!r} has no variable {name!r} (it holds {', '.join(ds.data_vars)})")
     return ds[name] if name is not None else ds
 
 
@@ -209,9 +217,17 @@ def read_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     """Read a TIFF image and the JSON metadata written by :func:`write_tiff` (if any)."""
     import tifffile
 
-    with tifffile.TiffFile(path) as tf:
-        data = tf.asarray()
-        desc = tf.pages[0].description if tf.pages else ""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"image file {str(path)!r} does not exist")
+    try:
+        with tifffile.TiffFile(path) as tf:
+            data = tf.asarray()
+            desc = tf.pages[0].description if tf.pages else ""
+    except (ValueError, OSError, IndexError) as exc:  # tifffile's errors for truncated or foreign files
+        raise ValueError(
+            f"image file {str(path)!r} cannot be read as a TIFF image ({exc}): truncated or not a TIFF"
+        ) from None
     try:
         meta = json.loads(desc) if desc else {}
     except json.JSONDecodeError:

@@ -109,7 +109,14 @@ def register(
             f"{camera.n_pixels_x} x {camera.n_pixels_y} px"
         )
     if not np.all(np.isfinite(img)):
-        raise RegistrationError(f"raw image has {int((~np.isfinite(img)).sum())} non-finite pixels")
+        raise RegistrationError(f"raw image has {int((~np.isfinite(img)).sum())} non-finite (NaN/inf) pixels")
+    if np.any(img < 0):
+        raise RegistrationError(
+            f"raw image has {int((img < 0).sum())} negative pixels (min {float(img.min()):.4g}): a recorded image "
+            "holds counts >= 0; subtract a dark level with clipping, or check the file"
+        )
+    if not np.any(img > 0):
+        raise RegistrationError("raw image is all zero: nothing was recorded (exposure, or the wrong file?)")
     for k in ("cx", "cy"):
         if k not in centers:
             raise RegistrationError(

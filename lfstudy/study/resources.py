@@ -1,0 +1,108 @@
+"""What a case needs: peak memory per stage, estimated from its config, against the machine's.
+
+The estimates are the stages' own large arrays (image buffers, light field, volumes,
+weight tables, correlation batches), rounded up; the interpreter and libraries add
+about 0.3 GB per process. :func:`check_memory` turns a case that cannot fit into one
+clear config error before anything runs, instead of an out-of-memory kill hours into
+a study.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from typing import Any
+
+__all__ = ["machine_memory", "case_memory", "check_memory"]
+
+_BASE = 0.3e9  # interpreter, numpy, xarray, numba: measured ~0.25 GB per stage process
+
+
+def machine_memory() -> int:
+    """Physical memory of this machine [bytes] (0 if the system does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        return 0
+
+
+def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
+    """Estimated peak memory [bytes] of every heavy stage of one case config.
+
+    Returns
+    -------
+    dict
+        ``{"simulate", "register", "reconstruct", "piv": bytes}`` and the config
+        key that sizes each (``"<stage>_key"``), for the error message.
+    """
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.reconstruct.grid import default_voxel_z
+
+    cam = PlenopticCamera.from_config(ccfg)
+    npx = cam.n_pixels_x * cam.n_pixels_y
+    n_part = ccfg["particles"].get("count") or math.ceil(ccfg["particles"]["ppp"] * npx)
+    # ray tracing: 8 float32 chunk buffers + the float64 image + particles (raytrace.memory_estimate)
+    simulate = 8 * npx * 4 + npx * 8 + n_part * 5 * 8
+    n = int(cam.pixels_per_lenslet * (cam.si + cam.lenslet_focal_length) / cam.si)
+    lf = cam.n_lenslets_x * cam.n_lenslets_y * n * n * 4
+    register = npx * 8 + 3 * lf  # the raw image, the light field and its working copies
+    # the reconstruction grid: the depth of the refocus marching at the configured steps
+    g = ccfg.get("grid", {}) or {}
+    d0 = cam.lenslet_pitch / abs(cam.magnification)
+    dxy = g.get("voxel_xy") or d0
+    r = ccfg.get("refocus", {}) or {}
+    planes = cam.focal_planes(r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0), cubic=bool(r.get("cubic")))
+    depth = float(planes["z"].max() - planes["z"].min())
+    nz = (
+        len(planes["z"])
+        if g.get("spacing") == "planes"
+        else int(depth / (g.get("voxel_z") or default_voxel_z(cam))) + 1
+    )
+    nvox = nz * round(cam.n_lenslets_x * d0 / dxy) * round(cam.n_lenslets_y * d0 / dxy)
+    method = (ccfg.get("reconstruct", {}) or {}).get("method", "threshold")
+    reconstruct = lf + 4 * nvox * 8
+    if method == "mart":  # weight tables: (kx + ky) ~ 12 float32 + 2 int32 per (plane, sample) + volumes
+        reconstruct += nz * cam.n_lenslets_x * cam.n_lenslets_y * n * (12 * 4 + 2 * 4) + 8 * nvox * 8
+    elif method == "deconvolution":  # the nz x nz PSF spectra over the padded planes
+        reconstruct += nz * nz * nvox / nz * 8 * 1.3 + 6 * nvox * 8
+    piv = 2 * nvox * 4 + 4 * nvox * 8 + 2**25 * 4 * 3  # volumes, spline coefficients, a correlation batch
+    out = {"simulate": simulate, "register": register, "reconstruct": reconstruct, "piv": piv}
+    return {k: v + _BASE for k, v in out.items()}
+
+
+#: the config key that sizes each stage, and what it holds
+_KEYS = {
+    "simulate": ("camera.sensor", "the ray-traced image buffers"),
+    "register": ("camera.sensor", "the raw image and its light field"),
+    "reconstruct": ("grid", "the reconstruction's volumes and weights (reconstruct.method)"),
+    "piv": ("grid", "the two volumes PIV correlates"),
+}
+
+
+def check_memory(ccfg: Mapping[str, Any], *, available: float | None = None, where: str = "") -> None:
+    """Raise a ConfigError if a stage of this case needs more memory than the machine has.
+
+    Parameters
+    ----------
+    ccfg : mapping
+        A case config.
+    available : float, optional
+        Bytes to compare with; default 90 % of :func:`machine_memory` (no check if unknown).
+    where : str
+        The case, for the message.
+    """
+    from lfstudy.config import ConfigError
+
+    avail = available if available is not None else 0.9 * machine_memory()
+    if not avail:
+        return
+    need = case_memory(ccfg)
+    stage, most = max(need.items(), key=lambda kv: kv[1])
+    if most > avail:
+        key, what = _KEYS[stage]
+        raise ConfigError(
+            f"config key '{key}'{' (' + where + ')' if where else ''}: the {stage} stage needs about "
+            f"{most / 1e9:.3g} GB for {what}, more than this machine's {avail / 1e9:.3g} GB; use a smaller "
+            "sensor, a coarser grid (grid.voxel_xy, grid.voxel_z) or a bigger machine"
+        )
