@@ -107,7 +107,7 @@ def _sum_uniform_cdf_integral(d, a, b):
 def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w):  # pragma: no cover - jitted
     """Per pixel p (of a lenslet), plane k and lenslet l: first voxel and K weights of the beam along one axis.
 
-    Tables are laid out [p, k, l] so a view (one pixel under every lenslet) reads
+    Tables are laid out [k, l, p] so a view (one pixel under every lenslet) reads
     them contiguously, plane by plane.
 
     A voxel is a linear-interpolation (tent) basis function of half-width dc,
@@ -131,12 +131,12 @@ def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, st
                     q0 = nc - kk
                 if q0 < 0:
                     q0 = 0
-                start[p, k, l] = q0
+                start[k, l, p] = q0
                 gm = _sum_uniform_cdf_integral(c0 + (q0 - 1) * dc - xc, a, b)
                 g0 = _sum_uniform_cdf_integral(c0 + q0 * dc - xc, a, b)
                 for j in range(kk):
                     gp = _sum_uniform_cdf_integral(c0 + (q0 + j + 1) * dc - xc, a, b)
-                    w[p, k, l, j] = (gp - 2.0 * g0 + gm) / dc
+                    w[k, l, p, j] = (gp - 2.0 * g0 + gm) / dc
                     gm = g0
                     g0 = gp
 
@@ -201,7 +201,7 @@ def _forward(vol, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no
                     continue
                 s = 0.0
                 for k in range(nz):
-                    s += _ray_sum(vol, k, sys_[pr, k, l], sxs[pc, k, l], wys[pr, k, l], wxs[pc, k, l], kys[k], kxs[k])
+                    s += _ray_sum(vol, k, sys_[k, l, pr], sxs[k, l, pc], wys[k, l, pr], wxs[k, l, pc], kys[k], kxs[k])
                 out[l, pr, pc] = g * s
 
 
@@ -216,18 +216,18 @@ def _adjoint(vals, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: n
         for m in range(lens.shape[0]):
             l = lens[m]
             for pr in range(n):
-                y0 = sys_[pr, k, l]
+                y0 = sys_[k, l, pr]
                 for pc in range(n):
                     g = gain[l, pr, pc] * vals[l, pr, pc]
                     if g == 0.0:
                         continue
-                    x0 = sxs[pc, k, l]
+                    x0 = sxs[k, l, pc]
                     for a in range(ky):
-                        wa = wys[pr, k, l, a] * g
+                        wa = wys[k, l, pr, a] * g
                         if wa == 0.0:
                             continue
                         for b in range(kx):
-                            out[k, y0 + a, x0 + b] += wa * wxs[pc, k, l, b]
+                            out[k, y0 + a, x0 + b] += wa * wxs[k, l, pc, b]
 
 
 @njit(parallel=True, cache=True)
@@ -239,7 +239,7 @@ def _view_forward(vol, lens, pr, pc, sxs, wxs, kxs, sys_, wys, kys, partial):  #
         ky = kys[k]
         for m in range(lens.shape[0]):
             l = lens[m]
-            partial[k, m] = _ray_sum(vol, k, sys_[pr, k, l], sxs[pc, k, l], wys[pr, k, l], wxs[pc, k, l], ky, kx)
+            partial[k, m] = _ray_sum(vol, k, sys_[k, l, pr], sxs[k, l, pc], wys[k, l, pr], wxs[k, l, pc], ky, kx)
 
 
 @njit(parallel=True, cache=True)
@@ -254,14 +254,14 @@ def _view_accumulate(lens, pr, pc, vals, use, sxs, wxs, kxs, sys_, wys, kys, num
                 continue
             l = lens[m]
             v = vals[m]
-            y0 = sys_[pr, k, l]
-            x0 = sxs[pc, k, l]
+            y0 = sys_[k, l, pr]
+            x0 = sxs[k, l, pc]
             for a in range(ky):
-                wa = wys[pr, k, l, a] * v
+                wa = wys[k, l, pr, a] * v
                 if wa == 0.0:
                     continue
                 for b in range(kx):
-                    num[k, y0 + a, x0 + b] += wa * wxs[pc, k, l, b]
+                    num[k, y0 + a, x0 + b] += wa * wxs[k, l, pc, b]
 
 
 #: Plane blocks of the column projection: a fixed count, so the sum over planes is done in
@@ -291,23 +291,23 @@ def _column_forward(vol, lens, pc, prs, sxs, wxs, kxs, sys_, wys, kys, out):  # 
             ky = kys[k]
             for m in range(lens.shape[0]):
                 l = lens[m]
-                x0 = sxs[pc, k, l]
-                ylo = sys_[prs[0], k, l]
+                x0 = sxs[k, l, pc]
+                ylo = sys_[k, l, prs[0]]
                 yhi = ylo
                 for j in range(1, nv):
-                    y0 = sys_[prs[j], k, l]
+                    y0 = sys_[k, l, prs[j]]
                     ylo = min(ylo, y0)
                     yhi = max(yhi, y0)
                 for y in range(ylo, yhi + ky):
                     acc = 0.0
                     for b in range(kx):
-                        acc += wxs[pc, k, l, b] * vol[k, y, x0 + b]
+                        acc += wxs[k, l, pc, b] * vol[k, y, x0 + b]
                     col[y] = acc
                 for j in range(nv):
-                    y0 = sys_[prs[j], k, l]
+                    y0 = sys_[k, l, prs[j]]
                     s = 0.0
                     for a in range(ky):
-                        s += wys[prs[j], k, l, a] * col[y0 + a]
+                        s += wys[k, l, prs[j], a] * col[y0 + a]
                     out[blk, j, m] += s
 
 
@@ -322,11 +322,11 @@ def _column_accumulate(lens, pc, prs, vals, sxs, wxs, kxs, sys_, wys, kys, num):
         col = np.zeros(num.shape[1])
         for m in range(lens.shape[0]):
             l = lens[m]
-            ylo = sys_[prs[0], k, l]
+            ylo = sys_[k, l, prs[0]]
             yhi = ylo
             any_v = False
             for j in range(nv):
-                y0 = sys_[prs[j], k, l]
+                y0 = sys_[k, l, prs[j]]
                 ylo = min(ylo, y0)
                 yhi = max(yhi, y0)
                 if vals[j, m] != 0.0:
@@ -337,15 +337,15 @@ def _column_accumulate(lens, pc, prs, vals, sxs, wxs, kxs, sys_, wys, kys, num):
                 v = vals[j, m]
                 if v == 0.0:
                     continue
-                y0 = sys_[prs[j], k, l]
+                y0 = sys_[k, l, prs[j]]
                 for a in range(ky):
-                    col[y0 + a] += wys[prs[j], k, l, a] * v
-            x0 = sxs[pc, k, l]
+                    col[y0 + a] += wys[k, l, prs[j], a] * v
+            x0 = sxs[k, l, pc]
             for y in range(ylo, yhi + ky):
                 c = col[y]
                 if c != 0.0:
                     for b in range(kx):
-                        num[k, y, x0 + b] += c * wxs[pc, k, l, b]
+                        num[k, y, x0 + b] += c * wxs[k, l, pc, b]
                     col[y] = 0.0
 
 
@@ -358,17 +358,17 @@ def _impulse(k, j, i, lens, sxs, wxs, sys_, wys, gain, out):  # pragma: no cover
     for m in range(lens.shape[0]):
         l = lens[m]
         for pr in range(n):
-            a = j - sys_[pr, k, l]
+            a = j - sys_[k, l, pr]
             if a < 0 or a >= ky:
                 continue
-            wa = wys[pr, k, l, a]
+            wa = wys[k, l, pr, a]
             if wa == 0.0:
                 continue
             for pc in range(n):
-                b = i - sxs[pc, k, l]
+                b = i - sxs[k, l, pc]
                 if b < 0 or b >= kx:
                     continue
-                out[l, pr, pc] = gain[l, pr, pc] * wa * wxs[pc, k, l, b]
+                out[l, pr, pc] = gain[l, pr, pc] * wa * wxs[k, l, pc, b]
 
 
 # ------------------------------------------------------------------ the projector
@@ -461,10 +461,10 @@ class PlenopticProjector:
                 f"projector: weight tables of {need / 1e9:.3g} GB exceed {max_bytes / 1e9:.3g} GB "
                 f"({nz} planes x {nl} lenslets x {n} pixels); use a coarser grid (grid.voxel_z)"
             )
-        self.sxs = np.empty((n, nz, nl), np.int32)
-        self.wxs = np.zeros((n, nz, nl, self.kx), np.float32)
-        self.sys = np.empty((n, nz, nl), np.int32)
-        self.wys = np.zeros((n, nz, nl, self.ky), np.float32)
+        self.sxs = np.empty((nz, nl, n), np.int32)
+        self.wxs = np.zeros((nz, nl, n, self.kx), np.float32)
+        self.sys = np.empty((nz, nl, n), np.int32)
+        self.wys = np.zeros((nz, nl, n, self.ky), np.float32)
         # Grid y ascends with the array index like object +y, and the sensor frame's y points up too.
         _axis_tables(
             lx, sx, self.alpha, self.beta, half_l, half_t, grid.x[0], dx, grid.x.size, self.kxs, self.sxs, self.wxs
