@@ -187,7 +187,10 @@ def run_errors(
     spec = ccfg["flow"]
     res = io.open_zarr(piv).load()
     err = case_errors(res, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
-    sigma = cl.truth_sigma(cl.case_camera(ccfg))
+    cam = cl.case_camera(ccfg)
+    for ax, fov in (("x", cam.fov_x), ("y", cam.fov_y)):
+        err[f"fov_{ax}_mm"] = ((), float(fov), {"units": "mm", "long_name": f"field of view in {ax}"})
+    sigma = cl.truth_sigma(cam)
     q = reconstruction_quality(io.open_array(volume), io.open_zarr(particles).load(), sigma_mm=sigma)
     err["Q"] = (
         (),

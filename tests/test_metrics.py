@@ -97,7 +97,7 @@ def test_all_invalid_gives_nan_and_zero_percent():
         warnings.simplefilter("error")
         err = case_errors(piv, UniformFlow((0.5625, 0, 0)))
     assert float(err["valid_percent"]) == 0.0
-    for name in ("bias_x", "rms_x", "std_z", "rms_total", "mean_x", "peak_locking_x", "locking_excess_z"):
+    for name in ("bias_x", "rms_x", "std_z", "rms_total", "mean_x", "rel_error", "depth_mm", "locking_excess_z"):
         assert np.isnan(float(err[name])), name
 
 
@@ -271,3 +271,24 @@ def test_on_real_widim_result():
     assert abs(float(err["bias_x"])) < 0.1
     assert float(err["std_x"]) < 0.2
     assert float(err["valid_percent"]) > 90
+
+
+def test_resolution_and_relative_error_in_mm():
+    """Designs compare in mm: window and spacing in mm per axis, the depth valid vectors span, and
+    the total error over the true displacement."""
+    piv = synthetic_piv(4.6, 0.0, 0.0, shape=(4, 5, 6), spacing=(8, 16, 16))
+    piv.attrs["final_window"] = [16, 32, 32]
+    valid = np.ones((4, 5, 6), bool)
+    valid[0] = False  # the first row of windows in z is invalid
+    piv["valid"] = (("z", "y", "x"), valid)
+    err = case_errors(piv, UniformFlow((0.5625, 0.0, 0.0)))
+    assert float(err["window_mm_x"]) == pytest.approx(32 * VOX) and float(err["window_mm_z"]) == pytest.approx(16 * VOX)
+    assert float(err["spacing_mm_y"]) == pytest.approx(16 * VOX) and float(err["spacing_mm_z"]) == pytest.approx(
+        8 * VOX
+    )
+    # valid centres span 3 rows of 8 voxels (16 voxels) plus one final window of 16
+    assert float(err["depth_mm"]) == pytest.approx((16 + 16) * VOX)
+    assert float(err["true_mag_mm"]) == pytest.approx(0.5625)
+    assert float(err["rel_error"]) == pytest.approx(0.1 * VOX / 0.5625)
+    for v in ("window_mm_x", "spacing_mm_z", "depth_mm", "rel_error", "true_mag_mm"):
+        assert err[v].attrs["units"] in ("mm", "1") and err[v].attrs["long_name"]

@@ -104,7 +104,7 @@ def test_write_report_self_contained(study_dirs, tmp_path):
     # the thesis comparison shows each uniform case's measured mean (computed from its PIV result)
     means = study["mean_x"].where(study["computed"]).values.ravel()
     for m in means[np.isfinite(means)][:3]:
-        assert f"{m:.4g}" in text
+        assert f"{m:.3g}" in text
     # every embedded image decodes as a PNG
     import base64
 
@@ -116,7 +116,10 @@ def test_best_designs_picks_lowest_rms(study_dirs):
     study = study_dirs[0]
     best = best_designs(study)
     row = best[best["criterion"] == "lowest total RMS error"].iloc[0]
-    assert row["value"] == pytest.approx(float(study["rms_total"].min()))
+    for flow in study["flow"].values:  # per flow, in mm
+        r = best[(best["criterion"] == "lowest total RMS error") & (best["flow"] == flow)].iloc[0]
+        assert r["value"] == pytest.approx(float(study["rms_total_mm"].sel(flow=flow).min()))
+    assert row["unit"] == "mm"
 
 
 def test_write_figures(study_dirs, tmp_path):
@@ -125,9 +128,10 @@ def test_write_figures(study_dirs, tmp_path):
     paths = write_figures(study, few, cfg, tmp_path / "figs", progress=False)
     names = {p.name for p in paths}
     assert all(p.exists() and p.read_bytes()[:4] == b"\x89PNG" for p in paths)
-    assert "comparison_metrics_vs_ppp.png" in names
-    assert "comparison_metrics_vs_lenslet_pitch.png" not in names  # a single value is not plotted against
-    assert "cameras_ambiguity.png" in names
+    assert "comparison_panels_ppp.png" in names and "overview_map.png" in names
+    assert "answer_pareto_uniform_x.png" in names
+    assert "comparison_panels_lenslet_pitch.png" not in names  # a single value is not plotted against
+    assert "designs_ambiguity.png" in names
     assert any(n.startswith("cases_mag-") and n.endswith("histograms.png") for n in names)
 
 
@@ -139,4 +143,64 @@ def test_report_with_nothing_on_disk(study_dirs, tmp_path):
     out = write_report(one, missing, cfg, tmp_path / "r.html", progress=False)
     text = out.read_text()
     assert "not available" in text
-    assert SECTIONS["cameras"] in text
+    assert SECTIONS["designs"] in text
+
+
+def test_pareto_front_is_exactly_the_non_dominated_rows():
+    import pandas as pd
+
+    from lfstudy.study.designs import pareto_front
+
+    df = pd.DataFrame(
+        {
+            "rms_total_mm": [0.10, 0.20, 0.05, 0.10, 0.30, np.nan],
+            "spacing_mm_x": [1.0, 0.5, 2.0, 1.0, 0.5, 0.1],
+            "spacing_mm_z": [2.0, 2.0, 4.0, 3.0, 1.0, 0.1],
+        }
+    )
+    # row 3 is dominated by row 0 (equal error and x, coarser z); the NaN row never counts
+    np.testing.assert_array_equal(pareto_front(df), [True, True, True, False, True, False])
+    # a brute-force check of the definition on random tables
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        t = pd.DataFrame(rng.integers(0, 4, (12, 3)).astype(float), columns=list(df.columns))
+        v = t.to_numpy()
+        expect = [not any(np.all(v[j] <= v[i]) and np.any(v[j] < v[i]) for j in range(len(v))) for i in range(len(v))]
+        np.testing.assert_array_equal(pareto_front(t), expect)
+
+
+def test_designs_are_ranked_in_mm_not_voxels(tmp_path):
+    """Two designs whose voxels differ 1.7x: the coarse one has the smaller error in voxels, the fine
+    one in mm. The recommendation, the best-design table and the report follow mm."""
+    from lfstudy.study.designs import recommend
+    from lfstudy.study.report import best_designs
+    from lfstudy.study.sweep import Case
+    from lfstudy.study.table import combine_cases
+
+    def scalars(rms_vox, vox):
+        return xr.Dataset(
+            {
+                "rms_total": ((), rms_vox, {"units": "voxel", "long_name": "total RMS error"}),
+                "rms_total_mm": ((), rms_vox * vox, {"units": "mm", "long_name": "total RMS error"}),
+                "rel_error": ((), rms_vox * vox / 0.5, {"units": "1", "long_name": "relative error"}),
+                "spacing_mm_x": ((), 8 * vox, {"units": "mm", "long_name": "vector spacing x"}),
+                "spacing_mm_z": ((), 2.0, {"units": "mm", "long_name": "vector spacing z"}),
+                "valid_percent": ((), 95.0, {"units": "percent", "long_name": "valid vectors"}),
+            }
+        )
+
+    fine = Case.of(magnification=-1.0, fnumber="matched", lenslet_pitch=0.0888, ppp=0.002, flow="uniform_x")
+    coarse = Case.of(magnification=-1.0, fnumber="matched", lenslet_pitch=0.15, ppp=0.002, flow="uniform_x")
+    study = combine_cases([(fine, scalars(0.20, 0.0888)), (coarse, scalars(0.15, 0.15))])
+    # in voxels the coarse design "wins" (0.15 < 0.20); in mm the fine one does (0.0178 < 0.0225)
+    assert float(study["rms_total"].sel(lenslet_pitch=0.15).squeeze()) < float(
+        study["rms_total"].sel(lenslet_pitch=0.0888).squeeze()
+    )
+    table, sentences = recommend(study)
+    rec = table[table["recommended"]]
+    assert len(rec) == 1 and float(rec["lenslet_pitch"].iloc[0]) == pytest.approx(0.0888)
+    assert "pitch=0.0888" in sentences["uniform_x"] and "0.0178 mm" in sentences["uniform_x"]
+    best = best_designs(study)
+    row = best[best["criterion"] == "lowest total RMS error"].iloc[0]
+    assert row["lenslet_pitch"] == pytest.approx(0.0888) and row["unit"] == "mm"
+    assert "lowest total RMS error" in set(best["criterion"]) and not any(best["unit"] == "voxel")

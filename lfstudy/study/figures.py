@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import xarray as xr
@@ -371,4 +372,149 @@ def metrics_vs_parameter(
         fig.legend(handles, labels, loc="lower center", ncols=min(6, len(labels)), fontsize=8)
     note = f"; mean over {', '.join(other)}" if other else ""
     fig.suptitle(f"Error metrics against {param}{note}", y=1 - 0.2 / h)
+    return fig
+
+
+# ------------------------------------------------------------ the answer
+def _categorical(ax: Any, values: Sequence[Any], axis: str = "x") -> np.ndarray:
+    """Positions 0..n-1 labelled with the values as the case ids write them (discrete sweep values)."""
+    from lfstudy.study.sweep import format_value
+
+    pos = np.arange(len(values))
+    labels = [format_value(v.item() if hasattr(v, "item") else v) for v in values]
+    rot = 30 if max((len(s) for s in labels), default=0) * len(labels) > 40 else 0
+    if axis == "x":
+        ax.set_xticks(pos, labels, rotation=rot, ha="right" if rot else "center")
+    else:
+        ax.set_yticks(pos, labels)
+    return pos
+
+
+def overview_heatmap(study: xr.Dataset, var: str, dims: Sequence[str]) -> Figure:
+    """The headline metric over the two most influential swept settings, one panel per flow.
+
+    Cells hold the mean over every other setting (NaN-aware), written in the cell;
+    lower is better (the colour map is reversed), so the best corner reads at a glance.
+    """
+    da = study[var]
+    flows = list(study["flow"].values) if "flow" in study.dims else [None]
+    d1, d2 = dims[0], dims[1] if len(dims) > 1 else None
+    fig = _fig(4.6 * len(flows) + 0.8, 3.9, left=0.12, right=0.92, bottom=0.22, top=0.85, wspace=0.45)
+    axes = np.atleast_1d(fig.subplots(1, len(flows)))
+    vals = []
+    for fl in flows:
+        sub = da.sel(flow=fl) if fl is not None else da
+        keep = [d for d in (d2, d1) if d]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m = sub.mean([d for d in sub.dims if d not in keep], skipna=True)
+        vals.append(np.atleast_2d(np.asarray(m.transpose(*keep).values, float)))
+    finite = np.concatenate([v[np.isfinite(v)] for v in vals]) if vals else np.array([])
+    vmin, vmax = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    im = None
+    for ax, fl, v in zip(axes, flows, vals):
+        im = ax.imshow(v, origin="lower", aspect="auto", cmap="viridis_r", vmin=vmin, vmax=vmax)
+        for (i, j), x in np.ndenumerate(v):
+            if np.isfinite(x):
+                ax.text(
+                    j, i, f"{x:.3g}", ha="center", va="center", fontsize=8, color="w" if x > (vmin + vmax) / 2 else "k"
+                )
+        _categorical(ax, study[d1].values, "x")
+        ax.set_xlabel(_label(study[d1]), fontsize=8)
+        if d2:
+            _categorical(ax, study[d2].values, "y")
+            ax.set_ylabel(_label(study[d2]), fontsize=8)
+        else:
+            ax.set_yticks([])
+        ax.set_title(str(fl) if fl is not None else "", fontsize=9)
+        ax.tick_params(labelsize=7)
+    if im is not None:
+        cb = fig.colorbar(im, ax=list(axes), shrink=0.85)
+        cb.set_label(_label(da), fontsize=8)
+    fig.suptitle(f"{_label(da)}: mean over the other settings (lower is better)", fontsize=10)
+    return fig
+
+
+def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Figure:
+    """A few headline metrics against one swept setting (categorical axis), one line per flow,
+    the other settings averaged over the computed cases."""
+    metrics = [m for m in metrics if m in study]
+    n = max(1, len(metrics))
+    fig = _fig(3.3 * n, 3.1, left=0.07, right=0.98, bottom=0.27, top=0.84, wspace=0.4)
+    axes = np.atleast_1d(fig.subplots(1, n))
+    flows = list(study["flow"].values) if "flow" in study.dims and dim != "flow" else [None]
+    for ax, m in zip(axes, metrics):
+        pos = _categorical(ax, study[dim].values)
+        for i, fl in enumerate(flows):
+            sub = study[m].sel(flow=fl) if fl is not None else study[m]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                y = sub.mean([d for d in sub.dims if d != dim], skipna=True)
+            ax.plot(pos, np.asarray(y.values, float), "o-", color=f"C{i}", label=str(fl) if fl is not None else None)
+        if m.startswith("bias"):
+            ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_title(_label(study[m]), fontsize=8)
+        ax.set_xlabel(_label(study[dim]), fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+    h, lab = axes[0].get_legend_handles_labels()
+    if lab:
+        fig.legend(h, lab, loc="upper right", fontsize=7, ncols=min(4, len(lab)))
+    fig.suptitle(f"Against {dim} (mean over the other settings)", fontsize=10, x=0.4)
+    return fig
+
+
+def pareto_figure(table: Any, flow: str) -> Figure:
+    """Total RMS error [mm] against in-plane vector spacing [mm], colour: depth spacing [mm];
+    the Pareto designs ringed and labelled, the recommended one starred."""
+    sub = table[table["flow"] == flow] if "flow" in table else table
+    fig = _fig(6.8, 4.4, left=0.11, right=0.86, bottom=0.13, top=0.9)
+    ax = fig.subplots()
+    x, y = sub["spacing_mm_x"].to_numpy(float), sub["rms_total_mm"].to_numpy(float)
+    c = sub["spacing_mm_z"].to_numpy(float) if "spacing_mm_z" in sub else np.zeros(len(sub))
+    sc = ax.scatter(x, y, c=c, cmap="viridis", s=36, zorder=3)
+    front = sub["pareto"].to_numpy(bool) if "pareto" in sub else np.zeros(len(sub), bool)
+    ax.scatter(x[front], y[front], s=160, facecolors="none", edgecolors="C3", lw=1.5, zorder=4, label="Pareto front")
+    rec = sub["recommended"].to_numpy(bool) if "recommended" in sub else np.zeros(len(sub), bool)
+    ax.scatter(x[rec], y[rec], marker="*", s=260, color="C3", zorder=5, label="recommended")
+    for xi, yi, lab in zip(x[front], y[front], sub["design"].to_numpy()[front]):
+        ax.annotate(lab, (xi, yi), textcoords="offset points", xytext=(6, 4), fontsize=6.5)
+    cb = fig.colorbar(sc, ax=ax)
+    cb.set_label("vector spacing z [mm] (depth resolution)", fontsize=8)
+    ax.set_xlabel("vector spacing x [mm] (in-plane resolution)", fontsize=8)
+    ax.set_ylabel("total RMS error [mm]", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title(f"{flow}: error against resolution (lower left is better)", fontsize=9)
+    return fig
+
+
+def vector_error_slice(piv: xr.Dataset, err: xr.Dataset | None) -> Figure:
+    """Middle x–y slice: the measured vectors beside the error magnitude |measured − true| [mm]."""
+    fig = _fig(10.5, 4.2, left=0.07, right=0.95, top=0.88, bottom=0.14, wspace=0.3)
+    ax1, ax2 = fig.subplots(1, 2)
+    valid = piv["valid"] if "valid" in piv else xr.ones_like(piv["u"], dtype=bool)
+    get = lambda c: piv[f"{c}_mm"] if f"{c}_mm" in piv else piv[c]  # noqa: E731
+    sl = {"z": piv.sizes["z"] // 2} if "z" in piv.dims else {}
+    u = get("u").where(valid).isel(sl).transpose("y", "x").values
+    v = get("v").where(valid).isel(sl).transpose("y", "x").values
+    x, y = piv["x"].values, piv["y"].values
+    ax1.quiver(x, y, u, v, angles="xy")
+    where = f" at z = {float(piv['z'][sl['z']]):+.2f} mm" if sl else ""
+    ax1.set_title(f"measured u, v{where}", fontsize=9)
+    ax1.set_xlabel("x [mm]")
+    ax1.set_ylabel("y [mm]")
+    ax1.set_aspect("equal")
+    if err is not None and "u_err_mm" in err:
+        comps = [c for c in ("u", "v", "w") if f"{c}_err_mm" in err]
+        mag = np.sqrt(sum(err[f"{c}_err_mm"] ** 2 for c in comps)).isel(sl).transpose("y", "x")
+        im = ax2.pcolormesh(x, y, mag.values, shading="nearest", cmap="magma")
+        cb = fig.colorbar(im, ax=ax2)
+        cb.set_label("|error| [mm]", fontsize=8)
+        ax2.set_title(f"error magnitude{where} (blank: invalid)", fontsize=9)
+        ax2.set_xlabel("x [mm]")
+        ax2.set_aspect("equal")
+    else:
+        ax2.set_axis_off()
+        ax2.text(0.5, 0.5, "no error field (no truth)", ha="center", transform=ax2.transAxes)
     return fig

@@ -33,37 +33,39 @@ from lfstudy import io
 from lfstudy.config import case_config
 from lfstudy.optics import PlenopticCamera
 from lfstudy.study.case import case_planes
-from lfstudy.study.metrics import METRIC_LABELS
 from lfstudy.study.sweep import format_value
 
 __all__ = ["write_report", "write_figures", "report_blocks", "best_designs", "case_table", "SECTIONS"]
 
-#: Section ids and titles, in report order.
+#: Section ids and titles, in report order: the answer first.
 SECTIONS: dict[str, str] = {
+    "answer": "Recommended design",
     "overview": "Overview",
-    "best": "Best design",
     "comparison": "Comparison across the sweep",
+    "designs": "Camera designs",
     "thesis": "Comparison with the thesis (ch. 7)",
-    "cameras": "Camera designs",
     "representative": "Representative case",
     "cases": "Per-case results",
+    "legend": "Study table columns",
 }
 
-#: Columns of the case tables (when present in the study).
+#: Columns of the case tables (when present in the study): physical units first.
 HEADLINE = (
-    "rms_total",
-    "bias_x",
-    "bias_y",
-    "bias_z",
-    "std_x",
-    "std_y",
-    "std_z",
+    "rel_error",
+    "rms_total_mm",
+    "bias_z_mm",
+    "rms_z_mm",
+    "spacing_mm_x",
+    "spacing_mm_z",
+    "depth_mm",
     "valid_percent",
-    "peak_locking_z",
-    "locking_excess_z",
     "Q",
+    "locking_excess_z",
     "time_total",
 )
+
+#: The metrics of the overview and the per-setting panels.
+PANELS = ("rel_error", "rms_total_mm", "valid_percent", "Q")
 
 #: Thesis figures for the uniform displacements (image-frame sign), sec. 7.1–7.2.
 THESIS_REFERENCE = {
@@ -129,7 +131,7 @@ def _open(files: CaseFiles, store: str, var: str | None = None) -> xr.Dataset | 
     return ds[name]
 
 
-def _table(df: pd.DataFrame, *, index: bool = True, fmt: str = "{:.4g}") -> str:
+def _table(df: pd.DataFrame, *, index: bool = True, fmt: str = "{:.3g}") -> str:
     def f(v: Any) -> str:
         if isinstance(v, (float, np.floating)):
             return "–" if not np.isfinite(v) else fmt.format(v)
@@ -162,24 +164,25 @@ def case_table(study: xr.Dataset, columns: tuple[str, ...] | list[str] = HEADLIN
 
 
 def best_designs(study: xr.Dataset) -> pd.DataFrame:
-    """Per flow, the case that wins each criterion (lowest total RMS error, ...).
+    """Per flow, the case that wins each criterion, judged in physical units.
 
-    Criteria (when the variables exist): lowest total RMS error, lowest bias
-    norm sqrt(bx² + by² + bz²), lowest random error sqrt(σx² + σy² + σz²),
-    highest valid %, highest Q, shortest run time. Returns an empty table for
-    an empty study.
+    Criteria (when the variables exist): lowest total RMS error in mm, lowest
+    error relative to the true displacement, lowest |bias| in mm, finest
+    in-plane and depth vector spacing, most valid vectors, highest Q, shortest
+    run time. Voxel errors are not compared across designs: a voxel is pitch/|M|
+    across and differs between them. Returns an empty table for an empty study.
     """
     df = case_table(study, [c for c in study.data_vars if c != "computed" and study[c].dtype.kind in "biuf"])
     if df.empty:
         return df
-    if all(f"bias_{a}" in df for a in "xyz"):
-        df["bias_norm"] = np.sqrt(sum(df[f"bias_{a}"] ** 2 for a in "xyz"))
-    if all(f"std_{a}" in df for a in "xyz"):
-        df["random_norm"] = np.sqrt(sum(df[f"std_{a}"] ** 2 for a in "xyz"))
+    if all(f"bias_{a}_mm" in df for a in "xyz"):
+        df["bias_norm_mm"] = np.sqrt(sum(df[f"bias_{a}_mm"] ** 2 for a in "xyz"))
     crit = [
-        ("lowest total RMS error", "rms_total", "min", "voxel"),
-        ("lowest bias |b|", "bias_norm", "min", "voxel"),
-        ("lowest random error |σ|", "random_norm", "min", "voxel"),
+        ("lowest total RMS error", "rms_total_mm", "min", "mm"),
+        ("lowest error / displacement", "rel_error", "min", "1"),
+        ("lowest bias |b|", "bias_norm_mm", "min", "mm"),
+        ("finest in-plane spacing", "spacing_mm_x", "min", "mm"),
+        ("finest depth spacing", "spacing_mm_z", "min", "mm"),
         ("most valid vectors", "valid_percent", "max", "%"),
         ("highest reconstruction quality Q", "Q", "max", ""),
         ("shortest run time", "time_total", "min", "s"),
@@ -198,7 +201,7 @@ def best_designs(study: xr.Dataset) -> pd.DataFrame:
                     "value": float(sub.loc[idx, col]),
                     "unit": unit,
                     **{k: v for k, v in p.items() if k != "flow"},
-                    "total RMS [voxel]": float(sub.loc[idx, "rms_total"]) if "rms_total" in sub else math.nan,
+                    "total RMS [mm]": float(sub.loc[idx, "rms_total_mm"]) if "rms_total_mm" in sub else math.nan,
                 }
             )
     return pd.DataFrame(rows)
@@ -257,9 +260,9 @@ def report_blocks(
     Parameters
     ----------
     study : xarray.Dataset
-        The sweep Dataset (dims = swept parameters).
+        The study Dataset (dims = swept settings).
     case_dirs : mapping case id -> directory or {file name: path}
-        Per-case result directories (``results/<name>/<case_id>``).
+        Where each case's files are.
     cfg : mapping
         The validated study config.
     max_cases : int
@@ -267,10 +270,74 @@ def report_blocks(
     progress : bool
         Show a tqdm progress bar over the per-case figures.
     """
-    from lfstudy.study import figures as rf
-
     cfg = dict(cfg)
-    # ---------------------------------------------------------- overview
+    yield from _answer_blocks(study)
+    yield from _overview_blocks(study, case_dirs)
+    yield from _comparison_blocks(study)
+    yield from _design_blocks(study, cfg)
+    yield from _thesis_blocks(study, cfg)
+    yield from _representative_blocks(study, case_dirs)
+    yield from _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
+    yield from _legend_blocks(study)
+
+
+def _answer_blocks(study: xr.Dataset) -> Iterator[Block]:
+    """The recommendation: per flow, the Pareto front over error, in-plane and depth resolution."""
+    from lfstudy.study import figures as rf
+    from lfstudy.study.designs import recommend
+
+    table, sentences = recommend(study)
+    if not sentences:
+        yield Block("answer", "none", note="Recommendation: not available (no computed case with errors in mm).")
+        return
+    yield Block(
+        "answer",
+        "sentences",
+        html="".join(f"<p><b>{html.escape(s)}</b></p>" for s in sentences.values())
+        + "<p>Designs are compared in millimetres and as a fraction of the true displacement: a voxel is "
+        "pitch/|M| across and a fraction of a refocus-plane spacing deep, and differs between designs. A design "
+        "is on the Pareto front when no other has a lower total RMS error, a finer in-plane vector spacing and a "
+        "finer depth spacing all at once; the recommended one is the front's lowest error with at least 80 % "
+        "valid vectors.</p>",
+    )
+    cols = [
+        c
+        for c in (
+            "design",
+            "flow",
+            "rms_total_mm",
+            "rel_error",
+            "spacing_mm_x",
+            "spacing_mm_z",
+            "depth_mm",
+            "valid_percent",
+            "Q",
+            "recommended",
+        )
+        if c in table
+    ]
+    for flow in sentences:
+        yield _try(
+            "answer",
+            f"pareto_{flow}",
+            f"{flow}: every design's total RMS error against its in-plane resolution (colour: depth "
+            "resolution); ringed: the Pareto front, star: recommended.",
+            "Pareto front",
+            lambda flow=flow: rf.pareto_figure(table, flow),
+        )
+        front = table[(table["flow"] == flow) & table["pareto"]] if "flow" in table else table[table["pareto"]]
+        yield Block(
+            "answer",
+            f"front_{flow}",
+            html=f"<h4>Pareto front, {html.escape(flow)}</h4>"
+            + _table(front[cols].sort_values("rms_total_mm"), index=False),
+        )
+
+
+def _overview_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> Iterator[Block]:
+    from lfstudy.study import figures as rf
+    from lfstudy.study.designs import influence
+
     n_comp = int(study["computed"].sum()) if "computed" in study else len(case_dirs)
     n_total = int(np.prod([study.sizes[k] for k in study.dims]))
     sweep = pd.DataFrame(
@@ -281,38 +348,40 @@ def report_blocks(
         "overview",
         "sweep",
         html=(
-            f"<p>{n_comp} of {n_total} parameter combinations computed; {len(case_dirs)} case directories. "
-            "Displacements and errors are in the object frame (+z away from the camera): a +x shift reads "
-            "positive here, negative in the thesis' histograms. Errors are measured − true over valid "
-            "vectors, in voxels unless marked mm.</p>" + _table(sweep)
+            f"<p>{n_comp} of {n_total} combinations of the swept settings computed. Displacements and "
+            "errors are in the object frame (+z away from the camera): a +x shift reads positive here, "
+            "negative in the thesis' histograms. Errors are measured − true over valid vectors; across "
+            "designs they are compared in mm and relative to the true displacement.</p>" + _table(sweep)
         ),
     )
-    # -------------------------------------------------------------- best
-    best = best_designs(study)
-    if best.empty:
-        yield Block("best", "best", note="Best design: not available (no computed case with metrics).")
-    else:
-        yield Block("best", "best", html=_table(best, index=False))
-    # -------------------------------------------------------- comparison
-    metrics = [m for m in METRIC_LABELS if m in study]
+    var = "rel_error" if "rel_error" in study else "rms_total_mm"
+    ranked = [d for d, _ in influence(study, var)]
+    if not ranked:
+        yield Block("overview", "map", note="Overview figure: not available (no setting takes two values).")
+        return
+    yield _try(
+        "overview",
+        "map",
+        f"The headline error over the two settings that move it most ({', '.join(ranked[:2])}), mean over the "
+        "others, per flow.",
+        "overview map",
+        lambda: rf.overview_heatmap(study, var, ranked[:2]),
+    )
+
+
+def _comparison_blocks(study: xr.Dataset) -> Iterator[Block]:
+    from lfstudy.study import figures as rf
+
     varied = _varied(study)
     if not varied:
-        yield Block(
-            "comparison",
-            "none",
-            note="Comparison: not available (only one value of every swept camera/seeding parameter).",
-        )
-    for _i, p in enumerate(varied):
-        others = [q for q in varied if q != p]
-        line = others[0] if others else None
+        yield Block("comparison", "none", note="Comparison: not available (no swept setting takes two values).")
+    for p in varied:
         yield _try(
             "comparison",
-            f"metrics_vs_{p}",
-            f"Every error metric against {p}"
-            + (f", one line per {line}" if line else "")
-            + "; solid/dashed lines are flows.",
+            f"panels_{p}",
+            f"Headline metrics against {p} (one line per flow, mean over the other settings).",
             f"metrics against {p}",
-            lambda p=p, line=line: rf.metrics_vs_parameter(study, metrics, p, line),
+            lambda p=p: rf.parameter_panels(study, p, PANELS),
         )
         cols = [m for m in HEADLINE if m in study]
         if cols:
@@ -323,12 +392,75 @@ def report_blocks(
             yield Block(
                 "comparison",
                 f"table_{p}",
-                html=f"<h4>Mean over the other parameters, by {html.escape(p)}</h4>" + _table(marg),
+                html=f"<h4>Mean over the other settings, by {html.escape(p)}</h4>" + _table(marg),
             )
     ct = case_table(study)
     if not ct.empty:
         yield Block("comparison", "all_cases", html="<h4>All computed cases</h4>" + _table(ct))
-    # ------------------------------------------------------------ thesis
+
+
+def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]:
+    """Per design: resolution, measurable depth and field of view in mm; the cameras and their optics."""
+    from lfstudy.study import figures as rf
+    from lfstudy.study.designs import design_table
+
+    dt = design_table(study)
+    cols = [
+        c
+        for c in (
+            "design",
+            "flow",
+            "window_mm_x",
+            "window_mm_z",
+            "spacing_mm_x",
+            "spacing_mm_y",
+            "spacing_mm_z",
+            "depth_mm",
+            "fov_x_mm",
+            "fov_y_mm",
+        )
+        if c in dt
+    ]
+    if not dt.empty and len(cols) > 2:
+        yield Block(
+            "designs",
+            "resolution",
+            html="<h4>Spatial resolution, measured depth and field of view [mm]</h4>" + _table(dt[cols], index=False),
+        )
+    try:
+        cams = _cameras(study, cfg)
+    except Exception as exc:
+        cams = {}
+        yield _na("designs", "table", "Camera table", f"{type(exc).__name__}: {exc}")
+    if not cams:
+        return
+    yield Block("designs", "table", html=_table(pd.DataFrame({k: c.summary() for k, c in cams.items()})))
+    cam0 = next(iter(cams.values()))
+    mags = [float(c.magnification) for c in cams.values()]
+    yield _try(
+        "designs",
+        "ambiguity",
+        "Depth ambiguity ξz (eq. 4.18) and in-plane ambiguity ξy (eq. 4.19) at z = 0 against |M|; dots: the "
+        "designs' magnifications. Steps mark where the matched f-number rounds up to the next standard stop "
+        "(sec. 4.3.1).",
+        "ambiguity against magnification",
+        lambda: rf.ambiguity_vs_magnification(cam0, marked=sorted(set(mags))),
+    )
+
+    def diamonds():
+        planes = {k: (c, case_planes(cfg, c)) for k, c in list(cams.items())[:8]}
+        return rf.focal_plane_diamonds(planes)
+
+    yield _try(
+        "designs",
+        "focal_planes",
+        "Depth-of-focus diamonds of the refocus planes (eqs 5.16–5.20) in image space; ticks: plane centres.",
+        "focal-plane diamonds",
+        diamonds,
+    )
+
+
+def _thesis_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]:
     rows = []
     for flow in study["flow"].values if "flow" in study.dims else []:
         spec = cfg.get("flows", {}).get(str(flow), {})
@@ -337,7 +469,7 @@ def report_blocks(
         d = np.asarray(spec["displacement"], float)
         ax = "xyz"[int(np.argmax(np.abs(d)))]
         ref = THESIS_REFERENCE.get(ax)
-        cols = [f"mean_{ax}", f"sd_{ax}", f"true_{ax}", f"bias_{ax}", f"std_{ax}"]
+        cols = [f"mean_{ax}", f"true_{ax}", f"bias_{ax}", f"std_{ax}", f"mean_{ax}_mm", f"true_{ax}_mm"]
         sub = case_table(study.sel(flow=[flow]), cols)
         for idx, r in sub.iterrows():
             p = dict(zip(sub.index.names, idx))
@@ -345,93 +477,78 @@ def report_blocks(
                 {
                     "flow": flow,
                     "axis": ax,
-                    "M": p["magnification"],
-                    "f/#": p["fnumber"],
-                    "pl [mm]": p["lenslet_pitch"],
-                    "ppp": p["ppp"],
+                    **{k: v for k, v in p.items() if k != "flow"},
+                    "true [mm]": r.get(f"true_{ax}_mm"),
+                    "mean [mm]": r.get(f"mean_{ax}_mm"),
                     "true [vox]": r.get(f"true_{ax}"),
                     "mean [vox]": r.get(f"mean_{ax}"),
-                    "σ [vox]": r.get(f"sd_{ax}"),
-                    "bias [vox]": r.get(f"bias_{ax}"),
+                    "σ [vox]": r.get(f"std_{ax}"),
                     "thesis μ [px]": ref["mean"] if ref else math.nan,
                     "thesis σ [px]": ref["std"] if ref else math.nan,
                 }
             )
-    if rows:
-        yield Block(
-            "thesis",
-            "uniform",
-            html=(
-                "<p>Mean and standard deviation of the measured displacement beside the thesis' histograms "
-                "(" + "; ".join(html.escape(v["where"]) for v in THESIS_REFERENCE.values()) + "). The thesis "
-                "reports image-frame signs (μ negative); ours are object-frame (positive for a +x or +z "
-                "shift).</p>" + _table(pd.DataFrame(rows), index=False)
-            ),
-        )
-    else:
+    if not rows:
         yield Block(
             "thesis",
             "uniform",
             note="Uniform-displacement comparison: not available (no uniform flow among the computed cases).",
         )
-    # ----------------------------------------------------------- cameras
-    try:
-        cams = _cameras(study, cfg)
-    except Exception as exc:
-        cams = {}
-        yield _na("cameras", "table", "Camera table", f"{type(exc).__name__}: {exc}")
-    if cams:
-        tab = pd.DataFrame({k: c.summary() for k, c in cams.items()})
-        yield Block("cameras", "table", html=_table(tab))
-        cam0 = next(iter(cams.values()))
-        yield _try(
-            "cameras",
-            "ambiguity",
-            "Depth ambiguity ξz (eq. 4.18) and in-plane ambiguity ξy "
-            "(eq. 4.19) at z = 0 against |M|; dots: the swept magnifications. Steps mark where the "
-            "matched f-number rounds up to the next standard stop (sec. 4.3.1).",
-            "ambiguity against magnification",
-            lambda: rf.ambiguity_vs_magnification(cam0, marked=[float(m) for m in study["magnification"].values]),
-        )
+        return
+    yield Block(
+        "thesis",
+        "uniform",
+        html=(
+            "<p>Mean and standard deviation of the measured displacement beside the thesis' histograms ("
+            + "; ".join(html.escape(v["where"]) for v in THESIS_REFERENCE.values())
+            + "). The thesis reports image-frame signs (μ negative) in its own voxels (a lenslet in x, y; a "
+            "refocus plane in z); ours are object-frame, in the voxels of the reconstruction grid and in mm.</p>"
+            + _table(pd.DataFrame(rows), index=False)
+        ),
+    )
 
-        def diamonds():
-            planes = {k: (c, case_planes(cfg, c)) for k, c in list(cams.items())[:8]}
-            return rf.focal_plane_diamonds(planes)
 
-        yield _try(
-            "cameras",
-            "focal_planes",
-            "Depth-of-focus diamonds of the refocus planes (eqs 5.16–5.20) in image space; ticks: plane centres.",
-            "focal-plane diamonds",
-            diamonds,
-        )
-    # --------------------------------------------------- representative
+def _representative_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> Iterator[Block]:
+    from lfstudy.study import figures as rf
+
     rep = _representative(study, case_dirs)
     if rep is None:
-        yield Block("representative", "none", note="Representative case: not available (no case directory).")
-    else:
-        d = case_dirs[rep]
-        yield Block(
-            "representative",
-            "id",
-            html=f"<p>Case <code>{html.escape(rep)}</code> (lowest total RMS error with its artefacts on disk).</p>",
+        yield Block("representative", "none", note="Representative case: not available (no case files).")
+        return
+    d = case_dirs[rep]
+    yield Block(
+        "representative",
+        "id",
+        html=f"<p>Case <code>{html.escape(rep)}</code> (lowest total RMS error with its artefacts on disk).</p>",
+    )
+    yield _try(
+        "representative",
+        "raw",
+        "Central crop of the raw plenoptic image, frame a.",
+        "raw image",
+        lambda: rf.raw_crop(_open(d, "raw_a.zarr", "")),
+    )
+    yield _try(
+        "representative",
+        "refocused",
+        "Refocused planes of frame a over the depth.",
+        "refocused planes",
+        lambda: rf.refocused_planes(_open(d, "stack_a.zarr", "")),
+    )
+
+
+def _legend_blocks(study: xr.Dataset) -> Iterator[Block]:
+    """What every column of study.csv holds: name, units, meaning (from the variables' attrs)."""
+    rows = [{"column": "case_id", "units": "", "meaning": "results sub-path of the case"}]
+    for d in study.dims:
+        c = study[d]
+        rows.append(
+            {"column": str(d), "units": c.attrs.get("units", ""), "meaning": f"swept: {c.attrs.get('long_name', d)}"}
         )
-        yield _try(
-            "representative",
-            "raw",
-            "Central crop of the raw plenoptic image, frame a.",
-            "raw image",
-            lambda: rf.raw_crop(_open(d, "raw_a.zarr", "")),
-        )
-        yield _try(
-            "representative",
-            "refocused",
-            "Refocused planes of frame a over the depth.",
-            "refocused planes",
-            lambda: rf.refocused_planes(_open(d, "stack_a.zarr", "")),
-        )
-    # ------------------------------------------------------------ cases
-    yield from _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
+    for name, v in study.data_vars.items():
+        if name in ("computed", "case_id"):
+            continue
+        rows.append({"column": str(name), "units": v.attrs.get("units", ""), "meaning": v.attrs.get("long_name", "")})
+    yield Block("legend", "columns", html=_table(pd.DataFrame(rows), index=False))
 
 
 def _case_blocks(
@@ -487,6 +604,14 @@ def _case_blocks(
                 "Vector-field slices (Figs 7.1, 7.6, 7.9).",
                 "vector slices",
                 lambda piv=piv: rf.vector_slices(piv),
+                case=cid,
+            )
+            yield _try(
+                "cases",
+                "error_map",
+                "Middle x–y slice: the measured vectors beside the error magnitude against the known flow.",
+                "vector and error slice",
+                lambda piv=piv, err=err: rf.vector_error_slice(piv, err),
                 case=cid,
             )
         yield _try(
