@@ -1,8 +1,10 @@
 """lfstudy: parametric studies of single-camera light-field (plenoptic) 3-D PIV.
 
-Stages are pure functions over numpy/xarray objects (see ``lfstudy.optics``,
-``lfstudy.simulate.particles``, ``lfstudy.simulate.flows`` ...); I/O lives in ``lfstudy.io`` and
-the sweep in the top-level ``Snakefile``.
+Stages are pure functions over numpy/xarray objects, one subpackage per stage
+group (``lfstudy.simulate``, ``lfstudy.lightfield``, ``lfstudy.reconstruct``,
+``lfstudy.piv``, ``lfstudy.study``); I/O lives in ``lfstudy.io`` and the sweep in
+the top-level ``Snakefile``. ``lfstudy.open_study("results/<name>")`` opens a
+study's results as one lazy DataTree.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ try:
 except PackageNotFoundError:  # running from a source tree without install
     __version__ = "0+unknown"
 
+from lfstudy.io import open_study
 from lfstudy.optics import PlenopticCamera
 
-__all__ = ["PlenopticCamera", "__version__"]
+__all__ = ["PlenopticCamera", "open_study", "__version__"]

@@ -26,6 +26,7 @@ __all__ = [
     "write_zarr",
     "open_zarr",
     "open_array",
+    "open_study",
     "read_image",
     "write_tiff",
     "read_tiff",
@@ -119,14 +120,18 @@ def write_zarr(
         v.encoding = {}
     encoding = {v: {"compressors": [ZstdCodec(level=compressor_level)]} for v in ds.data_vars}
     path = Path(path)
-    with atomic_path(path) as tmp:
+    # Consolidated metadata: readers (xarray, a notebook) open the store from one file, without
+    # listing its directory (where Snakemake drops a .snakemake_timestamp) or warning. zarr-python
+    # warns that v3 has no spec for it yet; it reads it back, so the warning is silenced here.
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata.*")
         if progress:
             from dask.diagnostics import ProgressBar
 
             with ProgressBar():
-                ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=False)
+                ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=True)
         else:
-            ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=False)
+            ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=True)
     return path
 
 
@@ -137,9 +142,11 @@ def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.D
         raise FileNotFoundError(f"zarr store {str(path)!r} does not exist")
     try:
         with warnings.catch_warnings():
-            # Snakemake drops a .snakemake_timestamp file into directory() outputs.
+            # stores written before consolidated metadata: read them without it, quietly
+            # (Snakemake drops a .snakemake_timestamp file into directory() outputs)
             warnings.filterwarnings("ignore", message=".*snakemake_timestamp.*")
-            ds = xr.open_zarr(path, zarr_format=3, consolidated=False)
+            warnings.filterwarnings("ignore", message=".*consolidated metadata.*")
+            ds = xr.open_zarr(path, zarr_format=3, consolidated=None)
     except Exception as exc:  # a damaged store: say which, not a traceback from deep in zarr
         raise ValueError(
             f"zarr store {str(path)!r} cannot be read ({type(exc).__name__}: {exc}); it is damaged or not a "
@@ -186,6 +193,38 @@ def read_image(path: str | Path) -> xr.DataArray:
     if data.ndim != 2:
         raise ValueError(f"image file {str(path)!r}: expected one 2-D image, got an array of shape {data.shape}")
     return xr.DataArray(data, dims=("row", "col"), name="intensity", attrs=meta)
+
+
+def open_study(path: str | Path) -> xr.DataTree:
+    """A finished (or running) study as one lazy xarray DataTree.
+
+    The root holds the study table (``study.zarr``: one dimension per swept
+    setting); below it the tree mirrors the results directory: every store
+    ``<stage id>/<name>.zarr`` is the node ``<stage id>/<name>`` (a case id's
+    segments are nested groups, so ``tree["mag~-1/fnum~matched/.../flow~uniform_x/piv"]``
+    is a case's vector field) and the shared calibrations sit under ``calib``.
+    Every variable is dask-backed: nothing is read until used.
+
+    Parameters
+    ----------
+    path : path
+        ``results/<study name>`` (the directory holding ``study.zarr``).
+
+    Raises
+    ------
+    FileNotFoundError
+        The directory holds no ``study.zarr``.
+    """
+    root = Path(path)
+    if not (root / "study.zarr").exists():
+        raise FileNotFoundError(f"{str(root)!r} holds no study.zarr: is it results/<study name> of a finished run?")
+    nodes: dict[str, xr.Dataset] = {"/": open_zarr(root / "study.zarr")}
+    for store in sorted(root.rglob("*.zarr")):
+        rel = store.relative_to(root)
+        if rel.parts[0] in ("logs", "benchmarks") or rel.as_posix() == "study.zarr":
+            continue
+        nodes["/" + rel.with_suffix("").as_posix()] = open_zarr(store)
+    return xr.DataTree.from_dict(nodes)
 
 
 def write_tiff(

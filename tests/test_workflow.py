@@ -266,3 +266,27 @@ def test_sweep_over_dotted_settings_shares_the_upstream_stages(tmp_path):
     assert mart_id.endswith("/reconstruct.method~mart/piv.spacing~4x6x6")
     vol = io.open_array(work / "results" / "tiny" / Path(mart_id).parent / "volume_a.zarr")
     assert vol.attrs["method"] == "mart" and float(vol.min()) >= 0.0
+
+
+def test_open_study_is_lazy_and_quiet(study_dir):
+    """lfstudy.open_study gives the whole study as one DataTree, and neither it nor a plain
+    xarray.open_zarr of any store prints a warning."""
+    import warnings
+
+    import xarray as xr
+
+    import lfstudy
+
+    out = study_dir / "results" / "tiny"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tree = lfstudy.open_study(out)
+        study = tree.to_dataset()
+        assert "rms_total_mm" in study and study.sizes["ppp"] == 2
+        cid = str(study["case_id"].sel(ppp=0.004).squeeze().values)
+        piv = tree[f"{cid}/piv"].to_dataset()
+        assert {"u", "v", "w", "valid"} <= set(piv.data_vars)
+        assert hasattr(piv["u"].data, "dask")  # lazy
+        assert any(node.name == "centers" for node in tree["calib"].subtree)
+        for store in (out / cid / "piv.zarr", out / cid / "volume_a.zarr", out / "study.zarr"):
+            xr.open_zarr(store).close()
