@@ -159,19 +159,29 @@ def mart(
     cols = [cols[k] for k in order]
     n_sub = max(1, min(int(subsets), len(cols)))
     blocks = [cols[s::n_sub] for s in range(n_sub)]
-    # per column: measured log (I + b) and the active mask, as (views, lenslets)
-    logm_c = {pc: np.ascontiguousarray(logm[lens][:, prs, pc].T) for pc, prs in cols}
-    act_c = {pc: np.ascontiguousarray(active[lens][:, prs, pc].T) for pc, prs in cols}
-    meas_c = {pc: np.ascontiguousarray(meas[lens][:, prs, pc].T) for pc, prs in cols}
-    num = np.zeros(grid.shape)
+    # per column: measured log (I + b), I and the active mask, as (views, lenslets)
+    logm_c = {pc: proj.column_values(logm, pc, prs) for pc, prs in cols}
+    act_c = {pc: proj.column_values(active, pc, prs) for pc, prs in cols}
+    meas_c = {pc: proj.column_values(meas, pc, prs) for pc, prs in cols}
+    # MLOS values log(I + b) − log(A·1) of every used sample; A·1 from the tables alone
+    if init == "mlos":
+        p1 = proj.uniform_projection()
+        use = active & (p1 > 0)
+        mlos = np.where(use, logm - np.log(np.where(use, p1, 1.0)), 0.0)
+        del p1, use
 
-    # ---- per-subset coverage (Σ of beam fractions, geometry only) and the initial volume
-    dens = []
-    for block in blocks:
-        d = np.zeros(grid.shape)
+    # ---- one pass over the tables: per-subset coverage (Σ of beam fractions, geometry
+    # only) in acc[s], the MLOS numerator in acc[n_sub]
+    acc = np.zeros((n_sub + 1, *grid.shape))
+    for s, block in enumerate(blocks):
         for pc, prs in block:
-            proj.column_accumulate(pc, prs, act_c[pc].astype(np.float64), d)
-        dens.append(d)
+            if init == "mlos":
+                vals = np.stack([act_c[pc].astype(np.float64), proj.column_values(mlos, pc, prs)])
+                proj.column_accumulate_many(pc, prs, vals, np.array([s, n_sub]), acc)
+            else:
+                proj.column_accumulate_many(pc, prs, act_c[pc].astype(np.float64)[None], np.array([s]), acc)
+    dens = list(acc[:n_sub])
+    num = acc[n_sub]
     cover = np.sum(dens, axis=0)
     # voxels that too few views see cannot be placed in depth: they stay empty
     seen = cover >= min_coverage * float(np.percentile(cover[cover > 0], 90)) if (cover > 0).any() else cover > 0
@@ -182,12 +192,6 @@ def mart(
             raise ReconstructionError("reconstruct.mart.init = 'stack' needs the focal stack on the grid")
         vol = np.maximum(np.asarray(stack.values, dtype=np.float64), 0.0)
     else:  # MLOS: weighted geometric mean of measured / projected-uniform over every view
-        ones = np.ones(grid.shape)
-        for pc, prs in cols:
-            p1 = proj.column_forward(ones, pc, prs, np.empty((prs.size, lens.size)))
-            use = act_c[pc] & (p1 > 0)
-            vals = np.where(use, logm_c[pc] - np.log(np.where(use, p1, 1.0)), 0.0)
-            proj.column_accumulate(pc, prs, vals, num)
         with np.errstate(over="ignore", under="ignore", invalid="ignore"):
             vol = np.where(cover > 0, np.exp(num / np.where(cover > 0, cover, 1.0)), 0.0)
     vol[~seen] = 0.0

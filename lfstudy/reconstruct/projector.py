@@ -312,14 +312,19 @@ def _column_forward(vol, lens, pc, prs, sxs, wxs, kxs, sys_, wys, kys, out):  # 
 
 
 @njit(parallel=True, cache=True)
-def _column_accumulate(lens, pc, prs, vals, sxs, wxs, kxs, sys_, wys, kys, num):  # pragma: no cover - jitted
-    """num += Σ F·vals[j, m] over the beams of the views (prs[j], pc) of one column (planes in parallel)."""
-    nz = num.shape[0]
+def _column_accumulate(lens, pc, prs, vals, chans, sxs, wxs, kxs, sys_, wys, kys, out):  # pragma: no cover - jitted
+    """out[chans[c]] += Σ F·vals[c, j, m] over the beams of the views (prs[j], pc) of one column.
+
+    Several value sets share one pass over the weight tables (channels ``c``);
+    planes run in parallel, each written by one thread in a fixed order.
+    """
+    nz = out.shape[1]
     nv = prs.shape[0]
+    nc = vals.shape[0]
     for k in prange(nz):
         kx = kxs[k]
         ky = kys[k]
-        col = np.zeros(num.shape[1])
+        col = np.zeros((nc, out.shape[2]))
         for m in range(lens.shape[0]):
             l = lens[m]
             ylo = sys_[k, l, prs[0]]
@@ -329,24 +334,61 @@ def _column_accumulate(lens, pc, prs, vals, sxs, wxs, kxs, sys_, wys, kys, num):
                 y0 = sys_[k, l, prs[j]]
                 ylo = min(ylo, y0)
                 yhi = max(yhi, y0)
-                if vals[j, m] != 0.0:
-                    any_v = True
+                for c in range(nc):
+                    if vals[c, j, m] != 0.0:
+                        any_v = True
             if not any_v:
                 continue
             for j in range(nv):
-                v = vals[j, m]
-                if v == 0.0:
-                    continue
                 y0 = sys_[k, l, prs[j]]
-                for a in range(ky):
-                    col[y0 + a] += wys[k, l, prs[j], a] * v
+                for c in range(nc):
+                    v = vals[c, j, m]
+                    if v == 0.0:
+                        continue
+                    for a in range(ky):
+                        col[c, y0 + a] += wys[k, l, prs[j], a] * v
             x0 = sxs[k, l, pc]
-            for y in range(ylo, yhi + ky):
-                c = col[y]
-                if c != 0.0:
-                    for b in range(kx):
-                        num[k, y, x0 + b] += c * wxs[k, l, pc, b]
-                    col[y] = 0.0
+            for c in range(nc):
+                o = chans[c]
+                for y in range(ylo, yhi + ky):
+                    cv = col[c, y]
+                    if cv != 0.0:
+                        for b in range(kx):
+                            out[o, k, y, x0 + b] += cv * wxs[k, l, pc, b]
+                        col[c, y] = 0.0
+
+
+@njit(parallel=True, cache=True)
+def _uniform_projection(lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no cover - jitted
+    """out[l, pr, pc] = A·1: the projection of a uniform unit volume, from the table sums alone.
+
+    With every voxel 1 a beam's sum over plane k is (Σ_b wx)(Σ_a wy), so no
+    volume is read (the beam fractions that leave the grid are missing, as in
+    the forward projection).
+    """
+    n = out.shape[1]
+    nz = sxs.shape[0]
+    for m in prange(lens.shape[0]):
+        l = lens[m]
+        sx = np.empty(n)
+        sy = np.empty(n)
+        acc = np.zeros((n, n))
+        for k in range(nz):
+            for p in range(n):
+                t = 0.0
+                for b in range(kxs[k]):
+                    t += wxs[k, l, p, b]
+                sx[p] = t
+                t = 0.0
+                for a in range(kys[k]):
+                    t += wys[k, l, p, a]
+                sy[p] = t
+            for pr in range(n):
+                for pc in range(n):
+                    acc[pr, pc] += sy[pr] * sx[pc]
+        for pr in range(n):
+            for pc in range(n):
+                out[l, pr, pc] = gain[l, pr, pc] * acc[pr, pc]
 
 
 @njit(cache=True)
@@ -482,6 +524,7 @@ class PlenopticProjector:
         self.gain = np.ascontiguousarray(k_const * vig)
         self.lenses = np.flatnonzero(vig.reshape(nl, -1).max(axis=1) > 0).astype(np.int64)
         self._partial: np.ndarray | None = None
+        self._gain_columns: dict[tuple[int, bytes], np.ndarray] = {}
         self.min_vignetting = float(min_vignetting)
 
     # ---------------------------------------------------------------- info
@@ -560,12 +603,34 @@ class PlenopticProjector:
         part = np.empty((nb, prs.size, self.lenses.size))
         _column_forward(vol, self.lenses, pc, prs, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, part)
         np.sum(part, axis=0, out=out)  # blocks in a fixed order: thread-count independent
-        out *= self.gain[self.lenses][:, prs, pc].T
+        key = (int(pc), prs.tobytes())
+        if key not in self._gain_columns:  # gathered once: a gather per call cost more than the sums
+            self._gain_columns[key] = self.column_values(self.gain, pc, prs)
+        out *= self._gain_columns[key]
         return out
+
+    def column_values(self, samples: np.ndarray, pc: int, prs: np.ndarray) -> np.ndarray:
+        """``samples`` (lenslet, prow, pcol) of the views (prs[j], pc) as ``(j, m)`` for ``self.lenses[m]``."""
+        return np.ascontiguousarray(samples[self.lenses[:, None], prs[None, :], pc].T)
 
     def column_accumulate(self, pc: int, prs: np.ndarray, vals: np.ndarray, num: np.ndarray) -> None:
         """num += Σ_beams F·vals[j, m] over the views (prs[j], pc); a zero value skips its beam."""
-        _column_accumulate(self.lenses, pc, prs, vals, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, num)
+        self.column_accumulate_many(pc, prs, vals[None], np.zeros(1, np.int64), num[None])
+
+    def column_accumulate_many(
+        self, pc: int, prs: np.ndarray, vals: np.ndarray, chans: np.ndarray, out: np.ndarray
+    ) -> None:
+        """out[chans[c]] += Σ_beams F·vals[c, j, m] for several value sets in one pass over the tables."""
+        _column_accumulate(
+            self.lenses, pc, prs, vals, chans, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, out
+        )
+
+    def uniform_projection(self) -> np.ndarray:
+        """A·1 as (lenslet, prow, pcol): what a uniform unit volume projects, without reading a volume."""
+        nl = self.shape_lf[0] * self.shape_lf[1]
+        out = np.zeros((nl, self.n, self.n))
+        _uniform_projection(self.lenses, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self.gain, out)
+        return out
 
     def view_accumulate(self, pr: int, pc: int, vals: np.ndarray, use: np.ndarray, num: np.ndarray) -> None:
         """num += Σ_beams F·vals over view (pr, pc), for the beams with ``use`` (F: beam fraction per voxel)."""
