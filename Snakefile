@@ -57,6 +57,10 @@ wildcard_constraints:
 # everything, whenever it is started through another path or symlink.)
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
 STAGE = "python -m lfstudy.workflow --config {params.cfg:q} --log {log:q} --threads {threads}"
+# The dask scheduler of refocus, reconstruct and piv (config section compute). Not a param: it
+# changes where the tasks run, not their results (bit-identical), so changing it reruns nothing.
+COMPUTE = json.dumps(CFG["compute"], sort_keys=True)
+DASK_STAGE = STAGE + " --compute {COMPUTE:q}"
 
 # study and report read the whole config: they rerun on any change to it
 STUDY_CFG = json.dumps(CFG, sort_keys=True, default=str)
@@ -197,7 +201,7 @@ rule refocus:
     benchmark: f"{BENCH}/refocus/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("refocus")
-    shell: STAGE + " refocus {input[0]:q} {output[0]:q}"
+    shell: DASK_STAGE + " refocus {input[0]:q} {output[0]:q}"
 
 
 rule reconstruct:
@@ -210,7 +214,7 @@ rule reconstruct:
     benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("reconstruct")
-    shell: STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
+    shell: DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
 
 
 rule piv:
@@ -222,7 +226,7 @@ rule piv:
     benchmark: f"{BENCH}/piv/{{sid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("piv")
-    shell: STAGE + " piv {input.a:q} {input.b:q} {output[0]:q}"
+    shell: DASK_STAGE + " piv {input.a:q} {input.b:q} {output[0]:q}"
 
 
 rule errors:

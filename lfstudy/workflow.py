@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from lfstudy import io
+from lfstudy.compute import dask_scheduler, describe
 from lfstudy.study import case as cl
 
 __all__ = [
@@ -40,6 +41,7 @@ __all__ = [
     "run_errors",
     "run_study",
     "run_report",
+    "DASK_STAGES",
 ]
 
 
@@ -157,23 +159,8 @@ def run_reconstruct(
 
 def run_piv(ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: str | Path) -> None:
     """3-D WIDIM PIV between the two reconstructed volumes."""
-    from lfstudy.piv import widim
-
-    p = ccfg["piv"]
-    a = io.open_array(vol_a).load()
-    b = io.open_array(vol_b).load()
-    t0 = time.perf_counter()
-    res = widim(
-        a,
-        b,
-        window=tuple(p["window"]),
-        spacing=tuple(p["spacing"]),
-        levels=p["levels"],
-        mode=p["mode"],
-        subpixel=p["subpixel"],
-        progress=True,
-    )
-    res.attrs.update(io.provenance(ccfg, None), piv_seconds=time.perf_counter() - t0)
+    res = cl.case_piv(ccfg, io.open_array(vol_a).load(), io.open_array(vol_b).load(), progress=True)
+    res.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(res, out)
 
 
@@ -245,6 +232,9 @@ def run_report(
     write_report(io.open_zarr(study).load(), files, dict(cfg), Path(out_html))
 
 
+#: The stages whose dask graphs a ``compute`` section may send to a dask.distributed client.
+DASK_STAGES = ("refocus", "reconstruct", "piv")
+
 _RUNNERS = {
     "camera": run_optics,
     "particles": run_particles,
@@ -267,7 +257,9 @@ def main(argv: list[str] | None = None) -> int:
     several times cheaper than Snakemake spawning itself for a ``run:`` job,
     which matters for sweeps of many small cases. ``--config`` is the
     stage's JSON config (:func:`lfstudy.config.stage_config`); ARGS are the stage function's
-    remaining arguments (frame and paths) in order.
+    remaining arguments (frame and paths) in order. ``--compute`` is the config's ``compute``
+    section as JSON: the stages of :data:`DASK_STAGES` then run under the dask scheduler it
+    names (:func:`lfstudy.compute.dask_scheduler`); the others ignore it.
     """
     import argparse
 
@@ -276,12 +268,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", required=True, help="the stage's config as JSON")
     ap.add_argument("--log", required=True, help="log file (stdout, stderr, traceback)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--compute",
+        default="{}",
+        help="the config's compute section as JSON: the dask scheduler of refocus, reconstruct and piv",
+    )
     ap.add_argument("args", nargs="*")
     ns = ap.parse_intermixed_args(argv)  # options before, between or after the positionals
     try:
         with logged(ns.log):
             set_threads(ns.threads)
-            _RUNNERS[ns.stage](json.loads(ns.config), *ns.args)
+            compute = json.loads(ns.compute) if ns.stage in DASK_STAGES else None
+            if compute and compute.get("scheduler", "threads") != "threads":
+                print(f"dask: {describe(compute)}", flush=True)
+            # the scheduler is chosen here, at the edge: the stage and the science below it are the same
+            with dask_scheduler(compute, threads=ns.threads):
+                _RUNNERS[ns.stage](json.loads(ns.config), *ns.args)
     except Exception:  # the traceback is in the log; logged() said where
         return 1
     return 0
