@@ -30,6 +30,9 @@ from lfstudy.workflow import logged
 
 configfile: "config/demo.yaml"
 
+# `--config process=RECORDING.yaml` names a recording for the optional `process` target (end of
+# this file); it is no study setting, so it leaves the config before the study is validated.
+PROCESS = config.pop("process", None)
 CFG = validate_config(config)           # one clear error on a bad config, defaults filled
 NAME = CFG["name"]
 SWEEP = Sweep(CFG)
@@ -302,3 +305,42 @@ rule export_volume:
     shell:
         "(python -m lfstudy.cli export {input:q} --out {output.vtk:q}"
         " && python -m lfstudy.cli export {input:q} --out {output.tif:q} --resample-z) > {log:q} 2>&1"
+
+
+# Optional, not part of `all`: process a recording (calibration image, dark frames, image pairs or
+# a time series of plenoptic TIFFs; schema lfstudy/process_schema.yaml) as `lfstudy process` does:
+#   snakemake --cores all process --config process=path/to/recording.yaml
+# Output: results/<recording name>/ (piv.zarr along time, metrics.csv, report.html, ...). It
+# reruns when the recording config or any of its image files changes.
+localrules: process
+
+if PROCESS:
+    from lfstudy.process.config import load_process_config
+    from lfstudy.process.recording import recording_files
+
+    PCFG = load_process_config(PROCESS)
+    POUT = f"results/{PCFG['name']}"
+    if POUT == OUT:
+        raise WorkflowError(
+            f"recording {PROCESS!r}: its name {PCFG['name']!r} is the study's; rename one (both write {OUT})"
+        )
+
+    rule process:
+        input: POUT
+
+    rule process_recording:
+        input:
+            config=PROCESS,
+            images=recording_files(PCFG["recording"]),
+        output: directory(POUT)
+        log: f"results/{PCFG['name']}.process.log"
+        threads: HEAVY
+        shell:
+            "python -m lfstudy.cli process {input.config:q} --out {output[0]:q} --threads {threads} --quiet"
+            " > {log:q} 2>&1"
+
+else:
+
+    rule process:
+        run:
+            raise WorkflowError("the process target needs a recording: --config process=RECORDING.yaml")

@@ -22,6 +22,7 @@ from lfstudy.optics import OpticsError, PlenopticCamera
 __all__ = [
     "ConfigError",
     "load_schema",
+    "read_yaml",
     "load_config",
     "validate_config",
     "validate_section",
@@ -108,8 +109,13 @@ def _describe(err: jsonschema.ValidationError) -> str:
     return err.message
 
 
-def validate_section(schema: Mapping[str, Any], value: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+def validate_section(
+    schema: Mapping[str, Any], value: Mapping[str, Any], prefix: str = "", *, registry: Any = None
+) -> dict[str, Any]:
     """Validate ``value`` against ``schema``, returning a deep copy with defaults filled in.
+
+    ``registry`` (a :class:`referencing.Registry`) resolves ``$ref`` to other schema
+    files, e.g. the recording schema's references to the study schema's sections.
 
     Raises
     ------
@@ -118,14 +124,15 @@ def validate_section(schema: Mapping[str, Any], value: Mapping[str, Any], prefix
         what is allowed.
     """
     out = copy.deepcopy(dict(value))
-    errors = list(_Validator(schema).iter_errors(out))
+    kw = {"registry": registry} if registry is not None else {}
+    errors = list(_Validator(schema, **kw).iter_errors(out))
     if errors:
         # The deepest, most specific message is the useful one.
         err = max(errors, key=lambda e: len(e.path))
         key = ".".join(p for p in (prefix, _key(err.path) if err.path else "") if p) or "<root>"
         raise ConfigError(f"config key '{key}' = {err.instance!r}: {_describe(err)}")
     # Re-run once so defaults nested inside freshly defaulted sections are filled.
-    _Validator(schema).validate(out)
+    _Validator(schema, **kw).validate(out)
     return out
 
 
@@ -162,6 +169,8 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
             f"config key 'particles.count' = {count}: a fixed particle count overrides ppp, so every swept "
             "ppp value would image the same field; drop particles.count or sweep.ppp"
         )
+    from lfstudy.reconstruct.grid import GridError
+    from lfstudy.study.case import case_grid
     from lfstudy.study.resources import check_memory
     from lfstudy.study.sweep import NAMED, format_value
 
@@ -181,12 +190,28 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
         except OpticsError as exc:
             where = ", ".join(f"{k}={v}" for k, v in case.params.items() if k != "flow")
             raise ConfigError(f"config key 'camera' (case {where}): {exc}") from None
+        sen = ccfg["sensor"]
+        if sen["full_well"] is not None and sen["full_well"] <= sen["dark_level"]:
+            raise ConfigError(
+                f"config key 'sensor.full_well' = {sen['full_well']!r} (case {case.case_id}): must exceed "
+                f"sensor.dark_level = {sen['dark_level']!r} e- (the pedestal would fill the well)"
+            )
+        try:  # the grid a case reconstructs on (grid.z_range, voxel sizes, its memory cap)
+            case_grid(ccfg)
+        except GridError as exc:
+            raise ConfigError(f"config key 'grid' (case {case.case_id}): {exc}") from None
         check_memory(ccfg, where=f"case {case.case_id}")
     return cfg
 
 
-def load_config(path: str | Path) -> dict[str, Any]:
-    """Read a YAML config file and validate it (defaults filled in)."""
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML config file as a mapping (not validated).
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, not valid YAML, or not a mapping at the top level.
+    """
     path = Path(path)
     try:
         raw = yaml.safe_load(path.read_text())
@@ -196,7 +221,12 @@ def load_config(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {str(path)!r} is not valid YAML: {exc}") from None
     if not isinstance(raw, dict):
         raise ConfigError(f"config file {str(path)!r}: expected a mapping at the top level")
-    return validate_config(raw)
+    return raw
+
+
+def load_config(path: str | Path) -> dict[str, Any]:
+    """Read a YAML config file and validate it (defaults filled in)."""
+    return validate_config(read_yaml(path))
 
 
 def sweep_of(cfg: Mapping[str, Any]) -> Any:

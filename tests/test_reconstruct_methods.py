@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+import yaml
 
 from lfstudy.config import ConfigError, validate_config
 from lfstudy.lightfield import find_lenslet_centers, focal_stack, register, synthetic_pinhole
@@ -50,6 +53,24 @@ def test_default_grid_is_uniform_and_covers_the_marching():
     assert np.allclose(thesis.z, zp) and not thesis.uniform_z
     fine = make_grid(CAM, planes, voxel_xy=0.0625, voxel_z=0.25)
     assert fine.shape[1:] == (36, 36) and fine.dx == pytest.approx(0.0625)
+
+
+def test_grid_z_range_covers_the_measurement_volume():
+    """grid.z_range: the same depth whatever the marching (z = 0 stays a voxel centre)."""
+    planes = CAM.focal_planes()
+    dz = default_voxel_z(CAM)
+    g = make_grid(CAM, planes, z_range=(-1.3, 2.2))
+    assert np.allclose(np.diff(g.z), dz) and np.any(np.isclose(g.z, 0.0, atol=1e-12))
+    assert -1.3 <= g.z[0] < -1.3 + dz and 2.2 - dz < g.z[-1] <= 2.2
+    thesis = make_grid(CAM, planes, spacing="planes", z_range=(-2.0, 2.0))
+    zp = np.sort(planes["z"].values)
+    assert np.array_equal(thesis.z, zp[(zp >= -2.0) & (zp <= 2.0)]) and 0 < thesis.z.size < zp.size
+    for bad in ((2.0, -2.0), (0.1, 0.2), ("a", 1), (np.nan, 1.0)):
+        with pytest.raises(GridError, match=r"grid\.z_range"):
+            make_grid(CAM, planes, z_range=bad)
+    with pytest.raises(ConfigError, match=r"config key 'grid'.*grid\.z_range = \[1\.0, -1\.0\]"):
+        cfg = yaml.safe_load((Path(__file__).parents[1] / "config" / "demo.yaml").read_text())
+        validate_config({**cfg, "grid": {"z_range": [1.0, -1.0]}})
 
 
 def test_grid_bad_input_names_the_setting():
@@ -172,4 +193,4 @@ def test_method_schemas_reach_the_config():
     }
     cfg = validate_config({"camera": camera, "reconstruct": {"method": "mart"}})
     assert cfg["reconstruct"]["mart"]["iterations"] == 3 and cfg["reconstruct"]["threshold"]["k"] == 3.0
-    assert cfg["grid"] == {"spacing": "uniform", "voxel_xy": None, "voxel_z": None, "max_bytes": 4e9}
+    assert cfg["grid"] == {"spacing": "uniform", "voxel_xy": None, "voxel_z": None, "z_range": None, "max_bytes": 4e9}

@@ -21,6 +21,7 @@ thesis ran it, not for comparisons across designs.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -169,6 +170,17 @@ def default_voxel_z(camera: PlenopticCamera) -> float:
     return 0.5 * float(np.mean(nb))
 
 
+def _check_z_range(z_range: Sequence[float]) -> tuple[float, float]:
+    """(z_min, z_max) of ``grid.z_range``, or a GridError naming it."""
+    try:
+        lo, hi = (float(v) for v in z_range)
+    except (TypeError, ValueError):
+        raise GridError(f"grid.z_range = {z_range!r}: must be two numbers [z_min, z_max] in mm") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise GridError(f"grid.z_range = {list(z_range)}: must be finite with z_min < z_max (mm)")
+    return lo, hi
+
+
 def make_grid(
     camera: PlenopticCamera,
     planes: xr.Dataset,
@@ -176,6 +188,7 @@ def make_grid(
     voxel_xy: float | None = None,
     voxel_z: float | None = None,
     spacing: str = "uniform",
+    z_range: Sequence[float] | None = None,
     max_bytes: float = 4e9,
 ) -> ReconstructionGrid:
     """The reconstruction grid of a camera and its refocus marching.
@@ -192,6 +205,12 @@ def make_grid(
         Depth step [mm] of a uniform grid; default :func:`default_voxel_z`.
     spacing : {"uniform", "planes"}
         Uniform z steps, or one voxel per refocus plane (the thesis).
+    z_range : (float, float), optional
+        Object-space depth [mm] to cover instead of the marching's: the
+        measurement volume (e.g. the seeded slab), so that designs whose
+        marching reaches different depths are compared on the same volume.
+        Uniform grids keep z = 0 on a voxel centre; ``planes`` keeps the planes
+        inside the range.
     max_bytes : float
         Refuse grids whose float32 volume exceeds this (the reconstruction
         holds a few such volumes).
@@ -219,15 +238,23 @@ def make_grid(
     x = (np.arange(nx) - 0.5 * (nx - 1)) * dxy
     y = (np.arange(ny) - 0.5 * (ny - 1)) * dxy
     zp = np.sort(np.asarray(planes["z"].values, dtype=float))
+    lo, hi = (zp[0], zp[-1]) if z_range is None else _check_z_range(z_range)
     if spacing == "planes":
-        z = zp
+        z = zp[(zp >= lo - 1e-9) & (zp <= hi + 1e-9)]
+        if z.size == 0:
+            raise GridError(
+                f"grid.z_range = {list(z_range or ())}: holds no refocus plane "
+                f"(planes at {zp[0]:.4g} .. {zp[-1]:.4g} mm)"
+            )
     else:
         dz = default_voxel_z(camera) if voxel_z is None else voxel_z
         if not (isinstance(dz, (int, float)) and math.isfinite(dz) and dz > 0):
             raise GridError(f"grid.voxel_z = {voxel_z!r}: must be a number > 0 mm")
-        k0 = math.ceil(zp[0] / dz - 1e-9)
-        k1 = math.floor(zp[-1] / dz + 1e-9)
+        k0 = math.ceil(lo / dz - 1e-9)
+        k1 = math.floor(hi / dz + 1e-9)
         if k1 < k0:
+            if z_range is not None:
+                raise GridError(f"grid.z_range = {list(z_range)}: narrower than one voxel_z step of {dz:.4g} mm")
             k0 = k1 = 0
         z = np.arange(k0, k1 + 1) * dz
     grid = ReconstructionGrid(x, y, z, spacing)

@@ -20,6 +20,7 @@ import zlib
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 import xarray as xr
 
 from lfstudy import io
@@ -188,6 +189,7 @@ def case_grid(ccfg: Mapping[str, Any], camera: PlenopticCamera | None = None) ->
         voxel_xy=g["voxel_xy"],
         voxel_z=g["voxel_z"],
         spacing=g["spacing"],
+        z_range=g["z_range"],
         max_bytes=g["max_bytes"],
     )
 
@@ -205,6 +207,8 @@ def case_stack(ccfg: Mapping[str, Any], lightfield: xr.DataArray) -> xr.DataArra
     cam = case_camera(ccfg)
     grid = case_grid(ccfg, cam)
     planes = case_planes(ccfg, cam) if grid.spacing == "planes" else cam.planes_at(grid.z)
+    if grid.spacing == "planes" and planes.sizes["plane"] != grid.z.size:  # grid.z_range keeps some planes
+        planes = planes.isel(plane=np.flatnonzero(np.isin(planes["z"].values, grid.z)))
     resize = bool(ccfg["refocus"]["resize"])
     stack = focal_stack(lightfield, cam, planes, resize=resize, x=grid.x, y=grid.y)
     stack.attrs.update(grid.attrs())

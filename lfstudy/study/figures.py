@@ -29,6 +29,7 @@ __all__ = [
     "piv_convergence",
     "displacement_histograms",
     "vector_slices",
+    "series_metrics",
     "metrics_vs_parameter",
 ]
 
@@ -296,6 +297,25 @@ def vector_slices(piv: xr.Dataset) -> Figure:
     ax.set_title(f"x–y slice, mean subtracted ({unit})", fontsize=9)
     ax.set_xlabel("x [mm]")
     ax.set_aspect("equal")
+    return fig
+
+
+def series_metrics(table: xr.Dataset, metrics: Sequence[str], dim: str, *, ncols: int = 3) -> Figure:
+    """Scalar metrics of a processed recording against its pairs (time, or pair number).
+
+    One panel per metric, labelled from its ``long_name`` and ``units``.
+    """
+    metrics = [m for m in metrics if m in table]
+    nrows = max(1, math.ceil(len(metrics) / ncols))
+    fig = _fig(4.0 * ncols, 2.7 * nrows, left=0.07, right=0.98, top=0.93, bottom=0.1, wspace=0.35, hspace=0.6)
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    t = table[dim]
+    for ax, m in zip(axes, metrics):
+        ax.plot(t.values, np.asarray(table[m].values, float), "o-", color="C0", ms=3)
+        ax.set_title(_label(table[m]), fontsize=9)
+        ax.set_xlabel(f"{dim} [{t.attrs['units']}]" if t.attrs.get("units") not in (None, "1") else dim)
+    for ax in axes[len(metrics) :]:
+        ax.set_axis_off()
     return fig
 
 

@@ -20,7 +20,7 @@ import math
 import re
 import time
 import warnings
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,7 +35,16 @@ from lfstudy.optics import PlenopticCamera
 from lfstudy.study.case import case_planes
 from lfstudy.study.sweep import format_value
 
-__all__ = ["write_report", "write_figures", "report_blocks", "best_designs", "case_table", "SECTIONS"]
+__all__ = [
+    "write_report",
+    "write_figures",
+    "write_html",
+    "report_blocks",
+    "best_designs",
+    "case_table",
+    "Block",
+    "SECTIONS",
+]
 
 #: Section ids and titles, in report order: the answer first.
 SECTIONS: dict[str, str] = {
@@ -684,32 +693,76 @@ def write_report(
     Path
         ``out_html``.
     """
-    parts: dict[str, list[str]] = {s: [] for s in SECTIONS}
-    per_case: dict[str, list[str]] = {}
-    for b in report_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress):
+    from lfstudy import __version__
+
+    name = str(cfg.get("name", "study"))
+    ver = html.escape(str(study.attrs.get("lfstudy_version", __version__)))
+    blocks = report_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
+    intro = (
+        f"Generated {time.strftime('%Y-%m-%d %H:%M')} by lfstudy {ver}. Method: Lynch (2011), "
+        "Development of a 3-D Fluid Velocimetry Technique based on Light Field Imaging."
+    )
+    return write_html(
+        blocks,
+        SECTIONS,
+        f"lfstudy report: {name}",
+        f"Light-field PIV study <code>{html.escape(name)}</code>",
+        intro,
+        out_html,
+    )
+
+
+def write_html(
+    blocks: Iterable[Block],
+    sections: Mapping[str, str],
+    title: str,
+    heading: str,
+    intro: str,
+    out_html: Path,
+) -> Path:
+    """Write report blocks as one self-contained HTML page (atomically).
+
+    Parameters
+    ----------
+    blocks : iterable of Block
+        In order; a block with ``case`` set goes into a collapsible group of that
+        name at the end of its section.
+    sections : mapping
+        Section id → title, in page order (with a table of contents).
+    title : str
+        The page title (plain text).
+    heading : str
+        The page heading (trusted HTML).
+    intro : str
+        The paragraph under the heading (plain text).
+    out_html : Path
+        Output file; written via a temporary sibling and renamed.
+
+    Returns
+    -------
+    Path
+        ``out_html``.
+    """
+    parts: dict[str, list[str]] = {s: [] for s in sections}
+    per_case: dict[tuple[str, str], list[str]] = {}
+    for b in blocks:
         frag = _render(b)
         b.figure = None  # free the figure before the next is drawn
         if b.case is not None:
-            per_case.setdefault(b.case, []).append(frag)
+            per_case.setdefault((b.section, b.case), []).append(frag)
         else:
             parts[b.section].append(frag)
-    for cid, frags in per_case.items():
-        parts["cases"].append(f"<details><summary>{html.escape(cid)}</summary>{''.join(frags)}</details>")
-    name = html.escape(str(cfg.get("name", "study")))
-    toc = "".join(f'<li><a href="#{s}">{html.escape(t)}</a></li>' for s, t in SECTIONS.items())
+    for (section, cid), frags in per_case.items():
+        parts[section].append(f"<details><summary>{html.escape(cid)}</summary>{''.join(frags)}</details>")
+    toc = "".join(f'<li><a href="#{s}">{html.escape(t)}</a></li>' for s, t in sections.items())
     body = "".join(
-        f'<section id="{s}"><h2>{html.escape(SECTIONS[s])}</h2>{"".join(parts[s])}</section>' for s in SECTIONS
+        f'<section id="{s}"><h2>{html.escape(sections[s])}</h2>{"".join(parts[s])}</section>' for s in sections
     )
-    from lfstudy import __version__
-
-    ver = html.escape(str(study.attrs.get("lfstudy_version", __version__)))
     doc = (
         f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
         f'<meta name="viewport" content="width=device-width,initial-scale=1">'
-        f"<title>lfstudy report: {name}</title><style>{_CSS}</style></head><body>"
-        f"<h1>Light-field PIV study <code>{name}</code></h1>"
-        f"<p>Generated {time.strftime('%Y-%m-%d %H:%M')} by lfstudy {ver}. Method: Lynch (2011), "
-        f"Development of a 3-D Fluid Velocimetry Technique based on Light Field Imaging.</p>"
+        f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>"
+        f"<h1>{heading}</h1><p>{html.escape(intro)}</p>"
         f"<nav><ul>{toc}</ul></nav>{body}</body></html>"
     )
     out_html = Path(out_html)

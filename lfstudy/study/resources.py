@@ -53,9 +53,10 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
     dxy = g.get("voxel_xy") or d0
     r = ccfg.get("refocus", {}) or {}
     planes = cam.focal_planes(r.get("n_planes"), depth_scale=r.get("depth_scale", 1.0), cubic=bool(r.get("cubic")))
-    depth = float(planes["z"].max() - planes["z"].min())
+    z_range = g.get("z_range")
+    depth = float(planes["z"].max() - planes["z"].min()) if z_range is None else float(z_range[1] - z_range[0])
     nz = (
-        len(planes["z"])
+        len(planes["z"])  # (an upper bound with z_range)
         if g.get("spacing") == "planes"
         else int(depth / (g.get("voxel_z") or default_voxel_z(cam))) + 1
     )

@@ -1,0 +1,116 @@
+"""The recording config of ``lfstudy process``: load, validate, resolve paths.
+
+The schema, ``lfstudy/process_schema.yaml``, takes the camera and the
+processing sections (``refocus``, ``grid``, ``reconstruct``, ``piv``,
+``compute``) from the study schema by ``$ref`` — one definition of each, so a
+recording is processed with exactly the settings a study sweeps — and adds the
+``recording`` section. Paths in ``recording`` are relative to the config file.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+from collections.abc import Mapping
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from lfstudy.config import ConfigError, load_schema, read_yaml, validate_section
+from lfstudy.optics import OpticsError, PlenopticCamera
+
+__all__ = ["load_process_schema", "validate_process_config", "load_process_config"]
+
+#: The URI the study schema is registered under; the recording schema's ``$id`` is beside it.
+STUDY_SCHEMA_URI = "https://lfstudy.invalid/schema.yaml"
+
+
+@functools.lru_cache(maxsize=1)
+def _process_schema() -> dict[str, Any]:
+    return yaml.safe_load(resources.files("lfstudy").joinpath("process_schema.yaml").read_text())
+
+
+def _registry() -> Any:
+    from referencing import Registry, Resource
+    from referencing.jsonschema import DRAFT202012
+
+    study = load_schema()  # with the reconstruction methods' parameters filled in
+    return Registry().with_resource(STUDY_SCHEMA_URI, Resource.from_contents(study, default_specification=DRAFT202012))
+
+
+def load_process_schema() -> dict[str, Any]:
+    """The JSON schema of a recording config (its ``$ref`` point into the study schema)."""
+    return copy.deepcopy(_process_schema())
+
+
+def validate_process_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> dict[str, Any]:
+    """Validate a recording config, fill defaults, resolve the recording's paths.
+
+    Parameters
+    ----------
+    cfg : mapping
+        The config (as read from YAML).
+    base : path, optional
+        Directory the ``recording`` paths are relative to (the config file's);
+        default the current directory. Absolute paths stay as they are; globs
+        are resolved later, by :func:`lfstudy.process.recording.open_recording`.
+
+    Returns
+    -------
+    dict
+        A deep copy with defaults filled in and every path of ``recording``
+        absolute. ``recording.frames`` holds exactly one of ``pairs``, ``series``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the key, the value and what is allowed.
+    """
+    out = validate_section(_process_schema(), cfg, registry=_registry())
+    lens = out["camera"]["lenslet"]
+    if lens.get("focal_length") is None and lens.get("fnumber") is None:
+        raise ConfigError("config key 'camera.lenslet': give focal_length or fnumber (fl = N·pl)")
+    try:
+        PlenopticCamera.from_config(out)
+    except OpticsError as exc:
+        raise ConfigError(f"config key 'camera': {exc}") from None
+    frames = out["recording"]["frames"]
+    given = [k for k in ("pairs", "series") if k in frames]
+    if len(given) != 1:
+        raise ConfigError(
+            "config key 'recording.frames': give exactly one of 'pairs' (independent image pairs) or "
+            f"'series' (a time series){'; got both' if len(given) == 2 else ''}"
+        )
+    root = Path(base) if base is not None else Path.cwd()
+
+    def resolve(p: str) -> str:
+        return str(p) if Path(p).is_absolute() else str(root / p)
+
+    rec = out["recording"]
+    rec["calibration"]["image"] = resolve(rec["calibration"]["image"])
+    rec["dark"] = [resolve(p) for p in ([rec["dark"]] if isinstance(rec["dark"], str) else rec["dark"])]
+    if "pairs" in frames:
+        frames["pairs"] = [resolve(p) if isinstance(p, str) else [resolve(q) for q in p] for p in frames["pairs"]]
+    else:
+        s = frames["series"]
+        frames["series"] = resolve(s) if isinstance(s, str) else [resolve(p) for p in s]
+    from lfstudy.study.resources import check_memory
+
+    # a recording has no simulated particles: the memory estimate's simulate stage gets a placeholder
+    check_memory({**out, "particles": {"count": 1, "ppp": 1e-9}})
+    return out
+
+
+def load_process_config(path: str | Path) -> dict[str, Any]:
+    """Read a recording config (YAML) and validate it; its recording paths are relative to the file.
+
+    Raises
+    ------
+    ConfigError
+        Missing or unreadable file, invalid YAML or an invalid value.
+    """
+    path = Path(path)
+    raw = read_yaml(path)
+    return validate_process_config(raw, base=path.resolve().parent)

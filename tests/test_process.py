@@ -1,0 +1,307 @@
+"""`lfstudy process` on a recording made by the simulator: noisy 12-bit TIFFs of the tiny test camera
+with a rotated, offset lenslet grid, a fixed-pattern dark offset and dark frames, processed as if
+recorded (the camera description knows nothing of the rotation or the offset).
+
+Tolerances: the tiny study (tests/test_workflow.py) measures the same 0.1 mm (1.126 voxel) x shift
+of the same camera to |bias| < 0.1 voxel with > 80 % valid vectors; a recording is held to the same.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import tifffile
+import yaml
+
+from lfstudy import io
+from lfstudy.cli import main
+from lfstudy.config import load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "tests" / "data" / "tiny.yaml"
+SHIFT_MM = 0.1  # per frame, in x
+VOXEL_MM = 0.0888  # pitch / |M| of the tiny camera
+DT = 0.002  # s between frames
+FULL_12 = 4095
+
+
+def _cli(capsys, *argv: str) -> str:
+    """Run the CLI: it must exit 2 with one 'error:' line on stderr and no traceback."""
+    assert main(list(argv)) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err and lines[0].startswith(f"lfstudy {argv[0]}: error: "), err
+    return lines[0]
+
+
+def _tags(full: int) -> list[tuple]:
+    return [(281, "H", 1, full, True)]  # MaxSampleValue: a 12-bit camera's full scale in a 16-bit file
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> dict:
+    """Pinhole image, two dark frames and three frames of a uniform x shift, as recorded TIFFs."""
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.simulate import displace, flow_from_config, render, render_pinhole
+    from lfstudy.study.case import case_particles
+
+    d = tmp_path_factory.mktemp("recording")
+    cfg = load_config(TINY)
+    cam_cfg = cfg["camera"]
+    # the real lenslet array is rotated and offset; the camera description does not say so
+    real = {**cfg, "camera": {**cam_cfg, "lenslet": {**cam_cfg["lenslet"], "rotation": 0.01, "offset_x": 0.021}}}
+    real["camera"]["lenslet"]["offset_y"] = -0.013
+    cam = PlenopticCamera.from_config(real)
+    field = case_particles(real)
+    rng = np.random.default_rng(5)
+    pattern = 60.0 + rng.normal(0.0, 5.0, (cam.n_pixels_y, cam.n_pixels_x))  # fixed-pattern offset
+
+    def record(expected: np.ndarray, gain: float) -> np.ndarray:
+        counts = rng.poisson(expected * gain) + pattern + rng.normal(0.0, 2.0, expected.shape)
+        return np.clip(np.rint(counts), 0, FULL_12).astype(np.uint16)
+
+    pin = render_pinhole(cam, fnumber=16, count=20000, rays_per_point=30, seed=11).values
+    pin12 = record(pin, 3000.0 / pin.max())
+    tifffile.imwrite(d / "pinhole.tif", pin12, extratags=_tags(FULL_12))
+    clean = []
+    for k in range(3):
+        moved = displace(field, flow_from_config({"kind": "uniform", "displacement": [SHIFT_MM * k, 0, 0]}), 1.0, 1)
+        clean.append(render(cam, moved, 1500, 100 + k).values)
+    # the brightest particle images clip at full scale, as in a real recording
+    gain = 7000.0 / max(float(c.max()) for c in clean)
+    frames = [record(c, gain) for c in clean]
+    for k, f in enumerate(frames):
+        tifffile.imwrite(d / f"frame_{k + 1}.tif", f, extratags=_tags(FULL_12))
+    darks = [record(np.zeros_like(pin), 1.0) for _ in range(2)]
+    for k, f in enumerate(darks):
+        tifffile.imwrite(d / f"dark_{k + 1}.tif", f, extratags=_tags(FULL_12))
+    # the same recording as 16-bit data: one multi-page stack of the frames, one of the darks
+    tifffile.imwrite(d / "series16.tif", np.stack(frames) * 16, photometric="minisblack")
+    tifffile.imwrite(d / "dark16.tif", np.stack(darks) * 16, photometric="minisblack")
+    tifffile.imwrite(d / "pinhole16.tif", pin12 * 16)
+    base = {"name": "rec", "camera": cam_cfg, "refocus": cfg["refocus"], "piv": cfg["piv"]}
+    return {
+        "dir": d,
+        "base": base,
+        "clean": clean,
+        "camera": real,
+        "sat": [float(np.mean(f >= FULL_12)) for f in frames],
+    }
+
+
+def _config(rec: dict, name: str, recording: dict, calibration: str = "pinhole.tif", **over) -> Path:
+    cfg = {**rec["base"], **over, "recording": {"calibration": {"image": calibration}, "dt": DT, **recording}}
+    path = rec["dir"] / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+@pytest.fixture(scope="module")
+def series(recording, tmp_path_factory):
+    """The 12-bit files as a time series (a glob), dark frames subtracted, through the CLI."""
+    cfg = _config(recording, "series", {"dark": "dark_*.tif", "frames": {"series": "frame_*.tif"}})
+    out = tmp_path_factory.mktemp("out") / "series"
+    assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_series_measures_the_shift(series, recording, capsys):
+    from lfstudy.process import open_result
+
+    res = open_result(series)
+    assert res["u"].chunks is not None  # lazy (dask)
+    assert res.sizes["time"] == 2 and res["time"].attrs["units"] == "s"
+    np.testing.assert_allclose(res["time"].values, [0.5 * DT, 1.5 * DT])
+    assert list(res["frame_a"].values) == [1, 2] and list(res["frame_b"].values) == [2, 3]
+    valid = res["valid"].values
+    true = SHIFT_MM / VOXEL_MM
+    u = res["u"].values[valid]
+    assert abs(u.mean() - true) < 0.1, u.mean() - true
+    assert abs(res["v"].values[valid].mean()) < 0.1 and abs(res["w"].values[valid].mean()) < 0.2
+    for t in range(2):
+        assert valid[t].mean() > 0.8, valid[t].mean()
+    # the stores of every frame, as the simulated pipeline writes them
+    for k in range(3):
+        for name in ("lightfield", "stack", "volume"):
+            assert (series / f"frames/{k:03d}/{name}.zarr").is_dir()
+    assert (series / "centers.zarr").is_dir() and (series / "dark.zarr").is_dir()
+
+
+def test_series_metrics_and_report(series, recording):
+    m = pd.read_csv(series / "metrics.csv", index_col="time")
+    assert len(m) == 2
+    assert (m["n_vectors"] == 18).all()
+    assert (m["valid_percent"] > 80).all()
+    assert (m["peak_ratio_median"] > 2).all()  # one displacement clearly wins in every window
+    assert np.isfinite(m["divergence_rms"]).all() and (m["divergence_norm"] < 1).all()
+    np.testing.assert_allclose(m["saturated_percent"], 100 * np.maximum(recording["sat"][:-1], recording["sat"][1:]))
+    metrics = io.open_zarr(series / "metrics.zarr")
+    assert metrics["divergence_rms"].attrs["units"] == "1/s"
+    assert metrics["valid_percent"].attrs["units"] == "percent"
+    piv = io.open_zarr(series / "piv.zarr")
+    assert piv["divergence"].attrs["units"] == "1/s" and "peak_ratio" in piv
+    html = (series / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 6
+    assert 'src="http' not in html and "<script src" not in html
+    assert "peak_ratio_median" in html and "Q" not in re.findall(r"<th>(\w+)</th>", html)
+
+
+def test_saturation_warns_with_the_fraction(recording, tmp_path, capsys):
+    assert max(recording["sat"]) > 0  # the fixture clips the brightest particle images
+    pairs = {"pairs": [["frame_1.tif", "frame_2.tif"]]}
+    cfg = _config(recording, "pairs", {"dark": "dark_*.tif", "frames": pairs, "max_saturated": 0.0})
+    out = tmp_path / "pairs"
+    assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().err
+    err = [ln for ln in text.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("lfstudy process: warning: "), text  # nothing else (zarr...)
+    worst = 100 * max(recording["sat"][:2])
+    assert re.search(r"2 of 2 frames saturated .* full scale 4095, 12-bit\): up to ([\d.]+) %", err[0]), err[0]
+    assert float(re.search(r"up to ([\d.]+) %", err[0]).group(1)) == pytest.approx(worst, rel=1e-2)
+    pair = io.open_zarr(out / "piv.zarr")
+    assert pair.sizes["pair"] == 1 and list(pair["pair"].values) == [0]
+
+
+def test_16bit_stack_gives_the_same_vectors(recording, series, tmp_path):
+    """The 16-bit multi-page stack (16 x the 12-bit data, darks too) gives the 12-bit files' vectors."""
+    rec16 = {"dark": "dark16.tif", "frames": {"series": "series16.tif"}}
+    cfg = _config(recording, "stack", rec16, calibration="pinhole16.tif")
+    out = tmp_path / "stack"
+    assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
+    a, b = io.open_zarr(series / "piv.zarr").load(), io.open_zarr(out / "piv.zarr").load()
+    assert b.attrs["recording_bit_depth"] == 16 and a.attrs["recording_bit_depth"] == 12
+    for name in ("u", "v", "w"):
+        np.testing.assert_allclose(b[name].values, a[name].values, atol=1e-4)
+    assert (a["valid"].values == b["valid"].values).all()
+
+
+def test_recording_matches_the_simulated_path(recording, series):
+    """The recorded path (noisy, quantised, dark-corrected TIFFs) gives the vectors of the simulated
+    path (the noise-free float images of the same camera, calibrated on a noise-free pinhole)."""
+    from lfstudy.lightfield import find_lenslet_centers
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.simulate import render_pinhole
+    from lfstudy.study.case import case_piv, render_volume
+
+    cfg = load_config(TINY)
+    real = PlenopticCamera.from_config(recording["camera"])
+    pin = render_pinhole(real, fnumber=16, count=20000, rays_per_point=30, seed=11)
+    centers = find_lenslet_centers(pin, PlenopticCamera.from_config(cfg))
+    vols = [render_volume(img, centers, cfg)[2].compute() for img in recording["clean"][:2]]
+    sim = case_piv(cfg, *vols)
+    rec = io.open_zarr(series / "piv.zarr").isel(time=0).load()
+    both = sim["valid"].values & rec["valid"].values
+    assert both.mean() > 0.7
+    du = rec["u"].values[both] - sim["u"].values[both]
+    assert abs(du.mean()) < 0.05 and np.sqrt(np.mean(du**2)) < 0.15, (du.mean(), np.sqrt(np.mean(du**2)))
+
+
+# ------------------------------------------------------------------ bad recordings
+def _no_output(out: Path) -> None:
+    assert not out.exists() and not list(out.parent.glob(f".{out.name}.tmp-*"))
+
+
+def test_frames_of_different_size(recording, capsys, tmp_path):
+    d = recording["dir"]
+    img = tifffile.imread(d / "frame_2.tif")
+    tifffile.imwrite(d / "narrow.tif", img[:, :380], extratags=_tags(FULL_12))
+    cfg = _config(recording, "bad_size", {"frames": {"series": ["frame_1.tif", "narrow.tif"]}})
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "recording.frames: frames differ in size" in line and "380 x 384 px" in line, line
+    _no_output(tmp_path / "o")
+
+
+def test_frames_of_different_bit_depth(recording, capsys, tmp_path):
+    cfg = _config(recording, "bad_depth", {"frames": {"pairs": [["frame_1.tif", "frame_2.tif"], "series16.tif"]}})
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "recording.frames.pairs[1]: 3 frames" in line, line  # a three-page stack is no pair
+    cfg = _config(recording, "bad_depth2", {"dark": "dark16.tif", "frames": {"series": "frame_*.tif"}})
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "recording.dark: frames differ in bit depth" in line and "12-bit (uint16)" in line, line
+    assert "16-bit (uint16)" in line
+    rec16 = {"dark": "dark16.tif", "frames": {"series": "series16.tif"}}
+    line = _cli(capsys, "process", str(_config(recording, "bad_depth4", rec16)), "--out", str(tmp_path / "o"))
+    assert "recording.calibration.image: 'pinhole.tif' is 12-bit (uint16) but the frames and dark" in line, line
+    d = recording["dir"]
+    tifffile.imwrite(d / "depth16.tif", tifffile.imread(d / "frame_2.tif") * 16)
+    cfg = _config(recording, "bad_depth3", {"frames": {"series": ["frame_1.tif", "depth16.tif"]}})
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "recording.frames: frames differ in bit depth" in line, line
+    _no_output(tmp_path / "o")
+
+
+def test_calibration_image_without_a_lattice(recording, capsys, tmp_path):
+    d = recording["dir"]
+    noise = np.random.default_rng(0).poisson(100.0, (384, 384)).astype(np.uint16)
+    tifffile.imwrite(d / "noise.tif", noise)
+    cfg = _config(recording, "bad_calib", {"frames": {"series": "frame_*.tif"}})
+    text = yaml.safe_load(cfg.read_text())
+    text["recording"]["calibration"]["image"] = "noise.tif"
+    cfg.write_text(yaml.safe_dump(text))
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "recording.calibration.image 'noise.tif' (pinhole): no lenslet grid detected" in line, line
+    _no_output(tmp_path / "o")
+
+
+def test_sensor_size_not_the_cameras(recording, capsys, tmp_path):
+    cam = yaml.safe_load(yaml.safe_dump(recording["base"]["camera"]))
+    cam["sensor"]["n_pixels_x"] = 400
+    cfg = _config(recording, "bad_sensor", {"frames": {"series": "frame_*.tif"}}, camera=cam)
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "384 x 384 px (cols x rows) but camera.sensor is 400 x 384 px" in line, line
+    _no_output(tmp_path / "o")
+
+
+def test_bad_recording_config(recording, capsys, tmp_path):
+    cfg = _config(recording, "bad_cfg", {"frames": {"series": "frame_*.tif"}}, piv={"window": [2, 16, 16]})
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "config key 'piv.window.0' = 2: allowed range is [4, inf)" in line, line
+    cfg = _config(recording, "bad_cfg2", {"frames": {}})
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "give exactly one of 'pairs'" in line, line
+    cfg = _config(recording, "bad_cfg3", {"frames": {"series": "missing_*.tif"}})
+    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "no file matches" in line and "missing_*.tif" in line, line
+    _no_output(tmp_path / "o")
+
+
+def test_snakemake_process_target(recording, tmp_path):
+    """`snakemake process --config process=RECORDING.yaml` plans one job with the recording's files as
+    inputs (dry run: the processing itself is tested above)."""
+    import subprocess
+    import sys
+
+    cfg = _config(recording, "smk", {"dark": "dark_*.tif", "frames": {"series": "frame_*.tif"}})
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(tmp_path)]
+    cmd += ["--configfile", str(TINY), "-n", "--cores", "1", "process", "--config", f"process={cfg}"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    text = r.stdout + r.stderr
+    assert "process_recording" in text and "results/rec" in text
+    for name in ("pinhole.tif", "dark_2.tif", "frame_3.tif", "smk.yaml"):
+        assert name in text, name
+
+
+def test_white_image_calibration(recording):
+    """A white image (the working aperture: the lenslet disks touch) gives the pinhole image's centres."""
+    from lfstudy.lightfield import find_lenslet_centers
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.process import calibrate_recording
+    from lfstudy.simulate import render_pinhole
+
+    nominal = PlenopticCamera.from_config(recording["base"])
+    real = PlenopticCamera.from_config(recording["camera"])
+    white = render_pinhole(real, fnumber=real.main_fnumber, count=40000, rays_per_point=30, seed=1)
+    pin = find_lenslet_centers(render_pinhole(real, fnumber=16, count=20000, rays_per_point=30, seed=2), nominal)
+    cen = calibrate_recording(white, nominal, "white")
+    ok = cen["valid"].values & pin["valid"].values
+    assert ok.mean() > 0.9
+    d = np.hypot(cen["cx"].values - pin["cx"].values, cen["cy"].values - pin["cy"].values)[ok]
+    assert np.sqrt(np.mean(d**2)) < 0.1, np.sqrt(np.mean(d**2))
+    dx = (cen["x"].values - pin["x"].values)[ok]  # the mm coordinates follow the centres
+    assert np.sqrt(np.mean(dx**2)) < 0.1 * real.pixel_pitch
