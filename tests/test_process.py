@@ -305,3 +305,30 @@ def test_white_image_calibration(recording):
     assert np.sqrt(np.mean(d**2)) < 0.1, np.sqrt(np.mean(d**2))
     dx = (cen["x"].values - pin["x"].values)[ok]  # the mm coordinates follow the centres
     assert np.sqrt(np.mean(dx**2)) < 0.1 * real.pixel_pitch
+
+
+def test_bit_depth_of_each_kind_of_tiff(tmp_path):
+    """8-bit, 12-bit (in a 16-bit file, from MaxSampleValue or recording.bit_depth), 16-bit and float
+    frames; values above the declared full scale are refused."""
+    from types import SimpleNamespace
+
+    from lfstudy.process.recording import RecordingError, open_recording, read_frame, tiff_info
+
+    img = np.random.default_rng(1).integers(0, 200, (24, 32))
+    tifffile.imwrite(tmp_path / "a8.tif", img.astype(np.uint8))
+    tifffile.imwrite(tmp_path / "a12.tif", (img * 16).astype(np.uint16), extratags=_tags(FULL_12))
+    tifffile.imwrite(tmp_path / "a16.tif", (img * 300).astype(np.uint16))
+    tifffile.imwrite(tmp_path / "af.tif", img.astype(np.float32))
+    depth = {n: tiff_info(tmp_path / f"{n}.tif").depth for n in ("a8", "a12", "a16", "af")}
+    assert depth == {"a8": "8-bit (uint8)", "a12": "12-bit (uint16)", "a16": "16-bit (uint16)", "af": "32-bit float"}
+    assert tiff_info(tmp_path / "a16.tif", bit_depth=12).bits == 12
+    with pytest.raises(RecordingError, match=r"recording.bit_depth' = 12: .* float"):
+        tiff_info(tmp_path / "af.tif", bit_depth=12)
+    cam = SimpleNamespace(n_pixels_x=32, n_pixels_y=24)
+    spec = {"calibration": {"image": str(tmp_path / "a16.tif")}, "dark": [], "bit_depth": 12}
+    rec = open_recording({**spec, "frames": {"series": [str(tmp_path / "a16.tif")] * 2}}, cam)
+    with pytest.raises(RecordingError, match=r"holds values up to \d+, above full scale 4095"):
+        read_frame(rec, rec.frames[0])
+    rec = open_recording({**spec, "bit_depth": None, "frames": {"series": [str(tmp_path / "a8.tif")] * 2}}, cam)
+    frame, saturated = read_frame(rec, rec.frames[0])
+    assert rec.full_scale == 255 and saturated == 0 and frame.dtype == np.float64

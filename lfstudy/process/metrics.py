@@ -229,7 +229,8 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
         # |div| <= sqrt(3) |grad d| (Frobenius): the ratio is 1 for a pure isotropic expansion
         rms_div = np.sqrt(np.mean(div.values[ok] ** 2)) * (dt or 1.0)
         norm = rms_div / (np.sqrt(3.0) * g) if ok.any() and g > 0 else np.nan
-        out["divergence_norm"] = _scalar(
-            norm, "1", "RMS divergence / (sqrt(3) RMS displacement gradient): 0 solenoidal, 1 pure expansion"
+        out["divergence_norm"] = _scalar(norm, "1", "normalised RMS divergence")
+        out["divergence_norm"][2]["description"] = (
+            "RMS divergence / (sqrt(3) RMS displacement gradient): 0 for a solenoidal field, 1 for a pure expansion"
         )
     return xr.Dataset(out)

@@ -176,7 +176,7 @@ def process_recording(
                 m["saturated_percent"] = (
                     (),
                     100.0 * max(saturated[rec.frames[i].label], saturated[rec.frames[j].label]),
-                    {"units": "percent", "long_name": "saturated pixels (the worse frame of the pair)"},
+                    {"units": "percent", "long_name": "saturated pixels (worse frame)"},
                 )
                 results.append(res)
                 metrics.append(m)

@@ -55,7 +55,7 @@ METRICS = (
 def _metric_blocks(table: xr.Dataset, dim: str) -> Iterator[Block]:
     cols = [c for c in METRICS if c in table]
     df = table[cols].to_dataframe()[cols]
-    for c in ("frame_a", "frame_b"):
+    for c in ("frame_b", "frame_a"):  # inserted in front: frame_a first
         if c in table.coords:
             df.insert(0, c, table[c].values)
     yield Block(
@@ -177,7 +177,12 @@ def _pair_blocks(
 
 def _legend_blocks(table: xr.Dataset) -> Iterator[Block]:
     rows = [
-        {"column": c, "meaning": table[c].attrs.get("long_name", ""), "units": table[c].attrs.get("units", "")}
+        {
+            "column": c,
+            "meaning": table[c].attrs.get("long_name", "")
+            + (f": {table[c].attrs['description']}" if table[c].attrs.get("description") else ""),
+            "units": table[c].attrs.get("units", ""),
+        }
         for c in table.data_vars
     ]
     yield Block("legend", "columns", html=_table(pd.DataFrame(rows), index=False))
