@@ -113,6 +113,18 @@ def test_api_reference_lists_every_public_name():
     assert text.count(".. autoclass:: PlenopticCamera") == 1  # re-exported twice, documented once
 
 
+def test_generated_references_are_parsed_as_restructuredtext():
+    """The directives emit reStructuredText; in a Markdown page MyST would read it as Markdown
+    (tables become bullet lists), so they must sit in an eval-rst block."""
+    for page in DOCS.rglob("*.md"):
+        if "_build" in page.parts:
+            continue
+        text = page.read_text()
+        for m in re.finditer(r"lfstudy-[a-z-]+-reference", text):
+            before = text[: m.start()].rstrip()
+            assert before.endswith("```{eval-rst}\n.."), f"{page.name}: {m.group(0)} outside an eval-rst block"
+
+
 def test_escape_bars_keeps_literals():
     lines = ["voxel pl/|M| and ``|x|``", "Example::", "", "    a | b", "back |t|", ">>> x | y"]
     assert lfstudy_docs.escape_bars(lines) == [

@@ -238,7 +238,7 @@ def _literal(text: str) -> str:
     return f"``{text}``" if text else ""
 
 
-def config_reference(schema: Mapping[str, Any] | None = None) -> str:
+def config_reference(schema: Mapping[str, Any] | None = None, top_title: str = "Top-level settings") -> str:
     """The config reference as reStructuredText: one table per top-level section."""
     if schema is None:
         from lfstudy.config import load_schema
@@ -256,7 +256,7 @@ def config_reference(schema: Mapping[str, Any] | None = None) -> str:
     lines: list[str] = []
     for section, rows in sections.items():
         node = top.get(section, {})
-        title = f"``{section}``" if section else "Top-level settings"
+        title = f"``{section}``" if section else top_title
         lines += [title, "-" * len(title), ""]
         desc = _description(node, section) if section else ""
         if desc:
@@ -294,7 +294,7 @@ def process_config_reference(schema: Mapping[str, Any] | None = None) -> str:
         from lfstudy.process import load_process_schema
 
         schema = load_process_schema()
-    return config_reference(schema)
+    return config_reference(schema, top_title="Top-level settings of a recording config")
 
 
 # --------------------------------------------------------------------------- API pages
