@@ -258,12 +258,45 @@ def test_dask_batches_match_numpy() -> None:
     np.testing.assert_array_equal(off.u.values, ref_off.u.values)
 
 
-def test_deterministic_across_threads() -> None:
+@pytest.mark.parametrize("zero_pad", [False, True])
+def test_deterministic_across_threads(zero_pad: bool) -> None:
     a, b = particle_pair(SHAPE3, (0.2, 0.4, -0.9), density=0.01, seed=12)
-    one = widim(a, b, window=16, spacing=8, workers=1)
-    two = widim(a, b, window=16, spacing=8, workers=2)
+    one = widim(a, b, window=16, spacing=8, workers=1, zero_pad=zero_pad)
+    two = widim(a, b, window=16, spacing=8, workers=2, zero_pad=zero_pad)
     for c in ("u", "v", "w", "peak"):
         assert one[c].values.tobytes() == two[c].values.tobytes()
+    # windows are correlated in blocks: batches that split the blocks differently (offset
+    # mode: deformation reads a slab per batch, whose spline prefilter differs at its edges)
+    ref = widim(a, b, window=16, spacing=8, mode="offset", workers=1, zero_pad=zero_pad)
+    got = widim(a, b, window=16, spacing=8, mode="offset", workers=2, zero_pad=zero_pad, chunk_windows=5)
+    for c in ("u", "v", "w", "peak"):
+        assert ref[c].values.tobytes() == got[c].values.tobytes()
+
+
+@pytest.mark.parametrize("w", [(6, 8, 10), (9, 12)])
+def test_padded_transform_skips_zeros_exactly(w: tuple[int, ...]) -> None:
+    """The pruned transform of zero-padded windows is rfftn of the padded windows."""
+    from lfstudy.piv.engine import _CorrelationPlan
+
+    x = np.random.default_rng(3).random((3, *w), dtype=np.float32)
+    plan = _CorrelationPlan.make(w, True, "auto", None, 3)
+    for _ in range(2):  # the second call reuses buffers the first one filled
+        got = plan._rfftn_padded(x, plan.spec[0][:3])
+        ref = np.fft.rfftn(x.astype(np.float64), s=plan.shape, axes=tuple(range(1, len(w) + 1)))
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4 * np.abs(ref).max())
+
+
+def test_peak_search_skips_boundary_lags() -> None:
+    """A maximum on a boundary lag is passed over for the largest value elsewhere."""
+    from lfstudy.piv.engine import _CorrelationPlan
+
+    plan = _CorrelationPlan.make((4, 6), False, "gauss3", None, 3)
+    r = np.zeros((3, 24), dtype=np.float32)
+    r[:, 5] = 1.0  # the largest value off the boundary lags, in every row
+    r[0, 2 * 6 + 1] = 9.0  # lag -2 along axis 0 (index 2 of 4): excluded
+    r[1, 1 * 6 + 3] = 9.0  # lag -3 along axis 1 (index 3 of 6): excluded
+    r[2, 3 * 6 + 4] = 2.0  # an allowed maximum (lags -1, -2)
+    np.testing.assert_array_equal(plan._peak(r), [5, 5, 22])
 
 
 def test_progress_bar_over_passes(capsys) -> None:

@@ -4,7 +4,8 @@ One code path serves images (y, x) and volumes (z, y, x):
 
 * grid generation centred in the domain (sec. 6.1.1),
 * FFT cross-correlation of mean-subtracted windows normalised to a correlation
-  coefficient (sec. 6.1.2, eq. 6.1), batched over all windows with real FFTs,
+  coefficient (sec. 6.1.2, eq. 6.1), in cache-sized blocks of windows with real
+  FFTs (with zero padding, the all-zero lines are not transformed),
 * Gaussian three-point sub-voxel estimator per axis (eq. 6.2),
 * normalised median test and iterative replacement (sec. 6.1.3, App. D),
 * multi-pass predictor/corrector (sec. 6.1.4) and grid refinement (eqs 6.5-6.8).
@@ -304,72 +305,156 @@ def _subpixel5(y: list[np.ndarray], eps3: np.ndarray) -> np.ndarray:
     return np.where(broad, eps5, eps3)
 
 
+#: Bytes of float32 correlation plane per FFT call. The transforms, the spectrum
+#: product and the peak search of a block then run in the core's cache; planes of a
+#: whole batch (~128 MB) made every pass stream main memory (2-3x slower, one thread).
+_FFT_BLOCK_BYTES = 2**20
+
+
 def _correlate(
     wa: np.ndarray, wb: np.ndarray, zero_pad: bool, workers: int | None, subpixel: str = "auto"
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Batched normalised FFT cross-correlation (sec. 6.1.2).
 
+    ``wa``, ``wb`` are (n, *w) window stacks (fresh copies: modified in place).
     Returns displacement (n, nd) of the correlation peak in voxels (b relative to a),
     the peak correlation coefficient (n,) and a flag of non-empty windows (n,).
+    The windows are correlated a cache-sized block at a time; each window's result
+    depends on that window alone, not on the block, the batch or the thread count.
     """
-    n, w = wa.shape[0], wa.shape[1:]
+    n, w = wa.shape[0], tuple(wa.shape[1:])
     nd = len(w)
-    axes = tuple(range(1, nd + 1))
-    # a constant window has no pattern: exact test before any rounding of the mean
-    nonempty = _ptp(wa) > 0
-    nonempty &= _ptp(wb) > 0
-    wa = wa.astype(np.float32, copy=False)  # fresh copies from _gather: modified in place
-    wb = wb.astype(np.float32, copy=False)
-    wa -= wa.mean(axis=axes, keepdims=True)  # correlate fluctuations only [3, p. 320]
-    wb -= wb.mean(axis=axes, keepdims=True)
-    # std before zero padding (sec. 6.1.2); float64 sums so the flag of empty windows is exact
-    sa = np.sqrt(np.square(wa, dtype=np.float64).reshape(n, -1).mean(1))
-    sb = np.sqrt(np.square(wb, dtype=np.float64).reshape(n, -1).mean(1))
-    shape = tuple(2 * s for s in w) if zero_pad else tuple(w)
-    fa = sfft.rfftn(wa, s=shape, axes=axes, workers=workers)
-    fb = sfft.rfftn(wb, s=shape, axes=axes, workers=workers)
-    del wa, wb
-    np.conjugate(fa, out=fa)
-    fa *= fb  # cross-spectral density conj(FA) FB -> R(p) = sum a(m) b(m + p)
-    del fb
-    r = sfft.irfftn(fa, s=shape, axes=axes, workers=workers)
-    del fa
-    denom = float(np.prod(w)) * sa * sb  # eq. 6.1 scaled to a correlation coefficient
-    nonempty &= denom > 1e-30  # below float32 resolution of the correlation sums
-    scale = np.where(nonempty, 1.0 / np.where(nonempty, denom, 1.0), 0.0)
-    scale = np.minimum(scale, np.finfo(np.float32).max).astype(np.float32)
-    r *= scale.reshape((n,) + (1,) * nd)
-    # integer peak on the unshifted plane (lag L at index L mod S); the boundary lags of
-    # the shifted plane (-S//2 and S-1-S//2) are excluded so eq. 6.2 has both neighbours
-    saved = []
-    for ax, sz in enumerate(shape):
-        for lag in (-(sz // 2), sz - 1 - sz // 2):
-            sl = (slice(None),) * (ax + 1) + (lag % sz,)
-            saved.append((sl, r[sl].copy()))
-            r[sl] = -np.inf
-    flat = r.reshape(n, -1).argmax(axis=1)
-    for sl, vals in saved[::-1]:
-        r[sl] = vals
-    peak_idx = np.unravel_index(flat, shape)
-    rows = np.arange(n)
-    r0 = r[(rows, *peak_idx)]
+    plan = _CorrelationPlan.make(w, zero_pad, subpixel, workers, n)
+    lag = np.empty((n, nd), dtype=np.int64)
+    vals = np.empty((n, nd, len(plan.offsets)), dtype=np.float32)
+    nonempty = np.empty(n, dtype=bool)
+    for k in range(0, n, plan.step):  # loop over blocks of windows
+        blk = slice(k, k + plan.step)
+        lag[blk], vals[blk], nonempty[blk] = plan.correlate(wa[blk], wb[blk])
+    nb = dict(zip(plan.offsets, np.moveaxis(vals, -1, 0)))  # each (n, nd)
+    r0 = nb[0][:, 0]
     disp = np.empty((n, nd), dtype=np.float64)
-    for ax in range(nd):  # loop over axes, not windows
-        sz = shape[ax]
-        # circular neighbours = neighbours in the shifted plane
-        nb = {}
-        for o in (-2, -1, 1, 2) if (subpixel == "auto" and sz >= 5) else (-1, 1):
-            idx = list(peak_idx)
-            idx[ax] = (idx[ax] + o) % sz
-            nb[o] = r[(rows, *idx)]
-        eps = _subpixel(nb[-1], r0, nb[1])
-        if 2 in nb:
-            eps = _subpixel5([nb[-2], nb[-1], r0, nb[1], nb[2]], eps)
-        lag = (peak_idx[ax] + sz // 2) % sz - sz // 2  # eqs 6.3-6.4 (0-based, unshifted)
-        disp[:, ax] = lag + eps
+    for ax in range(nd):  # sub-voxel estimate per axis over all windows at once
+        eps = _subpixel(nb[-1][:, ax], r0, nb[1][:, ax])
+        if 2 in nb and plan.shape[ax] >= 5:
+            eps = _subpixel5([nb[o][:, ax] for o in (-2, -1, 0, 1, 2)], eps)
+        disp[:, ax] = lag[:, ax] + eps
     peak = np.where(nonempty, r0, 0.0).astype(np.float64)
     disp[~nonempty] = 0.0
     return disp, peak, nonempty
+
+
+@dataclass
+class _CorrelationPlan:
+    """Shapes, index tables and reused buffers of one :func:`_correlate` call."""
+
+    w: tuple[int, ...]  # window size
+    shape: tuple[int, ...]  # FFT size: w, or 2 w when zero-padded
+    offsets: tuple[int, ...]  # peak neighbours read along each axis (0: the peak)
+    workers: int | None
+    step: int  # windows per block
+    edge: np.ndarray  # (prod(shape),) bool: flat plane positions of the boundary lags
+    delta: np.ndarray  # (nd, K, nd) index offsets of the neighbours along each axis
+    strides: np.ndarray  # (nd,) flat-index strides of the plane
+    real: np.ndarray | None = None  # (step, *w[:-1], shape[-1]) float32, zero beyond w[-1]
+    spec: tuple[np.ndarray, np.ndarray] | None = None  # two (step, *shape[:-1], shape[-1] // 2 + 1) complex64
+
+    @classmethod
+    def make(cls, w: tuple[int, ...], zero_pad: bool, subpixel: str, workers: int | None, n: int) -> _CorrelationPlan:
+        nd = len(w)
+        shape = tuple(2 * s for s in w) if zero_pad else w
+        offsets = (-2, -1, 0, 1, 2) if subpixel == "auto" else (-1, 0, 1)
+        step = max(1, min(n, _FFT_BLOCK_BYTES // (4 * int(np.prod(shape)))))
+        # integer peak on the unshifted plane (lag L at index L mod S); the boundary lags of
+        # the shifted plane (-S//2 and S-1-S//2) are excluded so eq. 6.2 has both neighbours
+        grid = np.indices(shape).reshape(nd, -1)
+        edge = np.zeros(grid.shape[1], dtype=bool)
+        for ax, sz in enumerate(shape):
+            edge |= (grid[ax] == (-(sz // 2)) % sz) | (grid[ax] == (sz - 1 - sz // 2) % sz)
+        delta = np.zeros((nd, len(offsets), nd), dtype=np.int64)
+        for ax in range(nd):
+            delta[ax, :, ax] = offsets
+        strides = np.array([int(np.prod(shape[ax + 1 :])) for ax in range(nd)], dtype=np.int64)
+        plan = cls(w, shape, offsets, workers, step, edge, delta, strides)
+        if zero_pad:
+            half = (*shape[:-1], shape[-1] // 2 + 1)
+            plan.real = np.zeros((step, *w[:-1], shape[-1]), np.float32)
+            plan.spec = (np.empty((step, *half), np.complex64), np.empty((step, *half), np.complex64))
+        return plan
+
+    def correlate(self, wa: np.ndarray, wb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Correlate one block of windows (m, *w).
+
+        Returns the integer peak lag (m, nd), the normalised correlation at the peak's
+        neighbours ``offsets`` along each axis (m, nd, K) and the non-empty flag (m,).
+        """
+        m, w, shape = wa.shape[0], self.w, self.shape
+        axes = tuple(range(1, len(w) + 1))
+        # a constant window has no pattern: exact test before any rounding of the mean
+        nonempty = (_ptp(wa) > 0) & (_ptp(wb) > 0)
+        wa = wa.astype(np.float32, copy=False)
+        wb = wb.astype(np.float32, copy=False)
+        wa -= wa.mean(axis=axes, keepdims=True)  # correlate fluctuations only [3, p. 320]
+        wb -= wb.mean(axis=axes, keepdims=True)
+        # std before zero padding (sec. 6.1.2); float64 sums so the flag of empty windows is exact
+        sa = np.sqrt(np.square(wa, dtype=np.float64).reshape(m, -1).mean(1))
+        sb = np.sqrt(np.square(wb, dtype=np.float64).reshape(m, -1).mean(1))
+        if self.spec is None:
+            fa = sfft.rfftn(wa, axes=axes, workers=self.workers)
+            fb = sfft.rfftn(wb, axes=axes, workers=self.workers)
+        else:
+            fa = self._rfftn_padded(wa, self.spec[0][:m])
+            fb = self._rfftn_padded(wb, self.spec[1][:m])
+        np.conjugate(fa, out=fa)
+        fa *= fb  # cross-spectral density conj(FA) FB -> R(p) = sum a(m) b(m + p)
+        r = sfft.irfftn(fa, s=shape, axes=axes, workers=self.workers, overwrite_x=True).reshape(m, -1)
+        denom = float(np.prod(w)) * sa * sb  # eq. 6.1 scaled to a correlation coefficient
+        nonempty &= denom > 1e-30  # below float32 resolution of the correlation sums
+        scale = np.where(nonempty, 1.0 / np.where(nonempty, denom, 1.0), 0.0)
+        scale = np.minimum(scale, np.finfo(np.float32).max).astype(np.float32)
+        # The positive scale of a window does not move its peak: the raw plane is searched
+        # and only the values the estimator reads are scaled (the same float32 products).
+        flat = self._peak(r)
+        idx = np.stack(np.unravel_index(flat, shape), axis=-1)  # (m, nd)
+        nb = (idx[:, None, None, :] + self.delta) % np.asarray(shape)  # (m, nd, K, nd)
+        vals = r[np.arange(m)[:, None, None], nb @ self.strides] * scale[:, None, None]
+        half = np.asarray(shape) // 2
+        lag = (idx + half) % np.asarray(shape) - half  # eqs 6.3-6.4 (0-based, unshifted)
+        return lag, vals, nonempty
+
+    def _peak(self, r: np.ndarray) -> np.ndarray:
+        """Flat index of each row's maximum outside the boundary lags (first if tied)."""
+        flat = r.argmax(axis=1)
+        # the maximum over the whole plane is the answer unless it lies on a boundary lag
+        # (rare when padded): search those rows again with the boundary lags masked
+        redo = np.flatnonzero(self.edge[flat])
+        if redo.size:
+            sub = r[redo]
+            sub[:, self.edge] = -np.inf
+            flat[redo] = sub.argmax(axis=1)
+        return flat
+
+    def _rfftn_padded(self, x: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """``rfftn`` of each window of ``x`` (m, *w) zero-padded to ``shape``, into ``out``.
+
+        The last axis is transformed first on the w-long data lines only; each earlier
+        axis is then transformed in place over the lines that hold data, so the all-zero
+        lines of the padding (7/8 of a 3-D window padded to twice its size) are never
+        transformed: the spectrum of ``rfftn(x, s=shape)`` with about half the work.
+        """
+        m, w, workers = x.shape[0], self.w, self.workers
+        real = self.real[:m]
+        real[..., : w[-1]] = x  # the padding beyond w[-1] is zero from allocation, never written
+        out[(slice(None), *(slice(0, s) for s in w[:-1]))] = sfft.rfft(real, axis=-1, workers=workers)
+        for ax in range(len(w) - 1, 0, -1):  # array axes before the last, batch axis excluded
+            # data fills the first w of the axes before ax: transform axis ax over that part
+            lead = (slice(None), *(slice(0, s) for s in w[: ax - 1]))
+            out[(*lead, slice(w[ax - 1], None))] = 0
+            view = out[(*lead, slice(None))]
+            res = sfft.fft(view, axis=ax, overwrite_x=True, workers=workers)
+            if not np.may_share_memory(res, out):  # scipy transforms in place; guard regardless
+                view[...] = res
+        return out
 
 
 def _ptp(win: np.ndarray) -> np.ndarray:
@@ -813,12 +898,8 @@ def _to_dataset(
         np.asarray(rec_level, dtype=np.int64),
         {"units": "1", "long_name": "grid refinement level Rf of the pass"},
     )
-    try:
-        from importlib.metadata import version
+    from lfstudy import __version__  # the one version lookup (package __init__)
 
-        ver = version("lfstudy")
-    except Exception:  # source tree without install
-        ver = "0+unknown"
     attrs = {
         "title": "WIDIM PIV result",
         "method": "WIDIM (Lynch 2011, ch. 6) with "
@@ -827,7 +908,7 @@ def _to_dataset(
             if settings.mode == "deform"
             else "discrete integer window offset"
         ),
-        "lfstudy_version": ver,
+        "lfstudy_version": __version__,
         "input_shape": list(shape),
         "input_dims": list(ia.dims),
         "final_window": list(settings.sizes[-1][0]),
