@@ -2,13 +2,16 @@
 
 Modules: :mod:`~lfstudy.simulate.particles` (sec. 4.3.2, 5.1),
 :mod:`~lfstudy.simulate.flows` (sec. 4.4), :mod:`~lfstudy.simulate.raytrace`
-(sec. 4.1–4.3, App. A) and the 1-D teaching simulator
+(sec. 4.1–4.3, App. A; the Monte-Carlo reference), :mod:`~lfstudy.simulate.exact`
+(the expected image of the same model, without rays), :mod:`~lfstudy.simulate.sensor`
+(photons, shot and read noise, full well, ADC) and the 1-D teaching simulator
 :mod:`~lfstudy.simulate.raytrace1d` (sec. 4.2). Import from this package:
 the modules behind it may move.
 """
 
 from __future__ import annotations
 
+from lfstudy.simulate.exact import exact_memory_estimate, render_exact, render_pinhole_exact
 from lfstudy.simulate.flows import (
     Flow,
     FlowError,
@@ -33,6 +36,7 @@ from lfstudy.simulate.raytrace import (
     solid_angle,
     write_image,
 )
+from lfstudy.simulate.sensor import SensorError, apply_sensor, sensor_noise_variance
 
 __all__ = [
     "ParticleError",
@@ -59,4 +63,10 @@ __all__ = [
     "angle_histograms",
     "incidence_angle_bound",
     "write_image",
+    "render_exact",
+    "render_pinhole_exact",
+    "exact_memory_estimate",
+    "SensorError",
+    "apply_sensor",
+    "sensor_noise_variance",
 ]

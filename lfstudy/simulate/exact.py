@@ -51,17 +51,19 @@ normal ``IΦ(u) = u·Φ(u) + φ(u)``: the product of a σs-blurred edge and a
 of ``σc = sqrt(σs² + σl²)``. Straight segments are done exactly; along the
 circular arcs a fixed Gauss–Legendre rule is used on panels that break at
 every pixel edge, band edge and band centre the arc crosses and are at most
-``_PANEL`` blur widths long. Only where the arc passes within 6σs of a
-*corner* of the blurred square (both bands at once) is an antiderivative of a
-product of two blurred edges needed; it is then integrated numerically with
-Gauss–Legendre panels of the same size.
+``_PANEL`` blur widths long, with enough nodes that a blurred edge anywhere
+on a panel, however short, is integrated to 1e-10 of a blur width. Only where
+the arc passes within 4.5σs of a *corner* of the blurred square (both bands at
+once) is an antiderivative of a product of two blurred edges needed; it is
+then integrated numerically with Gauss–Legendre panels of the same size.
 
 Error budget: Gaussian tails beyond ``_K = 6`` σ are dropped (each ≤ 1e-9 of
-the local value); Φ is evaluated with a Chebyshev fit of erfcx (relative
-error ≤ 2e-14); the arc and corner quadratures are accurate to about 1e-7 of a
-pixel's value (the tests compare with an independent brute-force quadrature).
-The total of every particle equals ``W`` minus what misses the lenslet array
-or the sensor, to ~1e-9.
+the local value) and the bands of the blurred square end at ``_KS = 4.5`` σs;
+Φ is evaluated with a Chebyshev fit of erfcx (relative error ≤ 2e-14); the
+tests find every pixel within 1e-7 of the peak pixel of an independent
+brute-force quadrature, and an in-focus image uniform to 1e-7. The total of
+every particle equals ``W`` minus what misses the lenslet array or the
+sensor, to ~1e-9.
 
 Lenslet grids rotated against the sensor break the separability. In focus
 (``M_k`` constant, which includes the calibration pinhole image) they are
@@ -70,10 +72,13 @@ handled exactly; out of focus they are refused (use the Monte-Carlo tracer).
 Determinism and memory
 ----------------------
 Particles are sorted by the sensor row of their image and cut into a fixed
-number of chunks (``n_chunks``); each chunk is rendered, in that order, into
-its own float64 buffer that spans only the rows it can reach, and the buffers
-are added in chunk order. The result depends on ``n_chunks``, never on the
-number of threads, and the memory is about one image plus the particle arrays.
+number of chunks (``n_chunks``); each chunk reaches only a band of rows. The
+chunks are grouped into *waves* whose row bands do not overlap (greedily, in
+chunk order: a property of the layout, not of the threads); the chunks of one
+wave run in parallel and add straight into the float64 image, the waves one
+after the other. Every pixel therefore receives its contributions in one
+fixed order: the result depends on ``n_chunks``, never on the number of
+threads, and the memory is one image plus the particle arrays.
 """
 
 from __future__ import annotations
@@ -101,10 +106,16 @@ __all__ = ["render_exact", "render_pinhole_exact", "exact_memory_estimate"]
 
 _PIECES = 16  # kernel calls per render (progress granularity; does not change the result)
 _K = 6.0  # Gaussian support cut-off in σ (tails beyond: Φ(−6) ≈ 1e-9)
+_KS = 4.5  # half-width of the σs-bands of the blurred square, in σs (dropped tail ∫ ≤ 8e-7·σs per unit length)
 _NG_MAX = 16  # most Gauss–Legendre nodes on one arc panel
-_DENS = 1.5  # arc nodes per blur width of coordinate travel
-_NG_MIN = 3
-_NGN = 10  # Gauss–Legendre nodes per panel of the numeric (corner) antiderivatives
+# Nodes on an arc panel that travels L blur widths: ceil(_NG_BASE + _DENS·L), at least _NG_MIN. A
+# blurred edge anywhere in the panel is then integrated to ≤ 1e-10·σ (Gauss–Legendre on ∫Φ: L = 2,
+# 7 nodes: 4e-10; L = 4, 10: 5e-11; L = 8, 16: 8e-11). Proportional rules fail on short panels
+# (2 nodes per σ: L = 2 with 4 nodes errs by 3e-6·σ), and arcs break into many short panels.
+_NG_BASE = 4.0
+_DENS = 1.5
+_NG_MIN = 4
+_NGN = 16  # Gauss–Legendre nodes per ≤ _PANEL σ panel of the numeric (corner) antiderivatives (8e-11·σ)
 _PANEL = 8.0  # longest panel, in units of the narrowest blur active on it
 _EPS_FOCUS = 1e-9  # spot radius / σm below which M_k is a constant over the aperture image
 _TWO_PI = 2.0 * math.pi
@@ -351,10 +362,11 @@ def _phi2(u):  # pragma: no cover - jitted
 # to powers of s; Σ|coefficients| ≈ 1, absolute error of Φ <= 1e-14), and exp(−u²/2) as the
 # 128th power of a degree-12 Taylor polynomial of exp(−u²/256) (relative error <= 3e-15).
 @njit(fastmath={"contract"}, error_model="numpy", cache=True)
-def _phi_batch(u, pv, dv, n):  # pragma: no cover - jitted
-    """pv[i], dv[i] = Φ(u[i]), φ(u[i]) for i < n."""
+def _phi_batch(vb, n):  # pragma: no cover - jitted
+    """vb[1, i], vb[2, i] = Φ(vb[0, i]), φ(vb[0, i]) for i < n."""
     for i in range(n):
-        a = min(abs(u[i]), _UMAX)
+        u = vb[0, i]
+        a = min(abs(u), _UMAX)
         s = (2.0 / (2.0 + a * _INV_SQRT2) - _T0) * _TS - 1.0
         p = -3.2278759080215116e-10
         p = p * s + 2.0434536998361989e-10
@@ -417,8 +429,8 @@ def _phi_batch(u, pv, dv, n):  # pragma: no cover - jitted
         e = e * e
         e = e * e
         q = 0.5 * p * e
-        pv[i] = q if u[i] < 0.0 else 1.0 - q
-        dv[i] = e * _INV_SQRT_2PI
+        vb[1, i] = q if u < 0.0 else 1.0 - q
+        vb[2, i] = e * _INV_SQRT_2PI
 
 
 @njit(inline="always", cache=True)
@@ -449,16 +461,12 @@ def _ramp(num, sig):  # pragma: no cover - jitted
 
 
 @njit(cache=True)
-def _iphi_diff(a, b):  # pragma: no cover - jitted
-    """IΦ(b) − IΦ(a) = ∫_a^b Φ, without cancellation when b − a is small (4-point Gauss–Legendre)."""
-    h = 0.5 * (b - a)
-    if abs(h) < 0.125:
-        m = 0.5 * (a + b)
-        acc = 0.0
-        for i in range(4):
-            acc += _G4_W[i] * _phi2(m + h * _G4_X[i])[0]
-        return acc * h
-    return _ramp(b, 1.0) - _ramp(a, 1.0)
+def _mean_phi(mid, half):  # pragma: no cover - jitted
+    """The mean of Φ over [mid − half, mid + half] for half < 0.125 (4-point Gauss–Legendre, error < 1e-15)."""
+    acc = 0.0
+    for i in range(4):
+        acc += _G4_W[i] * _phi2(mid + half * _G4_X[i])[0]
+    return 0.5 * acc
 
 
 @njit(inline="always", cache=True)
@@ -580,11 +588,11 @@ def _edge_table(ax, sc, e, q, out):  # pragma: no cover - jitted
     off = (e - ax[_A_G0]) * ax[_A_SLO]
     step = ak * pp / s
     a_prev = (ak * (x0 - ax[_A_C]) - off) / s
-    if step < 0.25:  # very wide blur: differences of IΦ would cancel, integrate Φ over each cell
+    if step < 0.25:  # very wide blur: differences of IΦ would cancel; the cell's mean of Φ times pp
+        # (width `step` used as is: a difference of the two cell ends loses ~1e-16/step, i.e. 1/κ near focus)
         for k in range(n):
-            a_next = (ak * (x0 + (k + 1) * pp - ax[_A_C]) - off) / s
-            out[k] = sig_c * _iphi_diff(a_prev, a_next)
-            a_prev = a_next
+            mid = (ak * (x0 + (k + 0.5) * pp - ax[_A_C]) - off) / s
+            out[k] = pp * _mean_phi(mid, 0.5 * step)
         return
     r_prev = sig_c * _ramp(a_prev, 1.0)
     for k in range(n):
@@ -625,8 +633,8 @@ def _axis_tables(ax, sc, lamlo, full, tmp):  # pragma: no cover - jitted
 
 @njit(cache=True)
 def _axis_angles(ax, rho, ang, is_x):  # pragma: no cover - jitted
-    """Angles at which the circle (radius ρ about the axis' disc centre) crosses the zone
-    boundaries of this axis; returns their number (at most 8)."""
+    """Angles (with their cos, sin: rows of ang) at which the circle (radius ρ about the axis'
+    disc centre) crosses the zone boundaries of this axis; returns their number (at most 8)."""
     c = ax[_A_C]
     lo = ax[_A_LO]
     hi = ax[_A_HI]
@@ -638,14 +646,15 @@ def _axis_angles(ax, rho, ang, is_x):  # pragma: no cover - jitted
             continue
         if abs(v - c) < rho:
             w = (v - c) / rho
+            r = math.sqrt(max(1.0 - w * w, 0.0))
             if is_x:
                 t = math.acos(w)
-                ang[n] = t
-                ang[n + 1] = _TWO_PI - t
+                ang[0, n], ang[1, n], ang[2, n] = t, w, r
+                ang[0, n + 1], ang[1, n + 1], ang[2, n + 1] = _TWO_PI - t, w, -r
             else:
                 t = math.asin(w)
-                ang[n] = t if t >= 0.0 else t + _TWO_PI
-                ang[n + 1] = math.pi - t
+                ang[0, n], ang[1, n], ang[2, n] = (t if t >= 0.0 else t + _TWO_PI), r, w
+                ang[0, n + 1], ang[1, n + 1], ang[2, n + 1] = math.pi - t, -r, w
             n += 2
     return n
 
@@ -688,7 +697,7 @@ def _num_int(ax, sc, k, a, b):  # pragma: no cover - jitted
     return acc
 
 
-@njit(cache=True)
+@njit(inline="always", cache=True)
 def _num_step(ax, sc, k, a, b):  # pragma: no cover - jitted
     """∫_a^b m(x)·b_k(x) dx over a short step (between consecutive arc nodes): 4-point Gauss–Legendre."""
     h = 0.5 * (b - a)
@@ -700,7 +709,7 @@ def _num_step(ax, sc, k, a, b):  # pragma: no cover - jitted
     return acc * h
 
 
-@njit(cache=True)
+@njit(inline="always", cache=True)
 def _u_partial(ax, sc, lamlo, full, k, v, zone):  # pragma: no cover - jitted
     """U_k(v) = ∫_{−∞}^{v} m·b_k for a cell k whose blurred support contains v."""
     pp = sc[_S_PP]
@@ -732,9 +741,7 @@ def _u_partial(ax, sc, lamlo, full, k, v, zone):  # pragma: no cover - jitted
 
 # ---------------------------------------------------------------- patch assembly
 @njit(cache=True)
-def _nodes(
-    pri, sec, sc, lam_p, full_p, direct, carry, swap, nod, n, zp, sec_window, tp, ts, cum, cnt
-):  # pragma: no cover
+def _nodes(pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, zp, sec_window, wk, cnt):  # pragma: no cover
     """Boundary nodes i < n of ∮ U_k(vp)·m_s(vs)·b_j(vs) d(vs) (nod rows: vp, vs, weight).
 
     U_k is the antiderivative along the primary axis, b_j the blurred cells of the
@@ -762,11 +769,11 @@ def _nodes(
     if zp in (_BLO, _BHI):
         cnt[_ST_BAND] += n
         for k in range(npri):
-            cum[2, k] = 0.0
+            wk[5, k] = 0.0
     for i in range(n):
-        vp = nod[0, i]
-        vs = nod[1, i]
-        w = nod[2, i]
+        vp = nodv[bt, 0, i]
+        vs = nodv[bt, 1, i]
+        w = nodv[bt, 2, i]
         if sec_window:
             w *= _window(sg0 + kap * (vs - sc0), se1, se2, sa1, sa2, sm)
             if w == 0.0:
@@ -776,54 +783,56 @@ def _nodes(
         if j1 < j0:
             continue
         for e in range(j0, j1 + 2):  # each secondary edge once
-            ts[e - j0] = _cdf(se0 + e * pp - vs, sl)
+            wk[1, e - j0] = _cdf(se0 + e * pp - vs, sl)
         kfull = min(max(math.floor((vp - ksl - pe0) * inv_pp) - 1, -1), npri - 1)
         kpart = min(math.floor((vp + ksl - pe0) * inv_pp), npri - 1)
         k0 = kfull + 1
         if zp == _MID:  # the window is flat: U_k = Λ_k(lo) − ∫_vp^∞ b_k, one ramp per edge
             for e in range(k0, kpart + 2):
-                tp[e - k0] = _ramp(vp - pe0 - e * pp, sl)
+                wk[0, e - k0] = _ramp(vp - pe0 - e * pp, sl)
             for k in range(k0, kpart + 1):
-                tp[k - k0] = lam_p[k] - pp + tp[k - k0] - tp[k - k0 + 1]
+                wk[0, k - k0] = lam_p[k] - pp + wk[0, k - k0] - wk[0, k - k0 + 1]
         elif zp == _LOW:
             for k in range(k0, kpart + 1):
-                tp[k - k0] = 0.0
+                wk[0, k - k0] = 0.0
         elif zp == _HIGH:
             for k in range(k0, kpart + 1):
-                tp[k - k0] = full_p[k]
+                wk[0, k - k0] = full_p[k]
         else:  # inside a band (only near a corner of the blurred square): numeric,
             # carried from the previous node of this piece (vp is monotone along a piece).
             for k in range(k0, kpart + 1):
-                if cum[2, k] != 0.0:
-                    u = cum[0, k] + _num_step(pri, sc, k, cum[1, k], vp)
+                if wk[5, k] != 0.0:
+                    u = wk[3, k] + _num_step(pri, sc, k, wk[4, k], vp)
                 else:
                     u = _u_partial(pri, sc, lam_p, full_p, k, vp, zp)
-                cum[0, k] = u
-                cum[1, k] = vp
-                cum[2, k] = 1.0
-                tp[k - k0] = u
+                wk[3, k] = u
+                wk[4, k] = vp
+                wk[5, k] = 1.0
+                wk[0, k - k0] = u
         if swap:
             for j in range(j0, j1 + 1):
-                g = w * (ts[j + 1 - j0] - ts[j - j0])
+                g = w * (wk[1, j + 1 - j0] - wk[1, j - j0])
                 if g == 0.0:
                     continue
                 if kfull >= 0:
                     carry[kfull, j] += g
                 for k in range(k0, kpart + 1):
-                    direct[k, j] += g * tp[k - k0]
+                    direct[k, j] += g * wk[0, k - k0]
         else:
             for j in range(j0, j1 + 1):
-                g = w * (ts[j + 1 - j0] - ts[j - j0])
+                g = w * (wk[1, j + 1 - j0] - wk[1, j - j0])
                 if g == 0.0:
                     continue
                 if kfull >= 0:
                     carry[j, kfull] += g
                 for k in range(k0, kpart + 1):
-                    direct[j, k] += g * tp[k - k0]
+                    direct[j, k] += g * wk[0, k - k0]
 
 
 @njit(cache=True)
-def _nodes_vec(pri, sec, sc, lam_p, full_p, direct, carry, swap, nod, n, sec_window, vb, tp, cnt):  # pragma: no cover
+def _nodes_vec(
+    pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, sec_window, vb, wk, cnt
+):  # pragma: no cover
     """As :func:`_nodes` for nodes in the flat middle of the primary window, with σl > 0 (and σm > 0
     if the secondary window is needed): the Φ values of a whole batch are computed in one
     vectorised pass, for a fixed set of 2W + 2 pixel edges around each node (W = ⌈6σl/pp⌉)."""
@@ -846,33 +855,30 @@ def _nodes_vec(pri, sec, sc, lam_p, full_p, direct, carry, swap, nod, n, sec_win
     se2 = sec[_A_E2]
     sa1 = sec[_A_A1] != 0.0
     sa2 = sec[_A_A2] != 0.0
-    uu = vb[0]
-    pv = vb[1]
-    dv = vb[2]
     cnt[_ST_NODES] += n
     for i in range(n):  # arguments of every Φ the batch needs
-        vp = nod[0, i]
-        vs = nod[1, i]
+        vp = nodv[bt, 0, i]
+        vs = nodv[bt, 1, i]
         ej = math.floor((vs - se0) * inv_pp)
         ek = math.floor((vp - pe0) * inv_pp)
-        nod[3, i] = ej
-        nod[4, i] = ek
+        nodv[bt, 3, i] = ej
+        nodv[bt, 4, i] = ek
         for m in range(ne):
-            uu[m * n + i] = (se0 + (ej - wh + m) * pp - vs) * isl  # secondary edges: Φ((E − vs)/σl)
-            uu[(ne + m) * n + i] = (vp - pe0 - (ek - wh + m) * pp) * isl  # primary edges: IΦ((vp − E)/σl)
+            vb[0, m * n + i] = (se0 + (ej - wh + m) * pp - vs) * isl  # secondary edges: Φ((E − vs)/σl)
+            vb[0, (ne + m) * n + i] = (vp - pe0 - (ek - wh + m) * pp) * isl  # primary edges: IΦ((vp − E)/σl)
         if sec_window:
             us = sg0 + kap * (vs - sc0)
-            uu[2 * ne * n + i] = (se2 - us) * ism
-            uu[(2 * ne + 1) * n + i] = (se1 - us) * ism
-    _phi_batch(uu, pv, dv, (2 * ne + (2 if sec_window else 0)) * n)
+            vb[0, 2 * ne * n + i] = (se2 - us) * ism
+            vb[0, (2 * ne + 1) * n + i] = (se1 - us) * ism
+    _phi_batch(vb, (2 * ne + (2 if sec_window else 0)) * n)
     for i in range(n):
-        w = nod[2, i]
+        w = nodv[bt, 2, i]
         if sec_window:
-            w *= (pv[2 * ne * n + i] if sa2 else 1.0) - (pv[(2 * ne + 1) * n + i] if sa1 else 0.0)
+            w *= (vb[1, 2 * ne * n + i] if sa2 else 1.0) - (vb[1, (2 * ne + 1) * n + i] if sa1 else 0.0)
             if w == 0.0:
                 continue
-        ej = int(nod[3, i])
-        ek = int(nod[4, i])
+        ej = int(nodv[bt, 3, i])
+        ek = int(nodv[bt, 4, i])
         j0 = max(ej - wh, 0)
         j1 = min(ej + wh, ns - 1)
         kfull = min(max(ek - wh - 1, -1), npri - 1)
@@ -882,25 +888,25 @@ def _nodes_vec(pri, sec, sc, lam_p, full_p, direct, carry, swap, nod, n, sec_win
             m = k - ek + wh
             ia = (ne + m) * n + i
             ib = ia + n
-            tp[k - k0] = lam_p[k] - pp + sl * (uu[ia] * pv[ia] + dv[ia] - uu[ib] * pv[ib] - dv[ib])
+            wk[0, k - k0] = lam_p[k] - pp + sl * (vb[0, ia] * vb[1, ia] + vb[2, ia] - vb[0, ib] * vb[1, ib] - vb[2, ib])
         for j in range(j0, j1 + 1):
             m = j - ej + wh
-            g = w * (pv[(m + 1) * n + i] - pv[m * n + i])
+            g = w * (vb[1, (m + 1) * n + i] - vb[1, m * n + i])
             if g == 0.0:
                 continue
             if swap:
                 if kfull >= 0:
                     carry[kfull, j] += g
                 for k in range(k0, kpart + 1):
-                    direct[k, j] += g * tp[k - k0]
+                    direct[k, j] += g * wk[0, k - k0]
             else:
                 if kfull >= 0:
                     carry[j, kfull] += g
                 for k in range(k0, kpart + 1):
-                    direct[j, k] += g * tp[k - k0]
+                    direct[j, k] += g * wk[0, k - k0]
 
 
-@njit(cache=True)
+@njit(inline="always", cache=True)
 def _v_at(ax, sc, lamv, fullv, j, v, zone):  # pragma: no cover - jitted
     """V_j(v) = ∫_{−∞}^{v} m·b_j for any cell j (0 wholly above v, full wholly below)."""
     ksl = sc[_S_KSL]
@@ -948,105 +954,147 @@ def _cut(pri, sec, sc, lam_p, full_p, lam_s, full_s, direct, carry, swap, v, s0,
                 direct[j, k] += dv * u
 
 
-@njit(cache=True)
-def _circle_angle_x(v, cx, rho, upper):  # pragma: no cover - jitted
-    w = min(1.0, max(-1.0, (v - cx) / rho))
-    a = math.acos(w)
-    return a if upper else _TWO_PI - a
-
-
-@njit(cache=True)
-def _circle_angle_y(v, cy, rho, right):  # pragma: no cover - jitted
-    w = min(1.0, max(-1.0, (v - cy) / rho))
-    a = math.asin(w)
-    if right:
-        return a if a >= 0.0 else a + _TWO_PI
-    return math.pi - a
+@njit(inline="always", cache=True)
+def _cs_small(d):  # pragma: no cover - jitted
+    """(cos d, sin d): Taylor polynomials for |d| < 0.5 (error < 1e-15), libm otherwise."""
+    if abs(d) < 0.5:
+        d2 = d * d
+        c = 1.0 - d2 * (
+            0.5
+            - d2
+            * (
+                1.0 / 24
+                - d2
+                * (1.0 / 720 - d2 * (1.0 / 40320 - d2 * (1.0 / 3628800 - d2 * (1.0 / 479001600 - d2 / 87178291200.0))))
+            )
+        )
+        sn = d * (
+            1.0
+            - d2
+            * (
+                1.0 / 6
+                - d2
+                * (
+                    1.0 / 120
+                    - d2
+                    * (
+                        1.0 / 5040
+                        - d2 * (1.0 / 362880 - d2 * (1.0 / 39916800 - d2 * (1.0 / 6227020800 - d2 / 1307674368000.0)))
+                    )
+                )
+            )
+        )
+        return c, sn
+    return math.cos(d), math.sin(d)
 
 
 @njit(cache=True)
 def _flush(
-    bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, tp, ts, cum, cnt
+    bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, wk, cnt
 ):  # pragma: no cover
     """Process batch bt of arc nodes: 0 = x-antiderivative, 1 = the same with the y-window,
     2 = y-antiderivative (x inside a band, y in the flat middle)."""
     n = ncnt[bt]
     if n == 0:
         return
-    nod = nodv[bt]
     vec = sc[_S_SL] > 0.0 and (sc[_S_SM] > 0.0 or bt == 0)
     if bt < 2:
         if vec:
-            _nodes_vec(ax, ay, sc, lamx, fullx, direct, carry_x, False, nod, n, bt == 1, vb, tp, cnt)
+            _nodes_vec(ax, ay, sc, lamx, fullx, direct, carry_x, False, nodv, bt, n, bt == 1, vb, wk, cnt)
         else:
-            _nodes(ax, ay, sc, lamx, fullx, direct, carry_x, False, nod, n, _MID, bt == 1, tp, ts, cum, cnt)
+            _nodes(ax, ay, sc, lamx, fullx, direct, carry_x, False, nodv, bt, n, _MID, bt == 1, wk, cnt)
     elif vec:
-        _nodes_vec(ay, ax, sc, lamy, fully, direct, carry_y, True, nod, n, True, vb, tp, cnt)
+        _nodes_vec(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, n, True, vb, wk, cnt)
     else:
-        _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nod, n, _MID, True, tp, ts, cum, cnt)
+        _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, n, _MID, True, wk, cnt)
     ncnt[bt] = 0
 
 
 @njit(inline="always", cache=True)
 def _arc(
-    ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, ta, tb, brk, tp, ts, nodv, ncnt, cum, vb, cnt
+    ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, pcs, ia, brk, wk, nodv, ncnt, vb, cnt
 ):  # pragma: no cover
-    """Gauss–Legendre nodes of one arc piece [ta, tb] (monotone in x and y, in one zone pair).
+    """Gauss–Legendre nodes of arc piece ia (pcs[:, ia] to pcs[:, ia + 1]: angle, cos, sin),
+    monotone in x and y and in one zone pair.
 
     In the flat middle of the x-window the nodes integrate U_x(X)·m_y(Y)·b_j(Y) dY (x-
     antiderivative); inside a σs-band of a vertical edge they integrate −u_k(X)·V_y(Y) dX
     (y-antiderivative). Panels break at every pixel edge and band centre the arc crosses.
     Nodes are appended to the lenslet's batches (processed together by :func:`_flush`),
     except near a corner of the blurred square, done at once (numeric, monotone order).
+    Cosines and sines come from the crossing geometry and rotations, not from libm.
     """
     rho = sc[_S_RHO]
     cx = ax[_A_C]
     cy = ay[_A_C]
-    tm = 0.5 * (ta + tb)
-    zx = _zone(ax, cx + rho * math.cos(tm))
-    zy = _zone(ay, cy + rho * math.sin(tm))
+    ta = pcs[0, ia]
+    tb = pcs[0, ia + 1]
+    ca, sa = pcs[1, ia], pcs[2, ia]
+    cb, sb = pcs[1, ia + 1], pcs[2, ia + 1]
+    nm = math.hypot(ca + cb, sa + sb)  # the piece's mid-angle (pieces are within a quadrant)
+    zx = _zone(ax, cx + rho * (ca + cb) / nm)
+    zy = _zone(ay, cy + rho * (sa + sb) / nm)
     if min(zx, zy) == _LOW or max(zx, zy) == _HIGH:
         return  # outside the blurred square: no light of this lenslet
     form_a = zx == _MID
     corner = not form_a and zy != _MID
     bt = (0 if zy == _MID else 1) if form_a else (3 if corner else 2)
-    upper = tm < math.pi
-    right = tm < _HALF_PI or tm > 3.0 * _HALF_PI
+    tm = 0.5 * (ta + tb)
+    upper = tm < math.pi  # sin θ >= 0
+    right = tm < _HALF_PI or tm > 3.0 * _HALF_PI  # cos θ >= 0
     pp = sc[_S_PP]
-    nb = 0
-    xa = cx + rho * math.cos(ta)
-    xb = cx + rho * math.cos(tb)
+    xa = cx + rho * ca
+    xb = cx + rho * cb
     x_lo, x_hi = min(xa, xb), max(xa, xb)
-    ya = cy + rho * math.sin(ta)
-    yb = cy + rho * math.sin(tb)
+    ya = cy + rho * sa
+    yb = cy + rho * sb
     y_lo, y_hi = min(ya, yb), max(ya, yb)
+    # Crossings with vertical lines (cos θ known) and horizontal lines (sin θ known).
+    nb = 0
     e0 = ax[_A_E0]
     ka = max(math.floor((x_lo - e0) / pp), 0)
     kb = min(math.ceil((x_hi - e0) / pp), int(ax[_A_N]))
-    for k in range(ka, kb + 1):
-        v = e0 + k * pp
+    for k in range(ka, kb + 3):
+        v = e0 + k * pp if k <= kb else (ax[_A_LO] if k == kb + 1 else ax[_A_HI])
         if x_lo < v < x_hi:
-            brk[nb] = _circle_angle_x(v, cx, rho, upper)
+            w = (v - cx) / rho
+            sw = math.sqrt(max(1.0 - w * w, 0.0))
+            a = math.acos(w)
+            brk[0, nb] = a if upper else _TWO_PI - a
+            brk[1, nb] = w
+            brk[2, nb] = sw if upper else -sw
             nb += 1
     e0 = ay[_A_E0]
     ka = max(math.floor((y_lo - e0) / pp), 0)
     kb = min(math.ceil((y_hi - e0) / pp), int(ay[_A_N]))
-    for k in range(ka, kb + 1):
-        v = e0 + k * pp
+    for k in range(ka, kb + 3):
+        v = e0 + k * pp if k <= kb else (ay[_A_LO] if k == kb + 1 else ay[_A_HI])
         if y_lo < v < y_hi:
-            brk[nb] = _circle_angle_y(v, cy, rho, right)
+            w = (v - cy) / rho
+            cw = math.sqrt(max(1.0 - w * w, 0.0))
+            a = math.asin(w)
+            if right:
+                brk[0, nb] = a if a >= 0.0 else a + _TWO_PI
+            else:
+                brk[0, nb] = math.pi - a
+            brk[1, nb] = cw if right else -cw
+            brk[2, nb] = w
             nb += 1
-    for v in (ax[_A_LO], ax[_A_HI]):
-        if x_lo < v < x_hi:
-            brk[nb] = _circle_angle_x(v, cx, rho, upper)
-            nb += 1
-    for v in (ay[_A_LO], ay[_A_HI]):
-        if y_lo < v < y_hi:
-            brk[nb] = _circle_angle_y(v, cy, rho, right)
-            nb += 1
-    brk[nb] = tb
+    brk[0, nb] = tb
+    brk[1, nb] = cb
+    brk[2, nb] = sb
     nb += 1
-    brk[:nb].sort()
+    for i in range(1, nb):  # insertion sort by angle (a handful of crossings)
+        t, c, sn = brk[0, i], brk[1, i], brk[2, i]
+        j = i - 1
+        while j >= 0 and brk[0, j] > t:
+            brk[0, j + 1] = brk[0, j]
+            brk[1, j + 1] = brk[1, j]
+            brk[2, j + 1] = brk[2, j]
+            j -= 1
+        brk[0, j + 1] = t
+        brk[1, j + 1] = c
+        brk[2, j + 1] = sn
     # Panel sizes follow how many blur widths the coordinates move: σl along a pixel axis,
     # and the narrower σs across a band of the blurred square.
     ss = sc[_S_SM] / sc[_S_AK] if sc[_S_AK] > 0.0 else 0.0
@@ -1055,80 +1103,54 @@ def _arc(
     sigy = sl if (zy == _MID or ss <= 0.0 or (0.0 < sl < ss)) else ss
     isx = rho / sigx if sigx > 0.0 else 0.0
     isy = rho / sigy if sigy > 0.0 else 0.0
-    nod = nodv[bt]
-    cap = nod.shape[1]
+    cap = nodv.shape[2]
     t0 = ta
-    c0 = math.cos(ta)
-    s0 = math.sin(ta)
+    c0 = ca
+    s0 = sa
     for i in range(nb):
-        t1 = min(max(brk[i], t0), tb)
+        t1 = min(max(brk[0, i], t0), tb)
         if t1 <= t0:
             continue
-        c1 = math.cos(t1)
-        s1 = math.sin(t1)
+        c1 = brk[1, i]
+        s1 = brk[2, i]
         dd = max(abs(c1 - c0) * isx, abs(s1 - s0) * isy)
         m = max(1, math.ceil(dd / _PANEL))
         step = (t1 - t0) / m
         h = 0.5 * step
-        ng = min(max(math.ceil(_DENS * dd / m), _NG_MIN), _NG_MAX)
-        for p in range(m):
-            c = t0 + (p + 0.5) * step
-            cc = math.cos(c)
-            scn = math.sin(c)
+        ng = min(max(math.ceil(_NG_BASE + _DENS * dd / m), _NG_MIN), _NG_MAX)
+        chs, shs = _cs_small(h)  # the first sub-panel centre is t0 + h, the next ones a step further
+        cst, sst = _cs_small(step)
+        cc = c0 * chs - s0 * shs
+        scn = s0 * chs + c0 * shs
+        for _ in range(m):
             if ncnt[bt] + ng > cap:  # flush a full batch
                 if corner:
-                    _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nod, ncnt[bt], zy, True, tp, ts, cum, cnt)
+                    _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, ncnt[bt], zy, True, wk, cnt)
                     ncnt[bt] = 0
                 else:
-                    _flush(
-                        bt,
-                        ax,
-                        ay,
-                        sc,
-                        lamx,
-                        fullx,
-                        lamy,
-                        fully,
-                        direct,
-                        carry_x,
-                        carry_y,
-                        nodv,
-                        ncnt,
-                        vb,
-                        tp,
-                        ts,
-                        cum,
-                        cnt,
-                    )
+                    _flush(bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, wk, cnt)
             nn = ncnt[bt]
             for q in range(ng):
-                # cos, sin of c + δ by the angle-sum rule; δ = h·x_q is small (Taylor), except on big panels.
-                d = h * _GL_X[ng, q]
-                if abs(d) < 0.25:
-                    d2 = d * d
-                    cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24 - d2 * (1.0 / 720 - d2 * (1.0 / 40320 - d2 / 3628800.0))))
-                    sd = d * (1.0 - d2 * (1.0 / 6 - d2 * (1.0 / 120 - d2 * (1.0 / 5040 - d2 / 362880.0))))
-                else:
-                    cd = math.cos(d)
-                    sd = math.sin(d)
+                cd, sd = _cs_small(h * _GL_X[ng, q])  # angle-sum rule about the sub-panel centre
                 cs = cc * cd - scn * sd
                 sn = scn * cd + cc * sd
                 wq = _GL_W[ng, q] * h * rho
                 if form_a:  # ∮ U(x) v(y) dy, dy = ρ cos θ dθ
-                    nod[0, nn] = cx + rho * cs
-                    nod[1, nn] = cy + rho * sn
-                    nod[2, nn] = wq * cs
+                    nodv[bt, 0, nn] = cx + rho * cs
+                    nodv[bt, 1, nn] = cy + rho * sn
+                    nodv[bt, 2, nn] = wq * cs
                 else:  # −∮ u(x) V(y) dx, dx = −ρ sin θ dθ
-                    nod[0, nn] = cy + rho * sn
-                    nod[1, nn] = cx + rho * cs
-                    nod[2, nn] = wq * sn
+                    nodv[bt, 0, nn] = cy + rho * sn
+                    nodv[bt, 1, nn] = cx + rho * cs
+                    nodv[bt, 2, nn] = wq * sn
                 nn += 1
             ncnt[bt] = nn
+            cc, scn = cc * cst - scn * sst, scn * cst + cc * sst
         t0 = t1
         c0 = c1
         s0 = s1
     if corner and ncnt[bt] > 0:  # numeric antiderivatives carried along this piece: done now
-        _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nod, ncnt[bt], zy, True, tp, ts, cum, cnt)
+        _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, ncnt[bt], zy, True, wk, cnt)
         ncnt[bt] = 0
 
 
@@ -1166,45 +1188,31 @@ def _boundary(
     ny = int(ay[_A_N])
     # Arc pieces: the circle broken at the zone boundaries and the quarter turns.
     nb = 0
-    for t in (0.0, _HALF_PI, math.pi, 3.0 * _HALF_PI):
-        pcs[nb] = t
+    for t, c, sn in ((0.0, 1.0, 0.0), (_HALF_PI, 0.0, 1.0), (math.pi, -1.0, 0.0), (3.0 * _HALF_PI, 0.0, -1.0)):
+        pcs[0, nb], pcs[1, nb], pcs[2, nb] = t, c, sn
         nb += 1
     for i in range(nangx):
-        pcs[nb] = angx[i]
+        pcs[0, nb], pcs[1, nb], pcs[2, nb] = angx[0, i], angx[1, i], angx[2, i]
         nb += 1
     for i in range(nangy):
-        pcs[nb] = angy[i]
+        pcs[0, nb], pcs[1, nb], pcs[2, nb] = angy[0, i], angy[1, i], angy[2, i]
         nb += 1
-    pcs[nb] = _TWO_PI
+    for i in range(1, nb):  # insertion sort by angle
+        t, c, sn = pcs[0, i], pcs[1, i], pcs[2, i]
+        j = i - 1
+        while j >= 0 and pcs[0, j] > t:
+            pcs[0, j + 1], pcs[1, j + 1], pcs[2, j + 1] = pcs[0, j], pcs[1, j], pcs[2, j]
+            j -= 1
+        pcs[0, j + 1], pcs[1, j + 1], pcs[2, j + 1] = t, c, sn
+    pcs[0, nb], pcs[1, nb], pcs[2, nb] = _TWO_PI, 1.0, 0.0
     nb += 1
-    pcs[:nb].sort()
     for i in range(nb - 1):
-        if pcs[i + 1] > pcs[i]:
+        if pcs[0, i + 1] > pcs[0, i]:
             _arc(
-                ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, pcs[i], pcs[i + 1], brk,
-                wk[0], wk[1], nodv, ncnt, wk[3:6], vb, cnt,
+                ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, pcs, i, brk, wk, nodv, ncnt, vb, cnt,
             )  # fmt: skip
     for bt in range(3):
-        _flush(
-            bt,
-            ax,
-            ay,
-            sc,
-            lamx,
-            fullx,
-            lamy,
-            fully,
-            direct,
-            carry_x,
-            carry_y,
-            nodv,
-            ncnt,
-            vb,
-            wk[0],
-            wk[1],
-            wk[3:6],
-            cnt,
-        )
+        _flush(bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, wk, cnt)
     # Vertical cuts between the flat middle (x-antiderivative) and the bands (y-antiderivative).
     if ax[_A_MRG] == 0.0:
         for v, sign in ((ax[_A_LO] + bx, -1.0), (ax[_A_HI] - bx, 1.0)):
@@ -1316,11 +1324,40 @@ def _write_outer(fx, ax, fy, ay, geo, buf, r0, r1, fac):  # pragma: no cover - j
     return total, inside, spill
 
 
+@njit(inline="always", cache=True)
+def _store(ax, lam, full, ang, axs, lams, fulls, angs, slot):  # pragma: no cover - jitted
+    """Keep a column's (row's) descriptor and tables for the lenslets that share it."""
+    for q in range(_A_SIZE):
+        axs[slot, q] = ax[q]
+    for k in range(int(ax[_A_N])):
+        lams[slot, k] = lam[k]
+        fulls[slot, k] = full[k]
+    for r in range(3):
+        for q in range(8):
+            angs[slot, r, q] = ang[r, q]
+
+
+@njit(inline="always", cache=True)
+def _load(ax, lam, full, ang, axs, lams, fulls, angs, slot):  # pragma: no cover - jitted
+    """Copy a stored column's (row's) descriptor and tables into the working arrays."""
+    for q in range(_A_SIZE):
+        ax[q] = axs[slot, q]
+    for k in range(int(ax[_A_N])):
+        lam[k] = lams[slot, k]
+        full[k] = fulls[slot, k]
+    for r in range(3):
+        for q in range(8):
+            ang[r, q] = angs[slot, r, q]
+
+
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
 def _render_kernel(
     px, py, pz, wt, order, starts, ends, geo, buf, boff, brow0, brow1, psz, nlmax, stats
 ):  # pragma: no cover
-    """Render particles ``order[starts[c]:ends[c]]`` of chunk c into its buffer; chunks in parallel.
+    """Render particles ``order[starts[c]:ends[c]]`` of chunk c into its rows of the image; chunks in parallel.
+
+    ``buf`` is the flat float64 image; chunk c owns ``buf[boff[c, 0]:boff[c, 1]]``, image rows
+    ``brow0[c]..brow1[c]`` (the caller passes chunks with disjoint rows only).
 
     Everything accumulates, so a chunk done in consecutive pieces (one call per
     piece) sums in the same order as in one piece. ``stats[c]`` accumulates the
@@ -1346,8 +1383,8 @@ def _render_kernel(
         fullxs = np.zeros((nlmax, psz))
         lamys = np.zeros((nlmax, psz))
         fullys = np.zeros((nlmax, psz))
-        angxs = np.zeros((nlmax, 8))
-        angys = np.zeros((nlmax, 8))
+        angxs = np.zeros((nlmax, 3, 8))
+        angys = np.zeros((nlmax, 3, 8))
         nangx = np.zeros(nlmax, dtype=np.int64)
         nangy = np.zeros(nlmax, dtype=np.int64)
         facx = np.zeros(nlmax)
@@ -1355,15 +1392,25 @@ def _render_kernel(
         direct = np.zeros((psz, psz))
         carry_x = np.zeros((psz, psz))
         carry_y = np.zeros((psz, psz))
-        pcs = np.zeros(24)
-        brk = np.zeros(2 * psz + 16)
+        pcs = np.zeros((3, 24))
+        brk = np.zeros((3, 2 * psz + 16))
         wk = np.zeros((6, psz + 4))
         nodv = np.zeros((4, 5, 512))
         ncnt = np.zeros(4, dtype=np.int64)
         nw = 2 * (2 * math.ceil(_K * sl / pp) + 2) + 2 if pp > 0.0 else 2
         vb = np.zeros((3, nw * 512))
         cnt = np.zeros(_ST_SIZE)
-        b = buf[boff[c] : boff[c + 1]]
+        # The current lenslet's descriptors and tables (copied in: no array views in the loops).
+        ax = np.zeros(_A_SIZE)
+        ay = np.zeros(_A_SIZE)
+        lamx = np.zeros(psz)
+        fullx = np.zeros(psz)
+        lamy = np.zeros(psz)
+        fully = np.zeros(psz)
+        tmp = np.zeros(psz)
+        angx = np.zeros((3, 8))
+        angy = np.zeros((3, 8))
+        b = buf[boff[c, 0] : boff[c, 1]]  # the chunk's rows of the image
         r0 = brow0[c]
         r1 = brow1[c]
         for idx in range(starts[c], ends[c]):
@@ -1404,7 +1451,7 @@ def _render_kernel(
             sc[_S_AK] = abs(kap)
             sc[_S_S] = math.sqrt(sm * sm + kap * kap * sl * sl)
             sc[_S_RHO] = rho
-            bh = _K * sm / abs(kap) if (not focus and kap != 0.0) else 0.0
+            bh = _KS * sm / abs(kap) if (not focus and kap != 0.0) else 0.0
             fac0 = w / (math.pi * rho * rho)  # uniform over the aperture image
             # Columns (x) and rows (y) of lenslets: window, activity, descriptor and tables.
             for a in range(2):
@@ -1441,23 +1488,23 @@ def _render_kernel(
                     if f == 0.0 or rotated:
                         continue
                     if a == 0:
-                        ax = axs[slot]
                         _setup_axis(ax, sc, ctr + ox + fl * t0x, g0x, e1, e2, a1, a2, bh, -hw)
                         if ax[_A_N] > psz:
                             cnt[_ST_BIG] += 1.0
                             facx[slot] = 0.0
                             continue
-                        _axis_tables(ax, sc, lamxs[slot], fullxs[slot], wk[2])
-                        nangx[slot] = _axis_angles(ax, rho, angxs[slot], True)
+                        _axis_tables(ax, sc, lamx, fullx, tmp)
+                        nangx[slot] = _axis_angles(ax, rho, angx, True)
+                        _store(ax, lamx, fullx, angx, axs, lamxs, fullxs, angxs, slot)
                     else:
-                        ay = ays[slot]
                         _setup_axis(ay, sc, ctr + oy + fl * t0y, g0y, e1, e2, a1, a2, bh, -hh)
                         if ay[_A_N] > psz:
                             cnt[_ST_BIG] += 1.0
                             facy[slot] = 0.0
                             continue
-                        _axis_tables(ay, sc, lamys[slot], fullys[slot], wk[2])
-                        nangy[slot] = _axis_angles(ay, rho, angys[slot], False)
+                        _axis_tables(ay, sc, lamy, fully, tmp)
+                        nangy[slot] = _axis_angles(ay, rho, angy, False)
+                        _store(ay, lamy, fully, angy, ays, lamys, fullys, angys, slot)
             for li in range(i0, i1 + 1):
                 sy = li - i0
                 if facy[sy] == 0.0:
@@ -1465,6 +1512,8 @@ def _render_kernel(
                 v1 = (cy0 - li - 0.5) * pl
                 v2 = v1 + pl
                 ddy = max(v1 - g0y, 0.0, g0y - v2)
+                if not rotated:
+                    _load(ay, lamy, fully, angy, ays, lamys, fullys, angys, sy)
                 for lj in range(j0, j1 + 1):
                     sx = lj - j0
                     if facx[sx] == 0.0:
@@ -1482,21 +1531,19 @@ def _render_kernel(
                         # the disc, centred on the rotated lenslet centre (+ fl·t0).
                         gcx = (lj - cx0) * pl
                         gcy = (cy0 - li) * pl
-                        ax = axs[0]
-                        ay = ays[0]
                         _setup_axis(ax, sc, cr * gcx - sr * gcy + ox + fl * t0x, g0x, u1, u2, False, False, 0.0, -hw)
                         _setup_axis(ay, sc, sr * gcx + cr * gcy + oy + fl * t0y, g0y, v1, v2, False, False, 0.0, -hh)
                         if ax[_A_N] > psz or ay[_A_N] > psz:
                             cnt[_ST_BIG] += 1.0
                             continue
-                        _axis_tables(ax, sc, lamxs[0], fullxs[0], wk[2])
-                        _axis_tables(ay, sc, lamys[0], fullys[0], wk[2])
-                        sx = 0
-                        sy = 0
+                        _axis_tables(ax, sc, lamx, fullx, tmp)
+                        _axis_tables(ay, sc, lamy, fully, tmp)
                         nangx[0] = 0
                         nangy[0] = 0
-                    ax = axs[sx]
-                    ay = ays[sy]
+                        sx = 0
+                        sy = 0
+                    else:
+                        _load(ax, lamx, fullx, angx, axs, lamxs, fullxs, angxs, sx)
                     if ax[_A_N] == 0.0 or ay[_A_N] == 0.0:
                         continue
                     fac = fac0 * facx[lj - j0] * facy[li - i0]
@@ -1506,12 +1553,12 @@ def _render_kernel(
                         ey = max(abs(v1 - _K * sm - g0y), abs(v2 + _K * sm - g0y))
                         interior = ex * ex + ey * ey <= rs * rs
                     if interior:  # the blurred square lies inside the aperture image: separable
-                        tot, ins, sp = _write_outer(fullxs[sx], ax, fullys[sy], ay, geo, b, r0, r1, fac)
+                        tot, ins, sp = _write_outer(fullx, ax, fully, ay, geo, b, r0, r1, fac)
                         cnt[_ST_INTERIOR] += 1.0
                     else:
                         _boundary(
-                            ax, ay, sc, lamxs[sx], fullxs[sx], lamys[sy], fullys[sy], angxs[sx], nangx[sx],
-                            angys[sy], nangy[sy], direct, carry_x, carry_y, pcs, brk, wk, nodv, ncnt, vb, cnt,
+                            ax, ay, sc, lamx, fullx, lamy, fully, angx, nangx[sx], angy, nangy[sy],
+                            direct, carry_x, carry_y, pcs, brk, wk, nodv, ncnt, vb, cnt,
                         )  # fmt: skip
                         tot, ins, sp = _write_patch(direct, ax, ay, geo, b, r0, r1, fac)
                     cnt[_ST_ALL] += tot
@@ -1584,15 +1631,32 @@ def _layout(
     return order, bounds, r0, r1, psz, nlmax
 
 
+def _waves(r0: np.ndarray, r1: np.ndarray) -> list[list[int]]:
+    """Group chunks into waves of pairwise disjoint row bands [r0, r1] (greedy, in chunk order)."""
+    waves: list[list[int]] = []
+    for c in range(r0.size):
+        for wave in waves:
+            if all(r1[c] < r0[d] or r1[d] < r0[c] for d in wave):
+                wave.append(c)
+                break
+        else:
+            waves.append([c])
+    return waves
+
+
+def _memory(camera: PlenopticCamera, n_particles: int, psz: int, nlmax: int, n_chunks: int) -> int:
+    """The float64 image, the particle arrays (x, y, z, weight, order and copies) and each chunk's scratch."""
+    scratch = 8 * (3 * psz * psz + 6 * nlmax * psz + 2 * nlmax * 24 + 3 * 5 * 512 + 4096)
+    return int(8 * camera.n_pixels_x * camera.n_pixels_y + n_particles * 8 * 8 + n_chunks * scratch)
+
+
 def exact_memory_estimate(
     camera: PlenopticCamera, particles: xr.Dataset, n_chunks: int = DEFAULT_CHUNKS, *, diffraction: bool = True
 ) -> int:
-    """Bytes :func:`render_exact` allocates: the float64 image, the chunk buffers (rows each chunk can reach)
-    and the particle arrays."""
+    """Bytes :func:`render_exact` allocates: the float64 image, the particle arrays and the per-chunk scratch."""
     x, y, z, _ = _particle_arrays(camera, particles)
-    _, _, r0, r1, _, _ = _layout(camera, x, y, z, n_chunks, diffraction)
-    rows = int(np.maximum(r1 - r0 + 1, 0).sum())
-    return int(8 * camera.n_pixels_x * (camera.n_pixels_y + rows) + x.size * 8 * 8)
+    _, bounds, _, _, psz, nlmax = _layout(camera, x, y, z, n_chunks, diffraction)
+    return _memory(camera, x.size, psz, nlmax, bounds.size - 1)
 
 
 def render_exact(
@@ -1648,10 +1712,11 @@ def render_exact(
     Returns
     -------
     xarray.DataArray
-        ``intensity`` over (``row``, ``col``), float64, with the coords and camera
-        attributes of ``render``, ``method = "exact"`` and the accounting of the
-        expected intensity: traced, recorded, missing the lenslet array, falling
-        outside the sensor.
+        ``intensity`` over (``row``, ``col``), float64 and >= 0, with the coords and
+        camera attributes of ``render``, ``method = "exact"`` and the accounting of
+        the expected intensity: traced, recorded, missing the lenslet array, falling
+        outside the sensor, and the rounding residue below zero that was clipped
+        (``intensity_clipped_negative``, ~1e-12 of the total).
     """
     n = _check_rays(rays_per_particle)
     x, y, z, inten = _particle_arrays(camera, particles)
@@ -1659,27 +1724,31 @@ def render_exact(
         raise RaytraceError(f"n_chunks = {n_chunks!r}: must be an integer >= 1")
     order, bounds, r0, r1, psz, nlmax = _layout(camera, x, y, z, int(n_chunks), diffraction)
     ncol = camera.n_pixels_x
-    rows = np.maximum(r1 - r0 + 1, 0)
-    need = 8 * ncol * (camera.n_pixels_y + int(rows.sum())) + x.size * 8 * 8
+    k = bounds.size - 1
+    need = _memory(camera, x.size, psz, nlmax, k)
     if need > max_image_bytes:
         raise RaytraceError(
             f"render_exact: estimated memory {need / 1e9:.3g} GB (float64 image of {camera.n_pixels_y} x {ncol} px "
-            f"+ chunk buffers of {int(rows.sum())} rows) exceeds max_image_bytes = {max_image_bytes / 1e9:.3g} GB; "
-            "use fewer n_chunks or raise the limit"
+            f"+ particle arrays) exceeds max_image_bytes = {max_image_bytes / 1e9:.3g} GB; raise the limit"
         )
     wt = _weights(
         camera, particles, n, inten, solid_angle_correction=solid_angle_correction, match_ray_counts=match_ray_counts
     )
     geo = _geometry(camera, diffraction)
-    k = bounds.size - 1
-    boff = np.concatenate([[0], np.cumsum(rows * ncol)]).astype(np.int64)
-    buf = np.zeros(int(boff[-1]))
+    # Chunk c writes rows r0[c]..r1[c] of the image itself: its slice boff[c]..boff[c + 1] of the flat image.
+    image = np.zeros((camera.n_pixels_y, ncol))
+    flat = image.reshape(-1)
+    boff = np.stack([r0 * ncol, (r1 + 1) * ncol], axis=1).astype(np.int64)
     stats = np.zeros((k, _ST_SIZE))
+    waves = [np.array(w, dtype=np.int64) for w in _waves(r0, r1)]
     with tqdm(total=x.size, desc="exact rendering", unit="particle", disable=not progress, mininterval=1.0) as bar:
         for p in range(_PIECES):
             starts = bounds[:-1] + (bounds[1:] - bounds[:-1]) * p // _PIECES
             ends = bounds[:-1] + (bounds[1:] - bounds[:-1]) * (p + 1) // _PIECES
-            _render_kernel(x, y, z, wt, order, starts, ends, geo, buf, boff, r0, r1, psz, nlmax, stats)
+            for w in waves:  # disjoint row bands within a wave: its parallel chunks never write one pixel
+                st = np.zeros((w.size, _ST_SIZE))
+                _render_kernel(x, y, z, wt, order, starts[w], ends[w], geo, flat, boff[w], r0[w], r1[w], psz, nlmax, st)
+                stats[w] += st
             bar.update(int((ends - starts).sum()))
     tot = stats.sum(axis=0)
     if tot[_ST_REFUSED] > 0:
@@ -1693,12 +1762,10 @@ def render_exact(
             f"render_exact: {tot[_ST_SPILL]:.3g} of the intensity fell outside its chunk's rows and "
             f"{int(tot[_ST_BIG])} patches exceeded the scratch size (a bug)"
         )
-    # Fixed-order sum of the chunk buffers (deterministic whatever the threads).
-    image = np.zeros((camera.n_pixels_y, ncol))
-    for c in range(k):
-        if rows[c] > 0:
-            image[r0[c] : r1[c] + 1] += buf[boff[c] : boff[c + 1]].reshape(rows[c], ncol)
-    del buf
+    # Pixels the light does not reach sum line integrals that cancel: what is left is rounding of
+    # either sign (|value| ~1e-12 of a lit pixel). An expected intensity is >= 0: clip, and say how much.
+    clipped = -float(image[image < 0.0].sum())
+    np.maximum(image, 0.0, out=image)
     attrs: dict[str, Any] = {
         "units": "1",
         "long_name": "simulated plenoptic raw image (expected sum of ray intensities)",
@@ -1716,10 +1783,11 @@ def render_exact(
         "lenslet_images_interior": int(tot[_ST_INTERIOR]),
         "arc_nodes": int(tot[_ST_NODES]),
         "intensity_traced": float(tot[_ST_W]),
-        "intensity_recorded": float(tot[_ST_IN]),
-        "intensity_lost": float(tot[_ST_W] - tot[_ST_IN]),
+        "intensity_recorded": float(tot[_ST_IN] + clipped),
+        "intensity_lost": float(tot[_ST_W] - tot[_ST_IN] - clipped),
         "intensity_lost_lenslet_array": float(max(tot[_ST_W] - tot[_ST_ALL], 0.0)),
         "intensity_lost_outside_sensor": float(max(tot[_ST_ALL] - tot[_ST_IN], 0.0)),
+        "intensity_clipped_negative": clipped,
         "y_direction": "up; row 0 is the top",
     }
     return xr.DataArray(image, dims=("row", "col"), coords=_sensor_coords(camera), name="intensity", attrs=attrs)

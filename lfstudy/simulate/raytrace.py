@@ -27,10 +27,9 @@ Ray generation
 --------------
 Rays leave each particle towards points drawn uniformly over the circular
 main-lens aperture (r = R·√u, θ = 2πv, rejection-free), so no ray is ever
-generated outside the aperture (``rays_dropped_aperture`` is 0 by
-construction; it is kept in the attributes for comparison with the thesis,
-whose angular sampling wastes the rays outside the disc). Equal area on the
-aperture is equal solid angle to within (R/d)² (paraxial optics).
+generated outside the aperture (the thesis' angular sampling wastes the rays
+outside the disc; here none is dropped there). Equal area on the aperture is
+equal solid angle to within (R/d)² (paraxial optics).
 
 The number of rays of particle *i* follows the solid-angle correction of
 eq. 4.14 generalised to 2-D: ``n_i = round(n · Ω_i / Ω_ref)`` where Ω_i is the
@@ -497,6 +496,7 @@ def render(
     n_chunks: int = DEFAULT_CHUNKS,
     max_image_bytes: float = 4e9,
     progress: bool = False,
+    method: str = "montecarlo",
 ) -> xr.DataArray:
     """Ray-trace a raw plenoptic image of a particle field (sec. 4.3).
 
@@ -519,10 +519,15 @@ def render(
         generalised); otherwise every particle gets ``rays_per_particle`` rays.
     shot_noise : bool
         Replace each pixel's signal s by a Poisson draw of mean s (the signal
-        is read as photo-electrons); drawn from ``numpy.random.default_rng([seed, 1])``.
+        is read as photo-electrons); drawn by
+        :func:`lfstudy.simulate.sensor.apply_sensor` from
+        ``numpy.random.default_rng(seed)``. For a full camera model (photons,
+        quantum efficiency, dark level, full well, gain) call ``apply_sensor``
+        on the noise-free image instead.
     read_noise : float
         Standard deviation of additive Gaussian read noise (same units), from
-        the same generator.
+        the same generator. Pixels may come out negative (the float signal
+        stays unbiased); the integer export clips them to 0.
     full_well, bit_depth : float, int, optional
         Integer export (:func:`quantize`): with ``bit_depth`` the signal is
         scaled so that ``full_well`` (default: the image maximum) maps to
@@ -535,6 +540,12 @@ def render(
         Refuse (ValueError) if the estimated allocation exceeds this.
     progress : bool
         Show a tqdm bar of the rays traced (it does not change the result).
+    method : {"montecarlo", "exact"}
+        ``"montecarlo"``: trace ``rays_per_particle`` random rays per particle
+        (this function's kernel, the reference). ``"exact"``: the expected value
+        of that image, computed without rays by
+        :func:`lfstudy.simulate.exact.render_exact` (deterministic; ``seed``
+        only drives ``shot_noise`` / ``read_noise``).
 
     Returns
     -------
@@ -542,9 +553,12 @@ def render(
         ``intensity`` over (``row``, ``col``) with sensor coords ``x``/``y`` [mm]
         (row 0 at the top, y up), float64 (or unsigned integer with
         ``bit_depth``); attrs hold the camera parameters, the seed and the ray
-        accounting (traced, recorded, dropped at the aperture / outside the
-        lenslet array / outside the sensor, and the intensity lost).
+        accounting (traced, recorded, dropped outside the lenslet array /
+        outside the sensor, and the intensity lost); with
+        ``method="exact"`` the expected intensities instead of ray counts.
     """
+    if method not in ("montecarlo", "exact"):
+        raise RaytraceError(f"method = {method!r}: allowed values are 'montecarlo' and 'exact'")
     n = _check_rays(rays_per_particle)
     seed64 = _seed_u64(seed)
     x, y, z, inten = _particle_arrays(camera, particles)
@@ -554,6 +568,21 @@ def render(
         raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
     if not isinstance(n_chunks, (int, np.integer)) or n_chunks < 1:
         raise RaytraceError(f"n_chunks = {n_chunks!r}: must be an integer >= 1")
+    if method == "exact":
+        from lfstudy.simulate.exact import render_exact
+
+        da = render_exact(
+            camera,
+            particles,
+            n,
+            diffraction=diffraction,
+            solid_angle_correction=solid_angle_correction,
+            n_chunks=n_chunks,
+            max_image_bytes=max_image_bytes,
+            progress=progress,
+        )
+        da.attrs["seed"] = int(seed)
+        return _finish(da, int(seed), shot_noise, read_noise, full_well, bit_depth)
     need = memory_estimate(camera, x.size, n_chunks)
     if need > max_image_bytes:
         raise RaytraceError(
@@ -584,7 +613,6 @@ def render(
         "sigma_sensor_plane": camera.sigma_sensor_plane,
         "n_chunks": int(stats.shape[0]),
         "rays_traced": int(tot[0]),
-        "rays_dropped_aperture": 0,
         "rays_dropped_lenslet_array": int(tot[1]),
         "rays_dropped_outside_sensor": int(tot[2]),
         "rays_recorded": int(tot[3]),
@@ -592,14 +620,35 @@ def render(
         "intensity_lost": float(lost.sum()),
         "y_direction": "up; row 0 is the top",
     }
-    if shot_noise or read_noise > 0:
-        rng = np.random.default_rng([int(seed), 1])
-        if shot_noise:
-            image = rng.poisson(image).astype(np.float64)
-        if read_noise > 0:
-            image += rng.normal(0.0, read_noise, image.shape)
-        attrs.update(shot_noise=int(bool(shot_noise)), read_noise=float(read_noise))
     da = xr.DataArray(image, dims=("row", "col"), coords=_sensor_coords(camera), name="intensity", attrs=attrs)
+    return _finish(da, int(seed), shot_noise, read_noise, full_well, bit_depth)
+
+
+def _finish(
+    da: xr.DataArray, seed: int, shot_noise: bool, read_noise: float, full_well: float | None, bit_depth: int | None
+) -> xr.DataArray:
+    """The optional noise and integer export of :func:`render` (either method).
+
+    The noise is :func:`lfstudy.simulate.sensor.apply_sensor` with one photo-electron
+    per unit of intensity (photons per particle = rays per particle, quantum
+    efficiency 1, no dark level or full well): Poisson shot noise, then Gaussian
+    read noise. Read noise can make a pixel negative; it stays negative here (an
+    unbiased float signal) and :func:`quantize` clips it to 0.
+    """
+    if shot_noise or read_noise > 0:
+        from lfstudy.simulate.sensor import apply_sensor
+
+        n = int(da.attrs["rays_per_particle"])
+        attrs = dict(da.attrs)
+        da = apply_sensor(
+            da, photons_per_particle=n, shot_noise=bool(shot_noise), read_noise=float(read_noise), seed=int(seed)
+        )
+        da.attrs.update(
+            units=attrs.get("units", "1"),
+            long_name=attrs.get("long_name", ""),
+            shot_noise=int(bool(shot_noise)),
+            read_noise=float(read_noise),
+        )
     if bit_depth is not None:
         da = quantize(da, int(bit_depth), full_well)
     return da
@@ -647,7 +696,8 @@ def render_pinhole(
     images a small spot of the aperture at its projected centre. The camera's
     diffraction sigmas follow the new f-number automatically.
 
-    Extra keyword arguments go to :func:`render`.
+    Extra keyword arguments go to :func:`render` (``method="exact"`` computes
+    the expected image, :func:`lfstudy.simulate.exact.render_pinhole_exact`).
     """
     from lfstudy.simulate.particles import pinhole_field
 
@@ -738,13 +788,13 @@ def angle_histograms(
         # Whole bins beyond the limit (bin edges are reported with the result).
         return float(counts[np.abs(centres) > limit].sum() / max(rec, 1))
 
-    deg = {"units": "rad", "long_name": "incidence angle at the sensor"}
+    angle_attrs = {"units": "rad", "long_name": "incidence angle at the sensor"}
     return xr.Dataset(
         {
             "theta_count": ("angle", h[0], {"units": "rays", "long_name": "rays per θ bin (x–z plane)"}),
             "phi_count": ("angle", h[1], {"units": "rays", "long_name": "rays per φ bin (y–z plane)"}),
         },
-        coords={"angle": ("angle", centres, deg), "angle_edges": ("edge", edges, deg)},
+        coords={"angle": ("angle", centres, angle_attrs), "angle_edges": ("edge", edges, angle_attrs)},
         attrs={
             "max_incidence_angle_eq428": eq428,
             "incidence_angle_bound": incidence_angle_bound(camera),
