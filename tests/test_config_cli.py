@@ -27,18 +27,24 @@ def test_shipped_configs_valid():
     assert {c.flow for c in expand_cases(thesis)} == {"uniform_x", "uniform_z", "hill"}
 
 
-def test_demo_sweep_has_two_values_of_each(demo_raw):
+def test_demo_sweeps_designs_flows_and_a_dotted_setting(demo_raw):
+    """The demo: 2 magnifications x 2 lenslet pitches x (uniform shift, Hill's vortex) x 2 methods."""
     cfg = validate_config(demo_raw)
     cases = expand_cases(cfg)
-    for key in ("magnification", "fnumber", "lenslet_pitch", "ppp"):
-        assert len({getattr(c, key) for c in cases}) >= 2
+    assert len(cases) == 16
+    for key in ("magnification", "lenslet_pitch"):
+        assert len({getattr(c, key) for c in cases}) == 2
+    assert {c.flow for c in cases} == {"uniform_x", "hill"}
+    assert {c.params["reconstruct.method"] for c in cases} == {"threshold", "mart"}
     ids = [c.case_id for c in cases]
     assert len(set(ids)) == len(ids)
-    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.001/flow~uniform_x"
+    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.002/flow~uniform_x/reconstruct.method~threshold"
     assert sweep_of(cfg).case(ids[5]) == cases[5]
     one = case_config(cfg, ids[-1])
     assert one["camera"]["magnification"] == cases[-1].magnification
-    assert one["flow"]["name"] == "uniform_x"
+    assert one["flow"]["name"] == "hill" and one["reconstruct"]["method"] == "mart"
+    # every design reconstructs the seeded slab
+    assert one["grid"]["z_range"] == [-one["particles"]["z_span"] / 2, one["particles"]["z_span"] / 2]
 
 
 @pytest.mark.parametrize(

@@ -64,7 +64,13 @@ def study_dirs(tmp_path_factory):
     """8 demo cases (one lenslet pitch): 5 complete, one with only piv.zarr, one empty dir, one absent."""
     tmp = tmp_path_factory.mktemp("results")
     cfg = load_config(ROOT / "config" / "demo.yaml")
-    cfg["sweep"]["lenslet_pitch"] = [0.0888]
+    cfg["sweep"] = {
+        "magnification": [-1.0, -0.8],
+        "fnumber": ["matched", 4.0],
+        "lenslet_pitch": [0.0888],
+        "ppp": [0.001, 0.002],
+        "flow": ["uniform_x"],
+    }
     cases = expand_cases(cfg)
     rows, dirs = [], {}
     for i, case in enumerate(cases):
