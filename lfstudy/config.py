@@ -190,6 +190,12 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
         except OpticsError as exc:
             where = ", ".join(f"{k}={v}" for k, v in case.params.items() if k != "flow")
             raise ConfigError(f"config key 'camera' (case {where}): {exc}") from None
+        sen = ccfg["sensor"]
+        if sen["full_well"] is not None and sen["full_well"] <= sen["dark_level"]:
+            raise ConfigError(
+                f"config key 'sensor.full_well' = {sen['full_well']!r} (case {case.case_id}): must exceed "
+                f"sensor.dark_level = {sen['dark_level']!r} e- (the pedestal would fill the well)"
+            )
         try:  # the grid a case reconstructs on (grid.z_range, voxel sizes, its memory cap)
             case_grid(ccfg)
         except GridError as exc:

@@ -97,3 +97,34 @@ def test_bad_image():
         apply_sensor(xr.DataArray(np.ones((3, 3)), dims=("row", "col")), photons_per_particle=10)
     with pytest.raises(SensorError, match=">= 0"):
         apply_sensor(_flat(-1.0, (3, 3)), photons_per_particle=10)
+
+
+def test_case_image_renders_with_the_method_and_records_with_the_sensor():
+    """The case layer: raytrace.method picks the renderer, the sensor section records it, seeded
+    from the case (same config -> same bytes); a noise-free ideal sensor returns the exact image."""
+    from pathlib import Path
+
+    from lfstudy.config import case_config, expand_cases, read_yaml, validate_config
+    from lfstudy.simulate.exact import render_exact
+    from lfstudy.study.case import case_camera, case_image, case_particles
+
+    raw = read_yaml(Path(__file__).parent / "data" / "tiny.yaml")
+    raw["camera"]["sensor"].update(n_pixels_x=96, n_pixels_y=80)
+    raw["sweep"] = {"ppp": [0.004], "flow": ["uniform_x"]}
+    cfg = validate_config(raw)
+    assert cfg["raytrace"]["method"] == "exact" and cfg["sensor"]["shot_noise"] is True
+    ccfg = case_config(cfg, expand_cases(cfg)[0].case_id)
+    field = case_particles(ccfg)
+    a = case_image(ccfg, field, "a")
+    assert np.array_equal(a.values, case_image(ccfg, field, "a").values)
+    assert a.attrs["method"] == "exact" and a.attrs["sensor_shot_noise"] == 1
+    assert a.attrs["sensor_photons_per_particle"] == cfg["raytrace"]["rays_per_particle"]  # null: one per ray
+    expected = render_exact(case_camera(ccfg), field, cfg["raytrace"]["rays_per_particle"]).values
+    assert not np.array_equal(a.values, expected) and np.all(a.values == np.round(a.values))  # Poisson counts
+    quiet = {**ccfg, "sensor": {**ccfg["sensor"], "shot_noise": False}}
+    np.testing.assert_array_equal(case_image(quiet, field, "a").values, expected)
+    adc = {**ccfg, "sensor": {**ccfg["sensor"], "full_well": 400.0, "bit_depth": 12, "read_noise": 3.0}}
+    counts = case_image(adc, field, "a")
+    assert counts.dtype == np.uint16 and counts.attrs["sensor_gain"] == pytest.approx(400.0 / 4095)
+    mc = case_image({**ccfg, "raytrace": {**ccfg["raytrace"], "method": "montecarlo"}}, field, "a")
+    assert "rays_traced" in mc.attrs and mc.shape == a.shape

@@ -1,4 +1,4 @@
-"""``lfstudy simulate CONFIG [--case ID] [--out DIR]``: ray-trace one case's raw images."""
+"""``lfstudy simulate CONFIG [--case ID] [--out DIR]``: render and record one case's raw images."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import argparse
 
 NAME = "simulate"
 HELP = (
-    "ray-trace one case (sec. 4.3): the particle field before and after the flow's displacement, "
-    "both raw images and the pinhole calibration image (TIFF + zarr)"
+    "simulate one case (sec. 4.3): the particle field before and after the flow's displacement, "
+    "both raw images and the pinhole calibration image (raytrace.method, then the sensor; TIFF + zarr)"
 )
 
 
@@ -39,10 +39,23 @@ def run(args: argparse.Namespace) -> int:
         write_image(res[name], out / name)
     a = res["image_a"].attrs
     print(f"case {case_id}")
+    n_part = res["particles_a"].sizes["particle"]
+    if a.get("method") == "exact":
+        print(
+            f"particles: {n_part}, rendered exactly: expected intensity {a['intensity_traced']:,.0f} per frame "
+            f"(recorded {a['intensity_recorded']:,.0f}, off the sensor {a['intensity_lost_outside_sensor']:,.0f})"
+        )
+        print(f"pinhole: f/{res['pinhole'].attrs['pinhole_fnumber']:g}, rendered exactly")
+    else:
+        print(
+            f"particles: {n_part}, rays traced per frame: {a['rays_traced']:,} "
+            f"(recorded {a['rays_recorded']:,}, off the sensor {a['rays_dropped_outside_sensor']:,})"
+        )
+        print(f"pinhole: f/{res['pinhole'].attrs['pinhole_fnumber']:g}, {res['pinhole'].attrs['rays_traced']:,} rays")
+    shot = "shot noise" if a.get("sensor_shot_noise") else "no shot noise"
     print(
-        f"particles: {res['particles_a'].sizes['particle']}, rays traced per frame: {a['rays_traced']:,} "
-        f"(recorded {a['rays_recorded']:,}, off the sensor {a['rays_dropped_outside_sensor']:,})"
+        f"sensor: {a.get('sensor_photons_per_particle', 0):g} photons per particle, QE "
+        f"{a.get('sensor_quantum_efficiency', 1):g}, {shot}, read noise {a.get('sensor_read_noise', 0):g} e-"
     )
-    print(f"pinhole: f/{res['pinhole'].attrs['pinhole_fnumber']:g}, {res['pinhole'].attrs['rays_traced']:,} rays")
     print(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -33,6 +33,7 @@ __all__ = [
     "truth_sigma",
     "case_particles",
     "case_displaced",
+    "case_sensor",
     "case_image",
     "case_pinhole",
     "simulate_case",
@@ -114,12 +115,43 @@ def case_displaced(ccfg: Mapping[str, Any], field: xr.Dataset) -> xr.Dataset:
     return moved
 
 
+def case_sensor(ccfg: Mapping[str, Any], image: xr.DataArray, seed: int, photons_default: int) -> xr.DataArray:
+    """Record a rendered image with the case's sensor (``sensor`` section; :mod:`lfstudy.simulate.sensor`).
+
+    ``photons_default`` stands in for a null ``sensor.photons_per_particle`` (one
+    photon per ray: the image's ray count).
+    """
+    from lfstudy.simulate.sensor import apply_sensor
+
+    s = ccfg["sensor"]  # a stage given no sensor section must fail loudly, not use defaults
+    photons = s["photons_per_particle"]
+    return apply_sensor(
+        image,
+        photons_per_particle=photons_default if photons is None else photons,
+        quantum_efficiency=s["quantum_efficiency"],
+        shot_noise=s["shot_noise"],
+        read_noise=s["read_noise"],
+        dark_level=s["dark_level"],
+        full_well=s["full_well"],
+        bit_depth=s["bit_depth"],
+        gain=s["gain"],
+        seed=seed,
+    )
+
+
 def case_image(ccfg: Mapping[str, Any], field: xr.Dataset, frame: str, *, progress: bool = False) -> xr.DataArray:
-    """Ray-trace the raw image of exposure ``frame`` ("a" or "b") of a case."""
+    """The recorded raw image of exposure ``frame`` ("a" or "b") of a case.
+
+    Rendered with ``raytrace.method`` (exact: the expected image; montecarlo: ray
+    traced), then recorded by the case's sensor; both seeds derive from the
+    study seed, the simulate stage's location and the frame, so one config gives
+    one image, byte for byte.
+    """
     from lfstudy.simulate.raytrace import render
 
     rt = ccfg["raytrace"]
-    seed = derive_seed(ccfg["seed"], "raytrace", _stage_id(ccfg, "simulate"), frame)
+    sid = _stage_id(ccfg, "simulate")
+    seed = derive_seed(ccfg["seed"], "raytrace", sid, frame)
     img = render(
         case_camera(ccfg),
         field,
@@ -128,13 +160,19 @@ def case_image(ccfg: Mapping[str, Any], field: xr.Dataset, frame: str, *, progre
         diffraction=rt["diffraction"],
         max_image_bytes=rt["max_image_bytes"],
         progress=progress,
+        method=rt["method"],
     )
+    img = case_sensor(ccfg, img, derive_seed(ccfg["seed"], "sensor", sid, frame), rt["rays_per_particle"])
     img.attrs.update(io.provenance(ccfg, seed), frame=frame)
     return img
 
 
 def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> xr.DataArray:
-    """Ray-trace the calibration pinhole image (sec. 5.1), shared by the case's calibration group."""
+    """The calibration pinhole image (sec. 5.1), shared by the case's calibration group.
+
+    Rendered with ``raytrace.method`` and recorded by the case's sensor (a null
+    ``sensor.photons_per_particle`` is ``pinhole.rays_per_point`` here).
+    """
     from lfstudy.simulate.raytrace import render_pinhole
 
     ph = ccfg["pinhole"]
@@ -147,7 +185,9 @@ def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> xr.DataA
         seed=seed,
         max_image_bytes=ccfg["raytrace"]["max_image_bytes"],
         progress=progress,
+        method=ccfg["raytrace"]["method"],
     )
+    img = case_sensor(ccfg, img, derive_seed(ccfg["seed"], "sensor", "pinhole", ccfg["calib_id"]), ph["rays_per_point"])
     img.attrs.update(io.provenance(ccfg, seed))
     return img
 

@@ -42,8 +42,11 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
     cam = PlenopticCamera.from_config(ccfg)
     npx = cam.n_pixels_x * cam.n_pixels_y
     n_part = ccfg["particles"].get("count") or math.ceil(ccfg["particles"]["ppp"] * npx)
-    # ray tracing: 8 float32 chunk buffers + the float64 image + particles (raytrace.memory_estimate)
-    simulate = 8 * npx * 4 + npx * 8 + n_part * 5 * 8
+    # montecarlo: 8 float32 chunk buffers + the float64 image + particles (raytrace.memory_estimate);
+    # exact: the float64 image + particles; then the sensor model's float64 copies (signal, electrons, noise)
+    rt_method = (ccfg.get("raytrace", {}) or {}).get("method", "exact")
+    render = (8 * npx * 4 if rt_method == "montecarlo" else 0) + npx * 8 + n_part * 8 * 8
+    simulate = render + 3 * npx * 8
     n = int(cam.pixels_per_lenslet * (cam.si + cam.lenslet_focal_length) / cam.si)
     lf = cam.n_lenslets_x * cam.n_lenslets_y * n * n * 4
     register = npx * 8 + 3 * lf  # the raw image, the light field and its working copies
@@ -74,7 +77,7 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
 
 #: the config key that sizes each stage, and what it holds
 _KEYS = {
-    "simulate": ("camera.sensor", "the ray-traced image buffers"),
+    "simulate": ("camera.sensor", "the rendered image, its buffers and the sensor model's copies"),
     "register": ("camera.sensor", "the raw image and its light field"),
     "reconstruct": ("grid", "the reconstruction's volumes and weights (reconstruct.method)"),
     "piv": ("grid", "the two volumes PIV correlates"),

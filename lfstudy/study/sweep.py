@@ -75,9 +75,9 @@ STAGES: dict[str, _Stage] = {
     "camera": _Stage(("camera", "refocus"), ()),
     "particles": _Stage(("seed", "camera", "particles"), ()),
     "displace": _Stage(("flow",), ("particles",)),
-    "simulate": _Stage(("seed", "camera", "raytrace"), ("particles", "displace")),
+    "simulate": _Stage(("seed", "camera", "raytrace", "sensor"), ("particles", "displace")),
     # the pinhole image is taken at its own f-number whatever the working one (sec. 5.1)
-    "pinhole": _Stage(("seed", "camera", "pinhole", "raytrace"), (), ("camera.main_lens.fnumber",)),
+    "pinhole": _Stage(("seed", "camera", "pinhole", "raytrace", "sensor"), (), ("camera.main_lens.fnumber",)),
     "calibrate": _Stage(("camera",), ("pinhole",), ("camera.main_lens.fnumber",)),
     "register": _Stage(("camera",), ("simulate", "calibrate")),
     "refocus": _Stage(("camera", "refocus", "grid"), ("register",)),
