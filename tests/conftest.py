@@ -1,5 +1,9 @@
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from lfstudy.optics import PlenopticCamera
@@ -15,3 +19,21 @@ def table41_camera() -> PlenopticCamera:
 def table43_camera() -> PlenopticCamera:
     """The KAI-16000 camera of Table 4.3."""
     return PlenopticCamera(4872, 3248, 0.0074, 0.125, 0.5, 50.0, -1.0)
+
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "tests" / "data" / "tiny.yaml"
+
+
+@pytest.fixture(scope="session")
+def tiny_study(tmp_path_factory) -> Path:
+    """Working directory of the tiny study (tests/data/tiny.yaml) run locally by Snakemake on 2 cores,
+    once per session: the workflow tests use it, and the SLURM test compares its cluster run with it.
+
+    Tests that change it must leave it complete (rerun what they delete).
+    """
+    work = tmp_path_factory.mktemp("study")
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work)]
+    r = subprocess.run([*cmd, "--configfile", str(TINY), "--cores", "2"], capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
+    return work

@@ -50,11 +50,9 @@ def _planned_jobs(workdir: Path, config: Path = TINY) -> dict[str, int]:
 
 
 @pytest.fixture(scope="module")
-def study_dir(tmp_path_factory) -> Path:
-    work = tmp_path_factory.mktemp("study")
-    r = _snakemake(work)
-    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
-    return work
+def study_dir(tiny_study) -> Path:
+    """The session's local run of the tiny study (conftest; the SLURM test compares with it too)."""
+    return tiny_study
 
 
 def test_study_runs_end_to_end(study_dir):
