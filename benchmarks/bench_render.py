@@ -1,0 +1,273 @@
+"""Exact rendering against the Monte-Carlo tracer on the Table 4.3 camera (issue 16; a script, not a test).
+
+    python benchmarks/bench_render.py [--particles 300] [--crop W H] [--rays 1e3 1e4 1e5 1e6]
+        [--ppp 0.01] [--mc-fraction 0.1] [--threads 1] [--skip-agreement] [--skip-speed]
+        [--thesis [--thesis-crop W H] [--thesis-seeds S ...]]
+
+(a) Agreement. A few hundred particles of intensity 1 (the thesis' 7 mm deep volume) on
+    the Table 4.3 camera (``--crop W H``: a central W x H pixel region with its own field of
+    view, said in the output). For N rays per particle, the relative L2 difference
+    ||MC_N - exact|| / ||exact|| of one Monte-Carlo image against the exact one (with the
+    Monte-Carlo's integer ray counts, ``match_ray_counts``), beside the noise a Monte-Carlo
+    image has at that N: every pixel is a sum of binomial ray counts, so
+    E||MC_N - E_N||^2 = sum over pixels and particles of n_p q (1 - q) <= sum(E_N), and the
+    expected relative L2 is sqrt(sum E_N) / ||E_N|| (the (1 - q) factor, q the share of one
+    particle's rays in one pixel, is < 1 % here and left out). The fitted slope of
+    log(rel. L2) on log(N) should be -0.5.
+(b) Speed and memory. ``render_exact`` and the 25,000-ray ``render`` at ``--ppp`` (0.01:
+    158,000 particles) on the full 4872 x 3248 sensor, each in its own child process (wall
+    time of the render call, peak RSS of the process, and the RSS of a child that only
+    imports and compiles, for the baseline). The Monte-Carlo is timed on ``--mc-fraction``
+    of the particles (a random subset) and scaled linearly; the output says so, and times the
+    exact render of that same subset too. Peak memory is each child's VmHWM (since its exec).
+
+(c) With ``--thesis``: the thesis' uniform-x case (``config/thesis.yaml``, 0.001 ppp, threshold
+    reconstruction; ``--thesis-crop`` for a smaller sensor) through every stage for each seed, with
+    ``exact`` + shot noise (25,000 photons per particle, the default sensor) and with the 25,000-ray
+    Monte-Carlo (no sensor noise): mean and std of the measured displacement in voxels over the
+    valid vectors, and their spread over the seeds.
+
+JIT compile time is excluded (both kernels are warmed up on a tiny case first).
+Targets (issue 16): exact >= 20x faster than the 25,000-ray tracer, <= 1.5 GB peak.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import multiprocessing as mp
+import os
+import resource
+import time
+
+import numpy as np
+
+WIDTH, HEIGHT = 4872, 3248  # Table 4.3: KAI-16000, 7.4 um pixels; lenslets 125 um, fl 500 um; fm 50 mm, M -1
+
+
+def _camera(width: int, height: int):
+    from lfstudy.optics import PlenopticCamera
+
+    return PlenopticCamera(width, height, 0.0074, 0.125, 0.5, 50.0, -1.0)
+
+
+def _warm(threads: int) -> None:
+    import numba
+
+    from lfstudy.simulate import exact as ex
+    from lfstudy.simulate import raytrace as rt
+    from lfstudy.simulate.particles import seed_particles
+
+    numba.set_num_threads(threads)
+    cam = _camera(64, 48)
+    field = seed_particles(cam, count=8, z_span=4.0, seed=0)
+    ex.render_exact(cam, field, 100)
+    rt.render(cam, field, 100, 0)
+
+
+# ------------------------------------------------------------------ (a) agreement
+def agreement(args: argparse.Namespace) -> None:
+    from lfstudy.simulate import exact as ex
+    from lfstudy.simulate import raytrace as rt
+    from lfstudy.simulate.particles import seed_particles
+
+    width, height = args.crop if args.crop else (WIDTH, HEIGHT)
+    cam = _camera(width, height)
+    where = "full sensor" if not args.crop else f"central crop {width} x {height} px of the 4872 x 3248 sensor"
+    field = seed_particles(cam, count=args.particles, z_span=7.0, intensity=(1.0, 1.0), seed=16)
+    print(f"(a) agreement: {args.particles} particles (intensity 1, z span 7 mm), Table 4.3 optics, {where}")
+    print(f"    threads {args.threads}; one Monte-Carlo image per N (seed 1)")
+    head = f"{'N rays':>9} {'rel L2 MC-exact':>16} {'expected MC noise':>18} {'ratio':>6} {'MC s':>7} {'exact s':>8}"
+    print("    " + head)
+    ns, rel = [], []
+    for n in args.rays:
+        n = int(n)
+        t0 = time.perf_counter()
+        exact = ex.render_exact(cam, field, n, match_ray_counts=True).values
+        te = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        mc = rt.render(cam, field, n, 1).values
+        tm = time.perf_counter() - t0
+        r = float(np.linalg.norm(mc - exact) / np.linalg.norm(exact))
+        expected = float(math.sqrt(exact.sum()) / np.linalg.norm(exact))
+        ns.append(n)
+        rel.append(r)
+        print(f"    {n:>9.0e} {r:>16.4e} {expected:>18.4e} {r / expected:>6.3f} {tm:>7.1f} {te:>8.2f}")
+        del mc, exact
+    if len(ns) >= 2:
+        slope = float(np.polyfit(np.log(ns), np.log(rel), 1)[0])
+        print(f"    fitted slope of log(rel L2) on log(N): {slope:.3f} (1/sqrt(N): -0.5)")
+
+
+# ------------------------------------------------------------------ (b) speed
+def _child(kind: str, ppp: float, fraction: float, threads: int, rays: int, q: mp.Queue) -> None:
+    """One render in a fresh process: (seconds, particles rendered, peak RSS GB)."""
+    from lfstudy.simulate import exact as ex
+    from lfstudy.simulate import raytrace as rt
+    from lfstudy.simulate.particles import seed_particles
+
+    _warm(threads)
+    cam = _camera(WIDTH, HEIGHT)
+    field = seed_particles(cam, ppp=ppp, z_span=7.0, intensity=(1.0, 1.0), seed=2011)
+    if fraction < 1.0:
+        rng = np.random.default_rng(5)
+        keep = np.sort(rng.choice(field.sizes["particle"], round(fraction * field.sizes["particle"]), replace=False))
+        field = field.isel(particle=keep)
+    t0 = time.perf_counter()
+    if kind == "exact":
+        img = ex.render_exact(cam, field, rays)
+    elif kind == "montecarlo":
+        img = rt.render(cam, field, rays, 1)
+    else:  # baseline: imports, compiled kernels and the particle field only
+        img = None
+    dt = time.perf_counter() - t0
+    del img
+    q.put((dt, int(field.sizes["particle"]), _peak_rss_gb()))
+
+
+def _peak_rss_gb() -> float:
+    """This process' peak resident memory since exec (VmHWM; ru_maxrss would carry the parent's peak
+    over fork + exec)."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024**2
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # pragma: no cover - not Linux
+
+
+def _in_child(*a) -> tuple[float, int, float]:
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=_child, args=(*a, q))
+    p.start()
+    out = q.get()
+    p.join()
+    return out
+
+
+def speed(args: argparse.Namespace) -> None:
+    print(
+        f"(b) speed: Table 4.3 camera, full 4872 x 3248 sensor, {args.ppp} ppp, {args.speed_rays} rays/particle, "
+        f"threads {args.threads}"
+    )
+    _, _, mb = _in_child("baseline", args.ppp, 1.0, args.threads, args.speed_rays)
+    te, ne, me = _in_child("exact", args.ppp, 1.0, args.threads, args.speed_rays)
+    tm, nm, mm = _in_child("montecarlo", args.ppp, args.mc_fraction, args.threads, args.speed_rays)
+    ts, _, _ = _in_child("exact", args.ppp, args.mc_fraction, args.threads, args.speed_rays)
+    scale = ne / nm
+    note = "" if nm == ne else f" (timed on {nm} of the {ne} particles, a random subset, scaled x{scale:.2f})"
+    print(f"    particles: {ne}; baseline process (imports, compiled kernels, particles): {mb:.2f} GB peak RSS")
+    print(f"    exact:       {te:8.1f} s, peak RSS {me:.2f} GB")
+    print(f"    Monte-Carlo: {tm * scale:8.1f} s{note}, peak RSS {mm:.2f} GB")
+    print(f"    exact is {tm * scale / te:.1f}x faster than the {args.speed_rays}-ray Monte-Carlo (target >= 20x)")
+    print(f"    on the Monte-Carlo's own subset: exact {ts:.1f} s vs Monte-Carlo {tm:.1f} s: {tm / ts:.1f}x")
+
+
+# ------------------------------------------------------------------ (c) thesis uniform x
+def _thesis_case(raw: dict, seed: int, method: str, out) -> dict[str, float]:
+    """One thesis uniform-x case through every stage (the Snakemake rules' functions, in process)."""
+    import copy
+
+    from lfstudy import io, workflow
+    from lfstudy.config import stage_config, sweep_of, validate_config
+
+    cfg = copy.deepcopy(raw)
+    cfg["seed"] = seed
+    cfg["raytrace"]["method"] = method
+    cfg.setdefault("sensor", {})["shot_noise"] = method == "exact"  # the Monte-Carlo image has its ray noise
+    cfg = validate_config(cfg)
+    case = sweep_of(cfg).cases()[0]
+    sc = {st: stage_config(cfg, case, st) for st in ("particles", "displace", "simulate", "pinhole", "calibrate")}
+    sc.update({st: stage_config(cfg, case, st) for st in ("register", "refocus", "reconstruct", "piv", "errors")})
+    d = out / f"{method}-{seed}"
+    d.mkdir(parents=True)
+    t0 = time.perf_counter()
+    workflow.run_particles(sc["particles"], d / "pa.zarr")
+    workflow.run_displace(sc["displace"], d / "pa.zarr", d / "pb.zarr")
+    for f in "ab":
+        workflow.run_simulate(sc["simulate"], f, d / f"p{f}.zarr", d / f"raw_{f}.zarr", d / f"raw_{f}.tif")
+    t_sim = time.perf_counter() - t0
+    workflow.run_pinhole(sc["pinhole"], d / "pinhole.zarr", d / "pinhole.tif")
+    workflow.run_calibrate(sc["calibrate"], d / "pinhole.zarr", d / "centers.zarr")
+    for f in "ab":
+        workflow.run_register(sc["register"], d / f"raw_{f}.zarr", d / "centers.zarr", d / f"lf_{f}.zarr")
+        workflow.run_refocus(sc["refocus"], d / f"lf_{f}.zarr", d / f"stack_{f}.zarr")
+        workflow.run_reconstruct(
+            sc["reconstruct"], d / f"stack_{f}.zarr", d / f"lf_{f}.zarr", d / "centers.zarr", d / f"vol_{f}.zarr"
+        )
+    workflow.run_piv(sc["piv"], d / "vol_a.zarr", d / "vol_b.zarr", d / "piv.zarr")
+    piv = io.open_zarr(d / "piv.zarr").load()
+    ok = piv["valid"].values
+    res = {"valid": float(ok.mean()), "sim_s": t_sim, "total_s": time.perf_counter() - t0}
+    for comp, ax in (("u", "x"), ("v", "y"), ("w", "z")):
+        vals = piv[comp].values[ok]
+        res[f"{ax}_mean"], res[f"{ax}_std"] = float(np.mean(vals)), float(np.std(vals))
+    return res
+
+
+def thesis(args: argparse.Namespace) -> None:
+    import tempfile
+    from pathlib import Path
+
+    from lfstudy.config import read_yaml
+
+    raw = read_yaml(Path(__file__).resolve().parents[1] / "config" / "thesis.yaml")
+    w, h = args.thesis_crop
+    raw["camera"]["sensor"].update(n_pixels_x=w, n_pixels_y=h)
+    raw["sweep"] = {"ppp": [0.001], "flow": ["uniform_x"]}
+    where = "full sensor" if (w, h) == (WIDTH, HEIGHT) else f"a {w} x {h} px sensor (central crop of Table 4.3)"
+    print(
+        f"(c) thesis uniform x (sec. 7.1: 0.5625 mm = 4.5 voxels, 0.001 ppp, threshold), {where}, threads "
+        f"{args.threads}; exact + shot noise at 25,000 photons/particle vs Monte-Carlo 25,000 rays (no sensor noise)"
+    )
+    head = f"{'method':<11} {'seed':>5} {'x mean':>8} {'x std':>7} {'y std':>7} {'z std':>7} {'valid':>6} {'sim s':>6}"
+    print("    " + head)
+    with tempfile.TemporaryDirectory(prefix="bench-render-") as tmp:
+        for method in ("exact", "montecarlo"):
+            rows = []
+            for seed in args.thesis_seeds:
+                r = _thesis_case(raw, seed, method, Path(tmp))
+                rows.append(r)
+                print(
+                    f"    {method:<11} {seed:>5} {r['x_mean']:>8.3f} {r['x_std']:>7.3f} {r['y_std']:>7.3f} "
+                    f"{r['z_std']:>7.3f} {r['valid']:>6.1%} {r['sim_s']:>6.1f}"
+                )
+            xm = np.array([r["x_mean"] for r in rows])
+            xs = np.array([r["x_std"] for r in rows])
+            print(
+                f"    {method:<11} {'all':>5} {xm.mean():>8.3f} {xs.mean():>7.3f}   (run-to-run spread of the x mean "
+                f"{xm.std(ddof=1) if xm.size > 1 else float('nan'):.3f}, of the x std "
+                f"{xs.std(ddof=1) if xs.size > 1 else float('nan'):.3f})"
+            )
+    print("    thesis: x mean 4.45 (object-frame sign), sigma 0.07 voxels; displacements in voxels")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--particles", type=int, default=300)
+    ap.add_argument("--crop", type=int, nargs=2, metavar=("W", "H"), default=None)
+    ap.add_argument("--rays", type=float, nargs="+", default=[1e3, 1e4, 1e5, 1e6])
+    ap.add_argument("--ppp", type=float, default=0.01)
+    ap.add_argument("--speed-rays", type=int, default=25_000)
+    ap.add_argument("--mc-fraction", type=float, default=0.1)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--skip-agreement", action="store_true")
+    ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument("--thesis", action="store_true", help="run (c), the thesis uniform-x comparison")
+    ap.add_argument("--thesis-crop", type=int, nargs=2, metavar=("W", "H"), default=[WIDTH, HEIGHT])
+    ap.add_argument("--thesis-seeds", type=int, nargs="+", default=[2011, 2012])
+    args = ap.parse_args()
+    os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
+    if not args.skip_agreement:
+        _warm(args.threads)
+        agreement(args)
+    if not args.skip_speed:
+        speed(args)
+    if args.thesis:
+        thesis(args)
+    else:
+        print("(c) thesis uniform-x displacement statistics, exact + shot noise vs Monte-Carlo: not run (--thesis)")
+
+
+if __name__ == "__main__":
+    main()
