@@ -697,7 +697,7 @@ def _num_int(ax, sc, k, a, b):  # pragma: no cover - jitted
     return acc
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _num_step(ax, sc, k, a, b):  # pragma: no cover - jitted
     """∫_a^b m(x)·b_k(x) dx over a short step (between consecutive arc nodes): 4-point Gauss–Legendre."""
     h = 0.5 * (b - a)
@@ -709,7 +709,7 @@ def _num_step(ax, sc, k, a, b):  # pragma: no cover - jitted
     return acc * h
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _u_partial(ax, sc, lamlo, full, k, v, zone):  # pragma: no cover - jitted
     """U_k(v) = ∫_{−∞}^{v} m·b_k for a cell k whose blurred support contains v."""
     pp = sc[_S_PP]
@@ -906,7 +906,7 @@ def _nodes_vec(
                     direct[j, k] += g * wk[0, k - k0]
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _v_at(ax, sc, lamv, fullv, j, v, zone):  # pragma: no cover - jitted
     """V_j(v) = ∫_{−∞}^{v} m·b_j for any cell j (0 wholly above v, full wholly below)."""
     ksl = sc[_S_KSL]
@@ -1010,7 +1010,7 @@ def _flush(
     ncnt[bt] = 0
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _arc(
     ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, pcs, ia, brk, wk, nodv, ncnt, vb, cnt
 ):  # pragma: no cover
