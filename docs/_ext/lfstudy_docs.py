@@ -137,7 +137,7 @@ DESCRIPTIONS: dict[str, str] = {
     "particles.y_span": "y extent of the particle box [mm]; null = the field of view",
     "particles.z_span": "depth extent of the particle box, centred on the focal plane [mm] (thesis: 0–7)",
     "particles.intensity": "bounds [imin, imax] of each particle's uniform random intensity coefficient",
-    "raytrace": "the Monte-Carlo ray tracer of the raw images (sec. 4.1–4.3, App. A)",
+    "raytrace": "raw-image rendering: the exact expected image (default) or Monte-Carlo rays (sec. 4.1–4.3)",
     "raytrace.rays_per_particle": "rays traced per particle from the on-axis focal point; others get "
     "more or fewer by the solid angle of the aperture (eq. 4.14)",
     "raytrace.diffraction": "blur rays by the diffraction spots at the lenslet and sensor planes (sec. 4.2.3)",
