@@ -37,3 +37,20 @@ def tiny_study(tmp_path_factory) -> Path:
     r = subprocess.run([*cmd, "--configfile", str(TINY), "--cores", "2"], capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
     return work
+
+
+@pytest.fixture
+def cli_error(capsys):
+    """Run the CLI expecting a refusal: exit 2, one 'lfstudy <command>: error: ' line on stderr,
+    no traceback. Returns that line."""
+    from lfstudy.cli import main
+
+    def run(*argv: str) -> str:
+        assert main(list(argv)) == 2
+        err = capsys.readouterr().err
+        lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+        assert len(lines) == 1, err
+        assert "Traceback" not in err and lines[0].startswith(f"lfstudy {argv[0]}: error: "), err
+        return lines[0]
+
+    return run

@@ -13,7 +13,6 @@ import pytest
 import yaml
 
 from lfstudy import io
-from lfstudy.cli import main
 from lfstudy.config import ConfigError, load_config, validate_config
 from lfstudy.lightfield import find_lenslet_centers, register, synthetic_pinhole
 from lfstudy.optics import PlenopticCamera
@@ -29,16 +28,6 @@ camera:
   main_lens: {focal_length: 50.0}
   magnification: -1.0
 """
-
-
-def _cli(capsys, *argv: str) -> str:
-    """Run the CLI: it must exit 2 with one 'error:' line on stderr and no traceback."""
-    assert main(list(argv)) == 2
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1, err
-    assert "Traceback" not in err and lines[0].startswith(f"lfstudy {argv[0]}: error: "), err
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -79,10 +68,9 @@ def files(tmp_path_factory):
         ("zero.tif", r"all zero: nothing was recorded"),
     ],
 )
-def test_bad_raw_images(files, capsys, tmp_path, raw, match):
+def test_bad_raw_images(files, cli_error, tmp_path, raw, match):
     out = tmp_path / "out"
-    line = _cli(
-        capsys,
+    line = cli_error(
         "render",
         str(files / raw),
         "--centers",
@@ -100,13 +88,12 @@ def test_bad_raw_images(files, capsys, tmp_path, raw, match):
         register(io.read_image(files / raw), cen, CAM)
 
 
-def test_bad_calibration_images(files, capsys, tmp_path):
-    line = _cli(capsys, "calibrate", str(files / "truncated.tif"), "--out", str(tmp_path / "c.zarr"))
+def test_bad_calibration_images(files, cli_error, tmp_path):
+    line = cli_error("calibrate", str(files / "truncated.tif"), "--out", str(tmp_path / "c.zarr"))
     assert "truncated.tif" in line and "TIFF" in line
-    line = _cli(capsys, "calibrate", str(files / "zero.tif"), "--out", str(tmp_path / "c.zarr"))
+    line = cli_error("calibrate", str(files / "zero.tif"), "--out", str(tmp_path / "c.zarr"))
     assert "blank" in line
-    line = _cli(
-        capsys,
+    line = cli_error(
         "calibrate",
         str(files / "wide.tif"),
         "--config",
@@ -118,11 +105,10 @@ def test_bad_calibration_images(files, capsys, tmp_path):
     assert not (tmp_path / "c.zarr").exists()
 
 
-def test_frames_of_different_shapes_and_windows_too_large(files, capsys, tmp_path):
-    line = _cli(capsys, "piv", str(files / "vol_a.tif"), str(files / "vol_b.tif"), "--out", str(tmp_path / "p.zarr"))
+def test_frames_of_different_shapes_and_windows_too_large(files, cli_error, tmp_path):
+    line = cli_error("piv", str(files / "vol_a.tif"), str(files / "vol_b.tif"), "--out", str(tmp_path / "p.zarr"))
     assert "same shape" in line and "(16, 24, 24)" in line and "(16, 24, 20)" in line
-    line = _cli(
-        capsys,
+    line = cli_error(
         "piv",
         str(files / "vol_a.tif"),
         str(files / "vol_c.tif"),
@@ -166,12 +152,12 @@ def test_frames_of_different_shapes_and_windows_too_large(files, capsys, tmp_pat
         ),
     ],
 )
-def test_bad_configs(tmp_path, capsys, edit, match):
+def test_bad_configs(tmp_path, cli_error, edit, match):
     raw = yaml.safe_load(CFG_TEXT)
     edit(raw)
     path = tmp_path / "c.yaml"
     path.write_text(yaml.safe_dump(raw))
-    line = _cli(capsys, "cases", str(path))
+    line = cli_error("cases", str(path))
     assert re.search(match, line), line
     with pytest.raises(ConfigError, match=match):
         validate_config(raw)
@@ -184,18 +170,18 @@ def test_zero_or_negative_rays_in_the_api():
             render(CAM, field, n, 1)
 
 
-def test_store_deleted_or_damaged_between_stages(files, capsys, tmp_path):
+def test_store_deleted_or_damaged_between_stages(files, cli_error, tmp_path):
     cen = tmp_path / "cen.zarr"
     shutil.copytree(files / "cen.zarr", cen)
     raw = str(files / "raw.tif")
     args = ["render", raw, "--centers", str(cen), "--config", str(files / "c.yaml"), "--out", str(tmp_path / "o")]
     (cen / "zarr.json").write_text("{ not json")  # damaged
-    line = _cli(capsys, *args)
+    line = cli_error(*args)
     assert "cen.zarr" in line and "cannot be read" in line and "delete it and run again" in line
     with pytest.raises(ValueError, match=r"cen\.zarr.*cannot be read"):
         io.open_zarr(cen)
     shutil.rmtree(cen)  # deleted
-    line = _cli(capsys, *args)
+    line = cli_error(*args)
     assert "cen.zarr" in line and "does not exist" in line
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
     # a workflow stage reading it fails with exit 1, the message in its log, and writes nothing

@@ -29,16 +29,6 @@ DT = 0.002  # s between frames
 FULL_12 = 4095
 
 
-def _cli(capsys, *argv: str) -> str:
-    """Run the CLI: it must exit 2 with one 'error:' line on stderr and no traceback."""
-    assert main(list(argv)) == 2
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1, err
-    assert "Traceback" not in err and lines[0].startswith(f"lfstudy {argv[0]}: error: "), err
-    return lines[0]
-
-
 def _tags(full: int) -> list[tuple]:
     return [(281, "H", 1, full, True)]  # MaxSampleValue: a 12-bit camera's full scale in a 16-bit file
 
@@ -206,36 +196,36 @@ def _no_output(out: Path) -> None:
     assert not out.exists() and not list(out.parent.glob(f".{out.name}.tmp-*"))
 
 
-def test_frames_of_different_size(recording, capsys, tmp_path):
+def test_frames_of_different_size(recording, cli_error, tmp_path):
     d = recording["dir"]
     img = tifffile.imread(d / "frame_2.tif")
     tifffile.imwrite(d / "narrow.tif", img[:, :380], extratags=_tags(FULL_12))
     cfg = _config(recording, "bad_size", {"frames": {"series": ["frame_1.tif", "narrow.tif"]}})
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "recording.frames: frames differ in size" in line and "380 x 384 px" in line, line
     _no_output(tmp_path / "o")
 
 
-def test_frames_of_different_bit_depth(recording, capsys, tmp_path):
+def test_frames_of_different_bit_depth(recording, cli_error, tmp_path):
     cfg = _config(recording, "bad_depth", {"frames": {"pairs": [["frame_1.tif", "frame_2.tif"], "series16.tif"]}})
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "recording.frames.pairs[1]: 3 frames" in line, line  # a three-page stack is no pair
     cfg = _config(recording, "bad_depth2", {"dark": "dark16.tif", "frames": {"series": "frame_*.tif"}})
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "recording.dark: frames differ in bit depth" in line and "12-bit (uint16)" in line, line
     assert "16-bit (uint16)" in line
     rec16 = {"dark": "dark16.tif", "frames": {"series": "series16.tif"}}
-    line = _cli(capsys, "process", str(_config(recording, "bad_depth4", rec16)), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(_config(recording, "bad_depth4", rec16)), "--out", str(tmp_path / "o"))
     assert "recording.calibration.image: 'pinhole.tif' is 12-bit (uint16) but the frames and dark" in line, line
     d = recording["dir"]
     tifffile.imwrite(d / "depth16.tif", tifffile.imread(d / "frame_2.tif") * 16)
     cfg = _config(recording, "bad_depth3", {"frames": {"series": ["frame_1.tif", "depth16.tif"]}})
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "recording.frames: frames differ in bit depth" in line, line
     _no_output(tmp_path / "o")
 
 
-def test_calibration_image_without_a_lattice(recording, capsys, tmp_path):
+def test_calibration_image_without_a_lattice(recording, cli_error, tmp_path):
     d = recording["dir"]
     noise = np.random.default_rng(0).poisson(100.0, (384, 384)).astype(np.uint16)
     tifffile.imwrite(d / "noise.tif", noise)
@@ -243,29 +233,29 @@ def test_calibration_image_without_a_lattice(recording, capsys, tmp_path):
     text = yaml.safe_load(cfg.read_text())
     text["recording"]["calibration"]["image"] = "noise.tif"
     cfg.write_text(yaml.safe_dump(text))
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "recording.calibration.image 'noise.tif' (pinhole): no lenslet grid detected" in line, line
     _no_output(tmp_path / "o")
 
 
-def test_sensor_size_not_the_cameras(recording, capsys, tmp_path):
+def test_sensor_size_not_the_cameras(recording, cli_error, tmp_path):
     cam = yaml.safe_load(yaml.safe_dump(recording["base"]["camera"]))
     cam["sensor"]["n_pixels_x"] = 400
     cfg = _config(recording, "bad_sensor", {"frames": {"series": "frame_*.tif"}}, camera=cam)
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "384 x 384 px (cols x rows) but camera.sensor is 400 x 384 px" in line, line
     _no_output(tmp_path / "o")
 
 
-def test_bad_recording_config(recording, capsys, tmp_path):
+def test_bad_recording_config(recording, cli_error, tmp_path):
     cfg = _config(recording, "bad_cfg", {"frames": {"series": "frame_*.tif"}}, piv={"window": [2, 16, 16]})
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "config key 'piv.window.0' = 2: allowed range is [4, inf)" in line, line
     cfg = _config(recording, "bad_cfg2", {"frames": {}})
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "give exactly one of 'pairs'" in line, line
     cfg = _config(recording, "bad_cfg3", {"frames": {"series": "missing_*.tif"}})
-    line = _cli(capsys, "process", str(cfg), "--out", str(tmp_path / "o"))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
     assert "no file matches" in line and "missing_*.tif" in line, line
     _no_output(tmp_path / "o")
 
