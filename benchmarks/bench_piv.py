@@ -3,9 +3,12 @@
 1. ``compare``: one correlation pass over the same windows of the same volume
    pair against OpenPIV's ``openpiv.pyprocess3D.extended_search_area_piv3D``
    (optional: ``pip install 'lfstudy[bench]'``), like for like: same window
-   grid, same FFT size (both zero-padded to twice the window, then both
-   unpadded, printed separately), same float32 data, one thread each
-   (numba one thread, scipy.fft one worker). Windows/s, seconds, ratio.
+   grid, both zero-padded (a linear correlation; OpenPIV pads to twice the
+   window, lfstudy to the shortest length that gives the same correlation over
+   the lags it searches, ~3/2 of the window), then both unpadded (printed
+   separately), same float32 data, one thread each (numba one thread,
+   scipy.fft one worker), the two sides' repeats interleaved. Windows/s,
+   seconds, ratio.
 2. ``full``: a 32 x 193 x 289 voxel pair (the thesis' focal-stack size) with a
    known uniform shift, 3 grid levels, in both modes: seconds, peak memory, error.
 3. ``peak``: peak-locking index of a sub-voxel shift sweep per mode.
@@ -26,6 +29,7 @@ import tracemalloc
 import numpy as np
 
 from lfstudy.piv import peak_locking_index, widim
+from lfstudy.piv.engine import _padded_shape
 from lfstudy.piv.synthetic import particle_pair
 
 SHAPE = (32, 193, 289)
@@ -88,16 +92,20 @@ COMPARE_CASES = (((8, 32, 32), (4, 16, 16)), ((16, 32, 32), (8, 16, 16)))
 REPEATS = 3  # best of: the machine is shared, the minimum is the least disturbed run
 
 
-def _best_of(fn, repeats: int) -> tuple[float, float, object]:
-    """Smallest wall and CPU seconds of ``repeats`` calls of ``fn`` and its last result."""
-    wall = cpu = float("inf")
-    out = None
+def _best_of(fns, repeats: int) -> list[tuple[float, float, object]]:
+    """Smallest wall and CPU seconds of ``repeats`` calls of each of ``fns`` and its last result.
+
+    The calls alternate (f1, f2, f1, f2, ...) so that a spell of load from elsewhere on
+    the shared machine falls on both sides alike rather than on one side's runs.
+    """
+    wall, cpu, out = [float("inf")] * len(fns), [float("inf")] * len(fns), [None] * len(fns)
     for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = fn()
-        wall = min(wall, time.perf_counter() - t0)
-        cpu = min(cpu, time.process_time() - c0)
-    return wall, cpu, out
+        for k, fn in enumerate(fns):
+            t0, c0 = time.perf_counter(), time.process_time()
+            out[k] = fn()
+            wall[k] = min(wall[k], time.perf_counter() - t0)
+            cpu[k] = min(cpu[k], time.process_time() - c0)
+    return list(zip(wall, cpu, out))
 
 
 def _openpiv_pass(a, b, window, spacing, nfft):
@@ -123,10 +131,12 @@ def bench_compare(a, b, repeats: int = REPEATS) -> None:
     """lfstudy vs OpenPIV: one correlation pass over the same windows, one thread each.
 
     Both sides get the same float32 volumes, the same window grid (both centre it
-    the same way), the same FFT size (2 x window when padded, the window itself
-    when not) and the three-point Gaussian peak fit; scipy.fft runs with one worker
-    in both and numba with one thread. lfstudy's pass also does what OpenPIV's
-    does not: normalisation to a correlation coefficient and the median test.
+    the same way), the same kind of correlation (linear when padded: OpenPIV pads to
+    2 x window, lfstudy to ~3/2 x window, the shortest FFT length that equals the 2 x
+    padded correlation over the lags it searches, |lag| <= window // 2 - 1; circular
+    over the window itself when not) and the three-point Gaussian peak fit; scipy.fft
+    runs with one worker in both and numba with one thread. lfstudy's pass also does
+    what OpenPIV's does not: normalisation to a correlation coefficient and the median test.
     """
     try:
         import openpiv
@@ -146,28 +156,31 @@ def bench_compare(a, b, repeats: int = REPEATS) -> None:
     for window, spacing in COMPARE_CASES:
         for padded in (True, False):
             nfft = tuple(2 * x for x in window) if padded else window
-            ours_wall, ours_cpu, ds = _best_of(
-                lambda padded=padded, window=window, spacing=spacing: widim(
-                    a32,
-                    b32,
-                    window=window,
-                    spacing=spacing,
-                    mode="offset",
-                    max_passes=1,
-                    subpixel="gauss3",
-                    zero_pad=padded,
-                    workers=1,
-                ),
-                repeats,
-            )
-            op_wall, op_cpu, op = _best_of(
-                lambda nfft=nfft, window=window, spacing=spacing: _openpiv_pass(a32, b32, window, spacing, nfft),
+            ours_fft = _padded_shape(window, 1) if padded else window  # subpixel gauss3: one neighbour
+            (ours_wall, ours_cpu, ds), (op_wall, op_cpu, op) = _best_of(
+                [
+                    lambda padded=padded, window=window, spacing=spacing: widim(
+                        a32,
+                        b32,
+                        window=window,
+                        spacing=spacing,
+                        mode="offset",
+                        max_passes=1,
+                        subpixel="gauss3",
+                        zero_pad=padded,
+                        workers=1,
+                    ),
+                    lambda nfft=nfft, window=window, spacing=spacing: _openpiv_pass(a32, b32, window, spacing, nfft),
+                ],
                 repeats,
             )
             n, m = ds.u.size, op[0].size
             tag = f"[compare {'padded' if padded else 'unpadded'} {'x'.join(map(str, window))}]"
-            fft = "x".join(map(str, nfft))
-            print(f"{tag} FFT {fft}, spacing {spacing}: lfstudy {n} windows, OpenPIV {m} windows")
+            fft, ours_fft = "x".join(map(str, nfft)), "x".join(map(str, ours_fft))
+            print(
+                f"{tag} FFT lfstudy {ours_fft}, OpenPIV {fft}, spacing {spacing}: "
+                f"lfstudy {n} windows, OpenPIV {m} windows"
+            )
             print(
                 f"{tag}   lfstudy {ours_wall:.3f} s wall ({n / ours_wall:.0f} windows/s), {ours_cpu:.3f} s CPU; "
                 f"OpenPIV {op_wall:.3f} s wall ({m / op_wall:.0f} windows/s), {op_cpu:.3f} s CPU"
@@ -179,8 +192,8 @@ def bench_compare(a, b, repeats: int = REPEATS) -> None:
             if padded:
                 # OpenPIV's arithmetic follows its input: on float64 images (what particle_pair
                 # returns) its FFTs run in float64; shown for reference, not like for like
-                op64_wall, op64_cpu, _ = _best_of(
-                    lambda nfft=nfft, window=window, spacing=spacing: _openpiv_pass(a, b, window, spacing, nfft),
+                ((op64_wall, op64_cpu, _),) = _best_of(
+                    [lambda nfft=nfft, window=window, spacing=spacing: _openpiv_pass(a, b, window, spacing, nfft)],
                     repeats,
                 )
                 r64, r64_cpu = (n / ours_wall) / (m / op64_wall), (n / ours_cpu) / (m / op64_cpu)
