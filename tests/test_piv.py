@@ -405,6 +405,31 @@ def test_five_point_estimator_keeps_elongated_particles_unbiased():
     assert bias["gauss3"] > 1.5 * bias["auto"], bias
 
 
+def test_predictor_filter_stops_the_passes_amplifying_noise():
+    """Schrijer & Scarano's predictor filter: on noisy volumes of depth-elongated particles the
+    unfiltered passes (the thesis' WIDIM) leave 0.08-0.10 vox RMS in w; the filtered ones converge
+    to a quarter of that, unbiased. The field returned is predictor + corrector, not filtered."""
+    shift = (0.6, 0.3, -0.2)
+    a, b = particle_pair((48, 64, 64), shift, density=0.003, diameter=(8.0, 2.8, 2.8), seed=21)
+    rng = np.random.default_rng(21)
+    a = a + 0.1 * a.max() * rng.random(a.shape)
+    b = b + 0.1 * b.max() * rng.random(b.shape)
+    rms = {}
+    for sigma in (0.0, 1.0):
+        ds = widim(a, b, window=(16, 16, 16), spacing=(8, 8, 8), levels=1, predictor_filter=sigma)
+        assert ds.attrs["predictor_filter"] == sigma
+        err = _errors(ds, dict(zip(COMP3, shift)))
+        rms[sigma] = {c: float(np.sqrt(np.mean(e**2))) for c, e in err.items()}
+        if sigma:
+            for c, e in err.items():
+                assert abs(e.mean()) <= 0.02, (c, e.mean())
+                assert rms[sigma][c] <= 0.05, (c, rms[sigma][c])
+    for c in COMP3:
+        assert rms[1.0][c] < 0.5 * rms[0.0][c], rms
+    with pytest.raises(ValueError, match="predictor_filter"):
+        widim(a, b, window=16, predictor_filter=-1.0)
+
+
 def test_normalised_median_test_flags_and_replaces_an_injected_outlier():
     """Sec. 6.1.3: a vector that disagrees with its neighbours is flagged and replaced by their mean."""
     from lfstudy.piv.engine import _validate

@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
         levels=p["levels"],
         mode=p["mode"],
         subpixel=p["subpixel"],
+        predictor_filter=p["predictor_filter"],
         progress=True,
     )
     res.attrs.update(io.provenance({"piv": p}), source_a=str(args.a), source_b=str(args.b))

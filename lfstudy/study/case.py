@@ -296,6 +296,7 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
         levels=p["levels"],
         mode=p["mode"],
         subpixel=p["subpixel"],
+        predictor_filter=p["predictor_filter"],
         progress=progress,
     )
     res.attrs["piv_seconds"] = time.perf_counter() - t0
