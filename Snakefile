@@ -28,7 +28,12 @@ from lfstudy.config import stage_config, validate_config
 from lfstudy.study.sweep import STAGES, Sweep
 from lfstudy.workflow import logged
 
-configfile: "config/demo.yaml"
+# The demo config only when none is given: Snakemake merges a --configfile into the Snakefile's
+# `configfile:` key by key, so a study's config would otherwise inherit every demo setting it
+# leaves out (its sweep keys, grid, flows) and run cases nobody asked for.
+if not workflow.overwrite_configfiles:
+
+    configfile: "config/demo.yaml"
 
 # `--config process=RECORDING.yaml` names a recording for the optional `process` target (end of
 # this file); it is no study setting, so it leaves the config before the study is validated.

@@ -21,15 +21,16 @@ TINY = ROOT / "tests" / "data" / "tiny.yaml"
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
 
-def _snakemake(workdir: Path, *extra: str, timeout: float = 600, config: Path = TINY) -> subprocess.CompletedProcess:
+def _snakemake(
+    workdir: Path, *extra: str, timeout: float = 600, config: Path | None = TINY
+) -> subprocess.CompletedProcess:
     cmd = [
         *SNAKEMAKE,
         "-s",
         str(ROOT / "Snakefile"),
         "-d",
         str(workdir),
-        "--configfile",
-        str(config),
+        *(("--configfile", str(config)) if config is not None else ()),
         "--cores",
         "2",
         *extra,
@@ -230,6 +231,21 @@ def test_stage_entry_point(tmp_path):
     assert r.returncode == 1
     assert "KeyError: 'refocus'" in (tmp_path / "bad.log").read_text() and "bad.log" in r.stderr
     assert not (tmp_path / "c2.json").exists() and not (tmp_path / "p2.zarr").exists()
+
+
+def test_a_given_config_does_not_inherit_the_demo(tmp_path):
+    """Snakemake merges --configfile into the Snakefile's `configfile:` key by key: run where
+    config/demo.yaml exists (the repository root), a study would inherit the demo's sweep keys
+    (magnification, lenslet_pitch, reconstruct.method: 16 cases) and grid. The demo config is
+    read only when no config is given."""
+    work = tmp_path / "work"
+    (work / "config").mkdir(parents=True)
+    shutil.copy(ROOT / "config" / "demo.yaml", work / "config" / "demo.yaml")
+    jobs = _planned_jobs(work)
+    assert jobs["piv"] == 2 and jobs["reconstruct"] == 4, jobs  # tiny.yaml: 2 ppp x 1 flow, 2 frames
+    r = _snakemake(work, "-n", "--quiet", "rules", "--config", "name=demo_only", config=None)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "config/demo.yaml" in r.stdout + r.stderr
 
 
 def test_sweep_over_dotted_settings_shares_the_upstream_stages(tmp_path):
