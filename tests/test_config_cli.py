@@ -38,7 +38,7 @@ def test_demo_sweeps_designs_flows_and_a_dotted_setting(demo_raw):
     assert {c.params["reconstruct.method"] for c in cases} == {"threshold", "mart"}
     ids = [c.case_id for c in cases]
     assert len(set(ids)) == len(ids)
-    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.002/flow~uniform_x/reconstruct.method~threshold"
+    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.005/flow~uniform_x/reconstruct.method~threshold"
     assert sweep_of(cfg).case(ids[5]) == cases[5]
     one = case_config(cfg, ids[-1])
     assert one["camera"]["magnification"] == cases[-1].magnification
