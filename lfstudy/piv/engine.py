@@ -640,8 +640,8 @@ def _filter_predictor(field: np.ndarray, sigma: float) -> np.ndarray:
     the vector spacing pass after pass; a low-pass filter of the predictor
     (Schrijer & Scarano 2008) keeps the iteration stable, so more passes
     converge instead of drifting. ``sigma`` is in vector spacings; 0 leaves
-    the field as it is. The returned field is ``predictor + corrector`` of the
-    last pass, whose corrector is not filtered.
+    the field as it is. Only the predictor is filtered: :func:`widim` still
+    returns predictor + corrector of its last pass.
     """
     if sigma <= 0:
         return field
