@@ -25,7 +25,7 @@ import sys
 from snakemake.exceptions import WorkflowError
 
 from lfstudy.config import stage_config, validate_config
-from lfstudy.study.sweep import STAGES, Sweep
+from lfstudy.study.sweep import SHARED, STAGES, Sweep
 from lfstudy.workflow import logged
 
 # The demo config only when none is given: Snakemake merges a --configfile into the Snakefile's
@@ -76,7 +76,7 @@ STUDY_CFG = json.dumps(CFG, sort_keys=True, default=str)
 
 def _case(stage, wildcards):
     """A case whose `stage` output lives at this rule's {sid} (or {cid} for the calibration)."""
-    key = wildcards.cid if stage in ("pinhole", "calibrate") else wildcards.sid
+    key = wildcards.cid if stage in SHARED else wildcards.sid
     return IDS[stage][key]
 
 
@@ -104,7 +104,7 @@ localrules: all
 # target, and the newer file then reruns exactly what depends on it.
 def every(stage, *names):
     ids = sorted(IDS[stage])
-    root = f"{OUT}/calib" if stage in ("pinhole", "calibrate") else OUT
+    root = f"{OUT}/calib" if stage in SHARED else OUT
     return [f"{root}/{i}/{n}" for i in ids for n in names]
 
 
@@ -225,16 +225,35 @@ rule reconstruct:
     shell: DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
 
 
+rule depthcal:
+    input: at("centers.zarr", "depthcal")
+    output: directory(f"{OUT}/calib/{{cid}}/depth_calibration.zarr")
+    log: f"{LOG}/depthcal/{{cid}}.log"
+    benchmark: f"{BENCH}/depthcal/{{cid}}.tsv"
+    threads: HEAVY
+    params: cfg=stage_params("depthcal")
+    shell: DASK_STAGE + " depthcal {input[0]:q} {output[0]:q}"
+
+
+def depth_input(wildcards):
+    """The depth calibration a PIV job divides its w by, or none where it is disabled."""
+    case = _case("piv", wildcards)
+    if not SWEEP.apply(case)["depth_calibration"]["enabled"]:
+        return []
+    return [f"{OUT}/{SWEEP.locate(case, 'depth_calibration.zarr')}"]
+
+
 rule piv:
     input:
         a=at("volume_a.zarr", "piv"),
         b=at("volume_b.zarr", "piv"),
+        depth=depth_input,
     output: directory(f"{OUT}/{{sid}}/piv.zarr")
     log: f"{LOG}/piv/{{sid}}.log"
     benchmark: f"{BENCH}/piv/{{sid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("piv")
-    shell: DASK_STAGE + " piv {input.a:q} {input.b:q} {output[0]:q}"
+    shell: DASK_STAGE + " piv {input.a:q} {input.b:q} {output[0]:q} {input.depth:q}"
 
 
 rule errors:

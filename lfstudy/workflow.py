@@ -37,6 +37,7 @@ __all__ = [
     "run_register",
     "run_refocus",
     "run_reconstruct",
+    "run_depth_calibration",
     "run_piv",
     "run_errors",
     "run_study",
@@ -157,9 +158,25 @@ def run_reconstruct(
     io.write_zarr(vol, out, name=vol.name or "intensity")
 
 
-def run_piv(ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: str | Path) -> None:
-    """3-D WIDIM PIV between the two reconstructed volumes."""
+def run_depth_calibration(ccfg: Mapping[str, Any], centers: str | Path, out: str | Path) -> None:
+    """Depth gain of a design and its processing from a traversed seeded volume (:mod:`lfstudy.piv.depth`)."""
+    cal = cl.case_depth_calibration(ccfg, io.open_zarr(centers).load(), progress=True)
+    for s, v, g in zip(cal["shift"].values, cal["shift_voxels"].values, cal["gain_total"].values):
+        layers = cal["gain"].sel(shift=s).values
+        print(f"depth gain {g:.3f} (layers {layers.min():.3f}-{layers.max():.3f}), {s:.4g} mm ({v:.2g} voxel) traverse")
+    io.write_zarr(cal, out)
+
+
+def run_piv(
+    ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: str | Path, depth: str | Path | None = None
+) -> None:
+    """3-D WIDIM PIV between the two reconstructed volumes, the axial displacement divided by the
+    design's depth gain when a depth calibration (``depth``) is given."""
+    from lfstudy.piv.depth import correct_depth
+
     res = cl.case_piv(ccfg, io.open_array(vol_a).load(), io.open_array(vol_b).load(), progress=True)
+    if depth:  # Snakemake passes '' where the calibration is disabled
+        res = correct_depth(res, io.open_zarr(depth).load())
     res.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(res, out)
 
@@ -187,6 +204,16 @@ def run_errors(
             "long_name": "reconstruction quality Q",
             "description": "normalised correlation with the true particles as Gaussians of sigma (z, y, x) = "
             f"{', '.join(f'{s:.4g}' for s in sigma)} mm (half the camera's resolution cell) on the same grid",
+        },
+    )
+    err["depth_gain"] = (
+        (),
+        float(res.attrs.get("depth_gain_total", float("nan"))),
+        {
+            "units": "1",
+            "long_name": "depth gain",
+            "description": "measured / true z displacement of the design's traversed-volume depth calibration, "
+            "which w was divided by (NaN: depth_calibration.enabled is false, w is the raw reading)",
         },
     )
     err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
@@ -233,7 +260,7 @@ def run_report(
 
 
 #: The stages whose dask graphs a ``compute`` section may send to a dask.distributed client.
-DASK_STAGES = ("refocus", "reconstruct", "piv")
+DASK_STAGES = ("refocus", "reconstruct", "depthcal", "piv")
 
 _RUNNERS = {
     "camera": run_optics,
@@ -242,6 +269,7 @@ _RUNNERS = {
     "simulate": run_simulate,
     "pinhole": run_pinhole,
     "calibrate": run_calibrate,
+    "depthcal": run_depth_calibration,
     "register": run_register,
     "refocus": run_refocus,
     "reconstruct": run_reconstruct,

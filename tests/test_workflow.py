@@ -124,14 +124,17 @@ def test_second_run_does_nothing(study_dir):
 
 
 def test_config_change_reruns_only_dependent_stages(study_dir, tmp_path):
-    """Each stage's config sections are its params: a PIV setting reruns PIV onward only."""
+    """Each stage's config sections are its params: a PIV setting reruns PIV onward only (and the
+    depth calibration, which correlates its traversed volume with the case's PIV settings)."""
     text = TINY.read_text()
     assert "spacing: [4, 8, 8]" in text
     changed = tmp_path / "tiny.yaml"
     changed.write_text(text.replace("spacing: [4, 8, 8]", "spacing: [4, 6, 6]"))
     jobs = _planned_jobs(study_dir, config=changed)
-    assert set(jobs) == {"piv", "errors", "study", "report"}
+    assert set(jobs) == {"depthcal", "piv", "errors", "study", "report"}
     assert jobs["piv"] == jobs["errors"] == len(expand_cases(load_config(TINY)))
+    # a density of its own each (it seeds at the case's ppp), none per flow
+    assert jobs["depthcal"] == len(load_config(TINY)["sweep"]["ppp"])
 
 
 def test_deleting_intermediate_reruns_only_dependents(study_dir):

@@ -41,6 +41,7 @@ __all__ = [
     "case_stack",
     "case_volume",
     "case_piv",
+    "case_depth_calibration",
     "render_volume",
 ]
 
@@ -82,15 +83,17 @@ def truth_sigma(camera: PlenopticCamera) -> tuple[float, float, float]:
     return (default_voxel_z(camera), dxy / 2.0, dxy / 2.0)
 
 
-def case_particles(ccfg: Mapping[str, Any]) -> xr.Dataset:
-    """The first-exposure particle field of a case config."""
+def case_particles(ccfg: Mapping[str, Any], *, seed: int | None = None) -> xr.Dataset:
+    """The first-exposure particle field of a case config (``seed``: another field of the
+    same seeding, e.g. the depth calibration's)."""
     from lfstudy.simulate.particles import seed_particles
 
     cam = case_camera(ccfg)
     p = ccfg["particles"]
     # the field depends on the seed, magnification and ppp only: every f-number and pitch
     # of a sweep images the same particles
-    seed = derive_seed(ccfg["seed"], "particles", float(ccfg["camera"]["magnification"]), float(p["ppp"]))
+    if seed is None:
+        seed = derive_seed(ccfg["seed"], "particles", float(ccfg["camera"]["magnification"]), float(p["ppp"]))
     kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
     field = seed_particles(
         cam,
@@ -301,6 +304,46 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
     )
     res.attrs["piv_seconds"] = time.perf_counter() - t0
     return res
+
+
+def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, progress: bool = False) -> xr.Dataset:
+    """The depth calibration of a case's design and processing (``depth_calibration`` section).
+
+    A seeded volume of the case's density (its own seed, so never the case's
+    particles) is imaged by the case's renderer and sensor, traversed by
+    each of ``depth_calibration.shifts`` (z voxels) along +z and imaged again;
+    every exposure goes through the case's registration, focal stack and
+    reconstruction, each shifted one is correlated with the first by the case's
+    PIV, and :func:`lfstudy.piv.depth.depth_response` reads the response per
+    depth layer. Only the camera model and the lenslet calibration are used (what an
+    experiment with a traverse has), never the case's flow.
+    """
+    from lfstudy.lightfield.registration import register
+    from lfstudy.piv.depth import depth_response
+
+    dc = ccfg["depth_calibration"]
+    cam = case_camera(ccfg)
+    grid = case_grid(ccfg, cam)
+    step = float(np.median(np.diff(grid.z))) if grid.z.size > 1 else 1.0
+    # seeds from the calibration's own location, whichever config (stage or full case) came in
+    where = _stage_id(ccfg, "depthcal")
+    imaging = {**ccfg, "stage_ids": {**ccfg.get("stage_ids", {}), "simulate": where}}
+    field = case_particles(ccfg, seed=derive_seed(ccfg["seed"], "depth-calibration", where))
+
+    def volume(frame: str, shift: float) -> xr.DataArray:
+        img = case_image(imaging, field.assign(z=field["z"] + shift), frame, progress=progress)
+        lf = register(img, centers, cam)
+        stack = case_stack(ccfg, lf).persist()
+        return case_volume(ccfg, stack, lf, centers, progress=progress).load()
+
+    ref = volume("calibration_0", 0.0)
+    results = []
+    for i, s in enumerate(sorted(float(v) for v in dc["shifts"])):
+        results.append((s * step, case_piv(ccfg, ref, volume(f"calibration_{i + 1}", s * step))))
+    out = depth_response(results, min_gain=float(dc["min_gain"]))
+    out["shift_voxels"] = ("shift", out["shift"].values / step, {"units": "voxel", "long_name": "traverse"})
+    out.attrs.update(io.provenance(ccfg, None))
+    return out
 
 
 def render_volume(

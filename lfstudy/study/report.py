@@ -67,6 +67,7 @@ HEADLINE = (
     "spacing_mm_x",
     "spacing_mm_z",
     "depth_mm",
+    "depth_gain",
     "valid_percent",
     "Q",
     "locking_excess_z",

@@ -42,6 +42,7 @@ __all__ = [
     "Sweep",
     "format_value",
     "FILES",
+    "SHARED",
 ]
 
 #: Config sections in the order the pipeline first reads them: the order of case-id segments.
@@ -58,6 +59,7 @@ SECTION_ORDER: tuple[str, ...] = (
     "grid",
     "reconstruct",
     "piv",
+    "depth_calibration",
 )
 
 
@@ -82,10 +84,31 @@ STAGES: dict[str, _Stage] = {
     "register": _Stage(("camera",), ("simulate", "calibrate")),
     "refocus": _Stage(("camera", "refocus", "grid"), ("register",)),
     "reconstruct": _Stage(("camera", "refocus", "grid", "reconstruct"), ("refocus", "register", "calibrate")),
-    "piv": _Stage(("piv",), ("reconstruct",)),
+    # the traversed-volume depth calibration of a design and its processing: every setting of the
+    # images and of their processing, but not the flow (it images its own seeded volume)
+    "depthcal": _Stage(
+        (
+            "seed",
+            "camera",
+            "particles",
+            "raytrace",
+            "sensor",
+            "refocus",
+            "grid",
+            "reconstruct",
+            "piv",
+            "depth_calibration",
+        ),
+        ("calibrate",),
+    ),
+    "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "depthcal")),
     "errors": _Stage(("flow", "camera"), ("piv", "reconstruct", "particles")),
 }
 
+
+#: Stages whose outputs are shared by every case with equal settings and live under ``calib/``:
+#: the pinhole image, the lenslet calibration and the depth calibration.
+SHARED: tuple[str, ...] = ("pinhole", "calibrate", "depthcal")
 
 #: Every per-case file of the workflow and the stage that writes it.
 FILES: dict[str, str] = {
@@ -97,6 +120,7 @@ FILES: dict[str, str] = {
     "pinhole.zarr": "pinhole",
     "pinhole.tif": "pinhole",
     "centers.zarr": "calibrate",
+    "depth_calibration.zarr": "depthcal",
     **{f"lightfield_{f}.zarr": "register" for f in "ab"},
     **{f"stack_{f}.zarr": "refocus" for f in "ab"},
     **{f"volume_{f}.zarr": "reconstruct" for f in "ab"},
@@ -432,28 +456,36 @@ class Sweep:
         last = max((i for i, s in enumerate(self.settings) if s.key in deps), default=0)
         return "/".join(case.segments[: last + 1])
 
-    def calib_id(self, case: Case | str) -> str:
-        """The shared calibration's id: the segments of the settings the pinhole image depends on."""
+    def shared_id(self, case: Case | str, stage: str) -> str:
+        """Where a shared stage (:data:`SHARED`) writes under ``calib/``: the case's segments of
+        exactly the settings the stage depends on, so cases share it when those are equal."""
         case = self.case(case)
-        deps = {s.key for s in self.depends_on("calibrate")}
+        deps = {s.key for s in self.depends_on(stage)}
         return "/".join(seg for s, seg in zip(self.settings, case.segments) if s.key in deps)
 
+    def calib_id(self, case: Case | str) -> str:
+        """The shared calibration's id: the segments of the settings the pinhole image depends on."""
+        return self.shared_id(case, "calibrate")
+
+    def _where(self, case: Case | str, stage: str) -> str:
+        return self.shared_id(case, stage) if stage in SHARED else self.stage_id(case, stage)
+
     def ids(self, case: Case | str) -> dict[str, str]:
-        """Where every stage of a case writes: ``{stage: stage id (calibration id for the calibration)}``."""
+        """Where every stage of a case writes: ``{stage: stage id (shared id for the shared stages)}``."""
         case = self.case(case)
-        return {st: self.calib_id(case) if st in ("pinhole", "calibrate") else self.stage_id(case, st) for st in STAGES}
+        return {st: self._where(case, st) for st in STAGES}
 
     def stage_ids(self, stage: str) -> dict[str, Case]:
         """Every distinct output location of a stage, with a case that has it (for its config)."""
         out: dict[str, Case] = {}
         for c in self.cases():
-            out.setdefault(self.calib_id(c) if stage in ("pinhole", "calibrate") else self.stage_id(c, stage), c)
+            out.setdefault(self._where(c, stage), c)
         return out
 
     def locate(self, case: Case | str, name: str) -> str:
         """Results-relative path of one of a case's files (:data:`FILES`): ``<stage id>/<name>``,
-        or ``calib/<calib id>/<name>`` for the shared calibration."""
+        or ``calib/<shared id>/<name>`` for the shared stages."""
         stage = FILES[name]
-        if stage in ("pinhole", "calibrate"):
-            return f"calib/{self.calib_id(case)}/{name}"
+        if stage in SHARED:
+            return f"calib/{self.shared_id(case, stage)}/{name}"
         return f"{self.stage_id(case, stage)}/{name}"
