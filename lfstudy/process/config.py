@@ -96,6 +96,9 @@ def validate_process_config(cfg: Mapping[str, Any], base: str | Path | None = No
     else:
         s = frames["series"]
         frames["series"] = resolve(s) if isinstance(s, str) else [resolve(p) for p in s]
+    if "depth_calibration" in rec:
+        dc = rec["depth_calibration"]
+        dc["images"] = resolve(dc["images"]) if isinstance(dc["images"], str) else [resolve(p) for p in dc["images"]]
     from lfstudy.study.resources import check_memory
 
     # a recording has no simulated particles: the memory estimate's simulate stage gets a placeholder

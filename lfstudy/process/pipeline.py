@@ -8,8 +8,11 @@ recorded frames instead of ray-traced ones:
 2. the calibration image (pinhole or white, sec. 5.1) gives the lenslet centres;
 3. every frame is registered (eqs 5.2–5.9), refocused onto the reconstruction
    grid (eqs 5.10–5.20) and reconstructed (sec. 5.5 or the configured method), once;
-4. every pair (1–2, 2–3, … for a series) is correlated by WIDIM (ch. 6), and
-   measured without a known flow (:mod:`lfstudy.process.metrics`).
+4. with a recorded traverse (``recording.depth_calibration``), the depth
+   response of this camera and processing is measured (:mod:`lfstudy.piv.depth`);
+5. every pair (1–2, 2–3, … for a series) is correlated by WIDIM (ch. 6), its w
+   mapped back through the depth response, and measured without a known flow
+   (:mod:`lfstudy.process.metrics`).
 
 Everything is written into a temporary sibling of the output directory, renamed
 into place at the end: a recording that stops with an error leaves nothing
@@ -18,6 +21,7 @@ half-written.
 Output directory::
 
     centers.zarr, calibration.zarr, dark.zarr     the calibration (dark only with dark frames)
+    depth_calibration.zarr                        the depth response (only with a recorded traverse)
     frames/<k>/lightfield.zarr, stack.zarr, volume.zarr
     piv.zarr        every pair's vector field along ``time`` (series) or ``pair``
     metrics.zarr, metrics.csv                     measurement metrics per pair
@@ -155,6 +159,7 @@ def process_recording(
             f"pitch {float(centers.attrs['pitch_px']):.4f} px, lattice residual "
             f"{float(centers.attrs['lattice_rms_px']):.4f} px RMS"
         )
+        depth = _depth_calibration(cfg, rec, centers, dark, tmp, prov, say, progress=progress)
         saturated: dict[str, float] = {}
         results: list[xr.Dataset] = []
         metrics: list[xr.Dataset] = []
@@ -172,7 +177,7 @@ def process_recording(
             for p, (i, j) in enumerate(rec.pairs):
                 if j != k:
                     continue
-                res, m = _measure(cfg, rec, tmp, i, j, progress=progress)
+                res, m = _measure(cfg, rec, tmp, i, j, depth, progress=progress)
                 m["saturated_percent"] = (
                     (),
                     100.0 * max(saturated[rec.frames[i].label], saturated[rec.frames[j].label]),
@@ -205,13 +210,62 @@ def _recording_attrs(rec: Recording) -> dict[str, Any]:
     return out
 
 
+def _depth_calibration(
+    cfg: Mapping[str, Any],
+    rec: Recording,
+    centers: xr.Dataset,
+    dark: Any,
+    root: Path,
+    prov: Mapping[str, Any],
+    say: Callable[[str], None],
+    *,
+    progress: bool,
+) -> xr.Dataset | None:
+    """The depth response from the recorded traverse (``recording.depth_calibration``), or None.
+
+    Every traverse image goes through the frames' chain (dark, registration,
+    focal stack, reconstruction) and is correlated with the start image by the
+    recording's PIV; :func:`lfstudy.piv.depth.depth_response` reads the response.
+    """
+    from lfstudy.piv.depth import depth_response
+
+    if not rec.depth_frames:
+        return None
+    key = "recording.depth_calibration.images"
+    vols = []
+    for frame in rec.depth_frames:
+        raw, _ = read_frame(rec, frame, dark, key=key)
+        vols.append(cl.render_volume(raw, centers, cfg)[2].load())
+    pairs = [(s, cl.case_piv(cfg, vols[0], v)) for s, v in zip(rec.depth_shifts, vols[1:])]
+    min_gain = float(cfg["recording"]["depth_calibration"].get("min_gain", 0.3))
+    cal = depth_response(pairs, min_gain=min_gain)
+    cal.attrs.update(prov, sources=[f.label for f in rec.depth_frames])
+    io.write_zarr(cal, root / "depth_calibration.zarr")
+    gains = ", ".join(f"{g:.3f} at {s:.4g} mm" for s, g in zip(cal["shift"].values, cal["gain_total"].values))
+    state = "" if cal.attrs["resolves_depth"] else f" (below min_gain {min_gain}: w left as read)"
+    say(f"depth calibration ({len(rec.depth_frames)} images): gain {gains}{state}")
+    return cal
+
+
 def _measure(
-    cfg: Mapping[str, Any], rec: Recording, root: Path, i: int, j: int, *, progress: bool
+    cfg: Mapping[str, Any],
+    rec: Recording,
+    root: Path,
+    i: int,
+    j: int,
+    depth: xr.Dataset | None = None,
+    *,
+    progress: bool,
 ) -> tuple[xr.Dataset, xr.Dataset]:
-    """PIV of frames ``i``, ``j`` (their stored volumes) and the pair's metrics."""
+    """PIV of frames ``i``, ``j`` (their stored volumes), its w mapped through the depth response
+    when there is one, and the pair's metrics."""
+    from lfstudy.piv.depth import correct_depth
+
     a = io.open_array(root / frame_dir(i) / "volume.zarr").load()
     b = io.open_array(root / frame_dir(j) / "volume.zarr").load()
     res = cl.case_piv(cfg, a, b, progress=progress)
+    if depth is not None:
+        res = correct_depth(res, depth)
     ratio = peak_ratio(a, b, res)
     res["peak_ratio"] = ratio
     with contextlib.suppress(ValueError):  # a single window along an axis: no divergence

@@ -20,7 +20,7 @@ import math
 import re
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -204,6 +204,9 @@ def recording_files(rec: Mapping[str, Any]) -> list[str]:
     items: list[str] = [rec["calibration"]["image"], *([rec["dark"]] if isinstance(rec["dark"], str) else rec["dark"])]
     for spec in fr.get("pairs", []) + ([fr["series"]] if "series" in fr else []):
         items += [spec] if isinstance(spec, str) else list(spec)
+    if "depth_calibration" in rec:
+        imgs = rec["depth_calibration"]["images"]
+        items += [imgs] if isinstance(imgs, str) else list(imgs)
     out: list[str] = []
     for item in items:
         for p in sorted(glob.glob(item), key=_natural) if glob.has_magic(item) else [item]:
@@ -238,6 +241,11 @@ class Recording:
         Time between the frames of a pair [s].
     max_saturated : float
         Saturated fraction of a frame above which :func:`warn_saturated` warns.
+    depth_frames : list of Frame
+        The recorded traverse of the depth calibration: start image, then one
+        per traverse (empty: none given).
+    depth_shifts : list of float
+        Traverse of each later depth-calibration image from the start [mm].
     """
 
     calibration: Frame
@@ -252,6 +260,8 @@ class Recording:
     bit_depth: int
     dt: float | None
     max_saturated: float
+    depth_frames: list[Frame] = field(default_factory=list)
+    depth_shifts: list[float] = field(default_factory=list)
 
     @property
     def full_scale(self) -> float | None:
@@ -276,6 +286,7 @@ class Recording:
             "bit_depth": self.bit_depth,
             "dtype": self.dtype.name,
             "dt_s": self.dt,
+            "depth_calibration_images": len(self.depth_frames),
         }
 
 
@@ -362,6 +373,21 @@ def open_recording(rec: Mapping[str, Any], camera: Any) -> Recording:
             f"are {first.depth}; the dark frames are subtracted from it"
         )
     calib = Frame(calib.path, 0, cinfo.n_pages)
+    depth_frames, depth_shifts = [], []
+    if rec.get("depth_calibration"):
+        dc = rec["depth_calibration"]
+        key = "recording.depth_calibration.images"
+        depth_frames = expand_frames(dc["images"], key=key, bit_depth=bd)
+        depth_shifts = [float(s) for s in dc["shifts"]]
+        if len(depth_frames) != len(depth_shifts) + 1:
+            raise RecordingError(
+                f"{key}: {len(depth_frames)} images for {len(depth_shifts)} traverses in "
+                "recording.depth_calibration.shifts; give the start image and one image per traverse"
+            )
+        _same(
+            [(frames[0].label, first), *((f.label, tiff_info(f.path, key=key, bit_depth=bd)) for f in depth_frames)],
+            key,
+        )
     return Recording(
         calibration=calib,
         calibration_kind=rec["calibration"].get("kind", "pinhole"),
@@ -375,6 +401,8 @@ def open_recording(rec: Mapping[str, Any], camera: Any) -> Recording:
         bit_depth=first.bits,
         dt=rec.get("dt"),
         max_saturated=float(rec.get("max_saturated", 1e-4)),
+        depth_frames=depth_frames,
+        depth_shifts=depth_shifts,
     )
 
 
