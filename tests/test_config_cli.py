@@ -28,21 +28,28 @@ def test_shipped_configs_valid():
 
 
 def test_demo_sweeps_designs_flows_and_a_dotted_setting(demo_raw):
-    """The demo: 2 magnifications x 2 lenslet pitches x (uniform shift, Hill's vortex) x 2 methods."""
+    """The demo: 2 magnifications x 2 lenslet pitches x (uniform shift, Hill's vortex), MART, without and
+    with the depth calibration; pinned so that its runtime cannot creep."""
     cfg = validate_config(demo_raw)
     cases = expand_cases(cfg)
     assert len(cases) == 16
     for key in ("magnification", "lenslet_pitch"):
         assert len({getattr(c, key) for c in cases}) == 2
     assert {c.flow for c in cases} == {"uniform_x", "hill"}
-    assert {c.params["reconstruct.method"] for c in cases} == {"threshold", "mart"}
+    assert {c.params["depth_calibration.enabled"] for c in cases} == {False, True}
+    assert cfg["camera"]["sensor"]["n_pixels_x"] * cfg["camera"]["sensor"]["n_pixels_y"] == 640 * 480
+    assert cfg["particles"]["ppp"] == 0.005 and cfg["raytrace"]["rays_per_particle"] == 4000
     ids = [c.case_id for c in cases]
     assert len(set(ids)) == len(ids)
-    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.005/flow~uniform_x/reconstruct.method~threshold"
+    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.005/flow~uniform_x/depth_calibration.enabled~false"
     assert sweep_of(cfg).case(ids[5]) == cases[5]
     one = case_config(cfg, ids[-1])
     assert one["camera"]["magnification"] == cases[-1].magnification
     assert one["flow"]["name"] == "hill" and one["reconstruct"]["method"] == "mart"
+    assert one["depth_calibration"]["enabled"] is True
+    # the calibration on/off share every stage up to the reconstruction: 8 volumes per frame, 4 calibrations
+    sw = sweep_of(cfg)
+    assert len(sw.stage_ids("reconstruct")) == 8 and len(sw.stage_ids("depthcal")) == 4
     # every design reconstructs the seeded slab
     assert one["grid"]["z_range"] == [-one["particles"]["z_span"] / 2, one["particles"]["z_span"] / 2]
 

@@ -88,8 +88,8 @@ def test_the_calibration_corrects_a_held_out_depth_shift():
     volume (another particle field, traverses of 0.5 and 1 voxel), a uniform z shift of 0.75 voxel —
     not a traverse — comes back within 10 %, where the raw reading is over 20 % short."""
     cfg = load_config(ROOT / "config" / "demo.yaml")
-    case = next(c for c in expand_cases(cfg) if "reconstruct.method~mart" in c.case_id)
-    ccfg = case_config(cfg, case)
+    ccfg = case_config(cfg, expand_cases(cfg)[0])
+    ccfg["reconstruct"]["method"] = "mart"
     ccfg["camera"]["sensor"].update(n_pixels_x=384, n_pixels_y=384)
     ccfg["depth_calibration"]["shifts"] = [0.5, 1.0]
     truth = 0.75 * 0.25  # mm: grid.voxel_z 0.25

@@ -100,6 +100,7 @@ STAGES: dict[str, _Stage] = {
             "depth_calibration",
         ),
         ("calibrate",),
+        ("depth_calibration.enabled",),  # whether the PIV uses it, not what it is
     ),
     "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "depthcal")),
     "errors": _Stage(("flow", "camera"), ("piv", "reconstruct", "particles")),
@@ -425,8 +426,7 @@ class Sweep:
     # ------------------------------------------------------------------ stages
     def _depends(self, stage: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
         """Config paths a stage's output depends on (its own and its upstream stages'), and ignores."""
-        reads: list[str] = []
-        ignores: list[str] = []
+        chain: list[_Stage] = []
         todo = [stage]
         seen: set[str] = set()
         while todo:
@@ -434,15 +434,17 @@ class Sweep:
             if st in seen:
                 continue
             seen.add(st)
-            spec = STAGES[st]
-            reads += spec.reads
-            todo += spec.upstream
-            ignores += spec.ignores
+            chain.append(STAGES[st])
+            todo += STAGES[st].upstream
+        reads = tuple(p for spec in chain for p in spec.reads)
         # an ignore holds only where no stage of the chain reads the path for a reason of its own
         # (the calibration ignores the working f-number; the images downstream of it do not)
-        if stage in ("pinhole", "calibrate"):
-            return tuple(reads), tuple(ignores)
-        return tuple(reads), ()
+        ignores = tuple(
+            p
+            for p in dict.fromkeys(q for spec in chain for q in spec.ignores)
+            if all(_under(p, spec.ignores) for spec in chain if _under(p, spec.reads))
+        )
+        return reads, ignores
 
     def depends_on(self, stage: str) -> tuple[Setting, ...]:
         """The settings a stage's output depends on."""
