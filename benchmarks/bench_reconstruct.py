@@ -19,6 +19,7 @@ per refocus plane, threshold) beside the thesis' mu -2.47 px, sigma 0.57 px.
 
     python benchmarks/bench_reconstruct.py [--ppp 0.001 0.005 0.01] [--flows uniform_z hill]
         [--methods threshold deconvolution mart] [--sensor W H] [--out DIR] [--threads 2] [--thesis72]
+        [--iterations N] [--no-depth-calibration]
 """
 
 from __future__ import annotations
@@ -100,10 +101,18 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None, help="working directory (kept: images are reused)")
     ap.add_argument("--thesis72", action="store_true", help="add sec. 7.2 as the thesis ran it")
+    ap.add_argument("--iterations", type=int, default=None, help="MART iterations (default: the config's)")
+    ap.add_argument(
+        "--no-depth-calibration", action="store_true", help="the raw chain (depth_calibration.enabled: false)"
+    )
     args = ap.parse_args()
 
     base = load_config(ROOT / "config" / "thesis.yaml")
     base["raytrace"]["rays_per_particle"] = args.rays
+    if args.iterations is not None:
+        base.setdefault("reconstruct", {}).setdefault("mart", {})["iterations"] = args.iterations
+    if args.no_depth_calibration:
+        base.setdefault("depth_calibration", {})["enabled"] = False
     if args.sensor:
         base["camera"]["sensor"].update(n_pixels_x=args.sensor[0], n_pixels_y=args.sensor[1])
     out = args.out or Path(tempfile.mkdtemp(prefix="lfstudy-bench-rec-"))
