@@ -70,14 +70,15 @@ def test_a_design_that_does_not_resolve_depth_is_left_as_read():
     assert out.attrs["depth_corrected"] == 0 and out.attrs["depth_gain_total"] == pytest.approx(0.02)
 
 
-def test_bad_calibration_results_are_refused():
+def test_bad_calibration_results_are_refused_and_lost_traverses_are_not_corrected():
     z = np.array([0.0])
     ok = _result(np.full((1, 2, 2), 0.1), z)
     with pytest.raises(ValueError, match="positive"):
         depth_response([(-0.1, ok)])
+    # a traverse the chain cannot follow at all (no valid vector) is a result: depth not resolved
     none_valid = ok.assign(valid=ok["valid"] & False)
-    with pytest.raises(ValueError, match="no valid vector"):
-        depth_response([(0.1, none_valid)])
+    lost = depth_response([(0.05, ok), (0.1, none_valid)])
+    assert lost.attrs["resolves_depth"] == 0 and lost["gain_total"].values[-1] == 0.0
     other_grid = _result(np.full((2, 2, 2), 0.1), np.array([0.0, 1.0]))
     with pytest.raises(ValueError, match="one PIV grid"):
         depth_response([(0.1, ok), (0.2, other_grid)])

@@ -59,8 +59,9 @@ def depth_response(results: list[tuple[float, xr.Dataset]], *, min_gain: float =
     Raises
     ------
     ValueError
-        If a shift is not positive, the results are not on one grid, or a
-        result has no valid vector.
+        If a shift is not positive or the results are not on one grid. A
+        traverse without any valid vector reads a gain of 0 (the design does
+        not follow it), which is a result, not an error.
     """
     if not results:
         raise ValueError("depth calibration: no calibration result")
@@ -75,12 +76,8 @@ def depth_response(results: list[tuple[float, xr.Dataset]], *, min_gain: float =
         valid = res["valid"].transpose("z", "y", "x").values.astype(bool)
         w = res["w_mm"].transpose("z", "y", "x").values.astype(float)
         valid &= np.isfinite(w)
-        if not valid.any():
-            raise ValueError(
-                f"depth calibration: no valid vector at the {shift:.4g} mm traverse; the design or the PIV "
-                "settings (piv.window, particles.ppp) cannot measure it"
-            )
-        total = float(w[valid].mean()) / shift
+        # no valid vector: the chain cannot follow this traverse at all (reads gain 0)
+        total = float(w[valid].mean()) / shift if valid.any() else 0.0
         n = valid.sum(axis=(1, 2))
         with np.errstate(invalid="ignore", divide="ignore"):
             layer = np.where(valid, w, 0.0).sum(axis=(1, 2)) / n / shift
