@@ -260,17 +260,21 @@ def case_config(cfg: Mapping[str, Any], case: Any) -> dict[str, Any]:
 
 def stage_config(cfg: Mapping[str, Any], case: Any, stage: str) -> dict[str, Any]:
     """The part of a case's config that ``stage`` reads (:data:`lfstudy.study.sweep.STAGES`),
-    plus ``case_id``, ``stage_id`` (where the stage's outputs live) and ``calib_id``."""
+    plus ``stage_id`` (where the stage's outputs live) and ``calib_id``.
+
+    ``case_id`` is added only for the per-case ``errors`` stage: every other stage's output
+    is shared by all cases at its location, so its config (the Snakemake rule's params, and
+    the provenance attrs it writes) must not depend on which of them stands for it —
+    otherwise a change of the sweep reruns shared stages whose settings did not change.
+    """
     from lfstudy.study.sweep import STAGES
 
     ccfg = case_config(cfg, case)
     sections = {p.split(".")[0] for p in STAGES[stage].reads}
-    return {
-        "case_id": ccfg["case_id"],
-        "stage_id": ccfg["stage_ids"][stage],
-        "calib_id": ccfg["calib_id"],
-        **{k: ccfg[k] for k in sorted(sections)},
-    }
+    out: dict[str, Any] = {"stage_id": ccfg["stage_ids"][stage], "calib_id": ccfg["calib_id"]}
+    if stage == "errors":
+        out["case_id"] = ccfg["case_id"]
+    return {**out, **{k: ccfg[k] for k in sorted(sections)}}
 
 
 def cases_table(cfg: Mapping[str, Any]):

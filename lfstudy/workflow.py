@@ -88,11 +88,10 @@ def _write_json(obj: Mapping[str, Any], path: str | Path) -> None:
 def run_optics(ccfg: Mapping[str, Any], out_json: str | Path, out_planes: str | Path) -> None:
     """Camera stage: derived parameters (JSON) and the refocus-plane table (zarr)."""
     cam = cl.case_camera(ccfg)
-    case_id = ccfg["case_id"]
     planes = cl.case_planes(ccfg, cam)
     planes.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(planes, out_planes)
-    _write_json({"case_id": case_id, **{k: str(v) for k, v in cam.summary().items()}}, out_json)
+    _write_json({"stage_id": ccfg["stage_id"], **{k: str(v) for k, v in cam.summary().items()}}, out_json)
 
 
 def run_particles(ccfg: Mapping[str, Any], out: str | Path) -> None:

@@ -137,6 +137,16 @@ def test_config_change_reruns_only_dependent_stages(study_dir, tmp_path):
     assert jobs["depthcal"] == len(load_config(TINY)["sweep"]["ppp"])
 
 
+def test_a_smaller_sweep_reruns_no_shared_stage(study_dir, tmp_path):
+    """Dropping a swept value changes which case stands for each shared stage (camera, pinhole,
+    calibration); their settings did not change, so only the study table and the report rerun."""
+    text = TINY.read_text()
+    assert "ppp: [0.002, 0.004]" in text
+    changed = tmp_path / "tiny.yaml"
+    changed.write_text(text.replace("ppp: [0.002, 0.004]", "ppp: [0.004]"))
+    assert set(_planned_jobs(study_dir, config=changed)) == {"study", "report"}
+
+
 def test_deleting_intermediate_reruns_only_dependents(study_dir):
     case = expand_cases(load_config(TINY))[0].case_id
     shutil.rmtree(study_dir / "results" / "tiny" / case / "volume_b.zarr")
@@ -212,7 +222,7 @@ def test_stage_entry_point(tmp_path):
         timeout=300,
     )
     assert r.returncode == 0, (tmp_path / "ok.log").read_text()
-    assert json.loads((tmp_path / "camera.json").read_text())["case_id"] == cid
+    assert json.loads((tmp_path / "camera.json").read_text())["stage_id"] == "mag~-1/fnum~matched/pitch~0.0888"
     assert io.open_zarr(tmp_path / "planes.zarr").sizes
     # A stage given less config than it reads fails loudly, points at its log, writes nothing.
     too_little = json.dumps(stage_config(cfg, cid, "calibrate"))  # the camera section, no refocus
