@@ -19,7 +19,7 @@ per refocus plane, threshold) beside the thesis' mu -2.47 px, sigma 0.57 px.
 
     python benchmarks/bench_reconstruct.py [--ppp 0.001 0.005 0.01] [--flows uniform_z hill]
         [--methods threshold deconvolution mart] [--sensor W H] [--out DIR] [--threads 2] [--thesis72]
-        [--iterations N] [--no-depth-calibration]
+        [--iterations N] [--relaxation MU] [--no-depth-calibration]
 """
 
 from __future__ import annotations
@@ -102,6 +102,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="working directory (kept: images are reused)")
     ap.add_argument("--thesis72", action="store_true", help="add sec. 7.2 as the thesis ran it")
     ap.add_argument("--iterations", type=int, default=None, help="MART iterations (default: the config's)")
+    ap.add_argument("--relaxation", type=float, default=None, help="MART relaxation (default: the config's)")
     ap.add_argument(
         "--no-depth-calibration", action="store_true", help="the raw chain (depth_calibration.enabled: false)"
     )
@@ -111,6 +112,8 @@ def main() -> None:
     base["raytrace"]["rays_per_particle"] = args.rays
     if args.iterations is not None:
         base.setdefault("reconstruct", {}).setdefault("mart", {})["iterations"] = args.iterations
+    if args.relaxation is not None:
+        base.setdefault("reconstruct", {}).setdefault("mart", {})["relaxation"] = args.relaxation
     if args.no_depth_calibration:
         base.setdefault("depth_calibration", {})["enabled"] = False
     if args.sensor:
