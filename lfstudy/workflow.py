@@ -160,9 +160,14 @@ def run_reconstruct(
 def run_depth_calibration(ccfg: Mapping[str, Any], centers: str | Path, out: str | Path) -> None:
     """Depth gain of a design and its processing from a traversed seeded volume (:mod:`lfstudy.piv.depth`)."""
     cal = cl.case_depth_calibration(ccfg, io.open_zarr(centers).load(), progress=True)
-    for s, v, g in zip(cal["shift"].values, cal["shift_voxels"].values, cal["gain_total"].values):
+    sd = cal["gain_total_sd"].values if "gain_total_sd" in cal else None
+    for i, (s, v, g) in enumerate(zip(cal["shift"].values, cal["shift_voxels"].values, cal["gain_total"].values)):
         layers = cal["gain"].sel(shift=s).values
-        print(f"depth gain {g:.3f} (layers {layers.min():.3f}-{layers.max():.3f}), {s:.4g} mm ({v:.2g} voxel) traverse")
+        spread = f" +- {sd[i]:.3f} between {cal.attrs['repeats']} volumes" if sd is not None else ""
+        print(
+            f"depth gain {g:.3f}{spread} (layers {layers.min():.3f}-{layers.max():.3f}), "
+            f"{s:.4g} mm ({v:.2g} voxel) traverse"
+        )
     io.write_zarr(cal, out)
 
 

@@ -84,6 +84,20 @@ def test_bad_calibration_results_are_refused_and_lost_traverses_are_not_correcte
         depth_response([(0.1, ok), (0.2, other_grid)])
 
 
+def test_repeated_calibration_volumes_are_pooled_and_their_spread_is_kept():
+    z = np.array([-0.5, 0.5])
+    low, high = (_result(np.full((2, 3, 3), g * 0.25), z) for g in (0.8, 1.0))
+    cal = depth_response([(0.25, low), (0.25, high)])
+    assert cal.attrs["repeats"] == 2 and cal.sizes["shift"] == 1
+    np.testing.assert_allclose(cal["gain"].values, 0.9)
+    assert int(cal["n_valid"].values[0, 0]) == 18
+    assert float(cal["gain_total_sd"].values[0]) == pytest.approx(np.std([0.8, 1.0], ddof=1))
+    single = depth_response([(0.25, low)])
+    assert single.attrs["repeats"] == 1 and "gain_total_sd" not in single
+    with pytest.raises(ValueError, match="same number of repeated"):
+        depth_response([(0.25, low), (0.25, high), (0.5, low)])
+
+
 def test_the_calibration_corrects_a_held_out_depth_shift():
     """The demo's first MART design reads depth about a third short. Calibrated on its own traversed
     volume (another particle field, traverses of 0.5 and 1 voxel), a uniform z shift of 0.75 voxel —
@@ -92,7 +106,7 @@ def test_the_calibration_corrects_a_held_out_depth_shift():
     ccfg = case_config(cfg, expand_cases(cfg)[0])
     ccfg["reconstruct"]["method"] = "mart"
     ccfg["camera"]["sensor"].update(n_pixels_x=384, n_pixels_y=384)
-    ccfg["depth_calibration"]["shifts"] = [0.5, 1.0]
+    ccfg["depth_calibration"].update(shifts=[0.5, 1.0], repeats=2)
     truth = 0.75 * 0.25  # mm: grid.voxel_z 0.25
     ccfg["flow"] = {"name": "uniform_z", "kind": "uniform", "displacement": [0.0, 0.0, truth]}
     cam = cl.case_camera(ccfg)
@@ -101,6 +115,8 @@ def test_the_calibration_corrects_a_held_out_depth_shift():
     centers = find_lenslet_centers(cl.case_pinhole(ccfg), cam)
     cal = cl.case_depth_calibration(ccfg, centers)
     assert cal.attrs["resolves_depth"] == 1 and (cal["gain_total"] < 0.9).all()
+    # two independently seeded volumes: their gains differ, and their vectors are pooled
+    assert cal.attrs["repeats"] == 2 and (cal["gain_total_sd"] > 0).all()
 
     sim = cl.simulate_case(copy.deepcopy(ccfg))
     vols = [cl.render_volume(sim[f"image_{f}"], centers, ccfg)[2].load() for f in "ab"]

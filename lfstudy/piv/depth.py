@@ -38,7 +38,9 @@ def depth_response(results: list[tuple[float, xr.Dataset]], *, min_gain: float =
     results : list of (float, xarray.Dataset)
         ``(shift_mm, result)``: WIDIM results between the calibration volume
         and the same volume moved by ``shift_mm`` (> 0) along +z, all on the
-        same PIV grid (``w_mm`` and ``valid`` on z, y, x).
+        same PIV grid (``w_mm`` and ``valid`` on z, y, x). Several results at
+        one shift (repeated calibration volumes) are pooled: their valid
+        vectors count together.
     min_gain : float
         Smallest gain (measured / true) the correction inverts: smaller gains
         at any shift or layer are raised to it, so that the inversion never
@@ -53,8 +55,10 @@ def depth_response(results: list[tuple[float, xr.Dataset]], *, min_gain: float =
         whole volume's where the layer has fewer than :data:`MIN_LAYER_VECTORS`
         valid vectors), made increasing in the shift; ``gain`` (shift, z) =
         response / shift; ``gain_total`` (shift) of the whole volume;
-        ``n_valid`` (shift, z). Coordinate ``shift`` [mm]. Attrs
-        ``resolves_depth`` (1/0) and ``min_gain``.
+        ``n_valid`` (shift, z). With repeats (two or more results at every
+        shift), ``gain_total_sd`` (shift): the standard deviation of the
+        whole-volume gain between repeats. Coordinate ``shift`` [mm]. Attrs
+        ``resolves_depth`` (1/0), ``min_gain`` and ``repeats``.
 
     Raises
     ------
@@ -67,7 +71,7 @@ def depth_response(results: list[tuple[float, xr.Dataset]], *, min_gain: float =
         raise ValueError("depth calibration: no calibration result")
     results = sorted(results, key=lambda r: r[0])
     z = results[0][1]["z"].values
-    shifts, gains, totals, counts = [], [], [], []
+    groups: dict[float, list[tuple[np.ndarray, np.ndarray]]] = {}
     for shift, res in results:
         if not (np.isfinite(shift) and shift > 0):
             raise ValueError(f"depth calibration: every shift must be positive, got {shift!r} mm")
@@ -75,21 +79,31 @@ def depth_response(results: list[tuple[float, xr.Dataset]], *, min_gain: float =
             raise ValueError("depth calibration: the results of the shifts are not on one PIV grid")
         valid = res["valid"].transpose("z", "y", "x").values.astype(bool)
         w = res["w_mm"].transpose("z", "y", "x").values.astype(float)
-        valid &= np.isfinite(w)
+        groups.setdefault(float(shift), []).append((w, valid & np.isfinite(w)))
+    repeats = {len(g) for g in groups.values()}
+    if len(repeats) != 1:
+        raise ValueError("depth calibration: every shift needs the same number of repeated results")
+    shifts, gains, totals, counts, spreads = [], [], [], [], []
+    for shift, group in groups.items():
+        w = np.stack([g[0] for g in group])
+        valid = np.stack([g[1] for g in group])
         # no valid vector: the chain cannot follow this traverse at all (reads gain 0)
         total = float(w[valid].mean()) / shift if valid.any() else 0.0
-        n = valid.sum(axis=(1, 2))
+        n = valid.sum(axis=(0, 2, 3))
         with np.errstate(invalid="ignore", divide="ignore"):
-            layer = np.where(valid, w, 0.0).sum(axis=(1, 2)) / n / shift
+            layer = np.where(valid, w, 0.0).sum(axis=(0, 2, 3)) / n / shift
         g = np.maximum(np.where(n >= MIN_LAYER_VECTORS, layer, total), min_gain)
+        per_repeat = [float(wr[vr].mean()) / shift if vr.any() else 0.0 for wr, vr in zip(w, valid)]
         shifts.append(shift)
         totals.append(total)
         gains.append(g)
         counts.append(n)
+        spreads.append(float(np.std(per_repeat, ddof=1)) if len(per_repeat) > 1 else 0.0)
+    n_repeats = repeats.pop()
     sh = np.asarray(shifts)
     r = np.asarray(gains) * sh[:, None]
     r = np.maximum.accumulate(r, axis=0)  # a response curve must rise with the shift to be inverted
-    return xr.Dataset(
+    out = xr.Dataset(
         {
             "response": (("shift", "z"), r, {"units": "mm", "long_name": "mean measured z displacement"}),
             "gain": (("shift", "z"), r / sh[:, None], {"units": "1", "long_name": "depth gain (measured / true)"}),
@@ -109,8 +123,16 @@ def depth_response(results: list[tuple[float, xr.Dataset]], *, min_gain: float =
             # below min_gain the design does not resolve depth: correcting would only amplify noise
             "resolves_depth": int(totals[-1] >= min_gain),
             "min_gain": float(min_gain),
+            "repeats": int(n_repeats),
         },
     )
+    if n_repeats > 1:
+        out["gain_total_sd"] = (
+            "shift",
+            np.asarray(spreads),
+            {"units": "1", "long_name": "standard deviation of the whole-volume depth gain between repeats"},
+        )
+    return out
 
 
 def _invert(w: np.ndarray, response: np.ndarray, shifts: np.ndarray) -> np.ndarray:

@@ -327,19 +327,24 @@ def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, prog
     step = float(np.median(np.diff(grid.z))) if grid.z.size > 1 else 1.0
     # seeds from the calibration's own location, whichever config (stage or full case) came in
     where = _stage_id(ccfg, "depthcal")
-    imaging = {**ccfg, "stage_ids": {**ccfg.get("stage_ids", {}), "simulate": where}}
-    field = case_particles(ccfg, seed=derive_seed(ccfg["seed"], "depth-calibration", where))
-
-    def volume(frame: str, shift: float) -> xr.DataArray:
-        img = case_image(imaging, field.assign(z=field["z"] + shift), frame, progress=progress)
-        lf = register(img, centers, cam)
-        stack = case_stack(ccfg, lf).persist()
-        return case_volume(ccfg, stack, lf, centers, progress=progress).load()
-
-    ref = volume("calibration_0", 0.0)
+    shifts = sorted(float(v) for v in dc["shifts"])
     results = []
-    for i, s in enumerate(sorted(float(v) for v in dc["shifts"])):
-        results.append((s * step, case_piv(ccfg, ref, volume(f"calibration_{i + 1}", s * step))))
+    for rep in range(int(dc.get("repeats", 1))):
+        # the first volume keeps the seed of a single calibration; repeats get their own
+        tag = ("depth-calibration", where) if rep == 0 else ("depth-calibration", where, rep)
+        field = case_particles(ccfg, seed=derive_seed(ccfg["seed"], *tag))
+        sim = where if rep == 0 else f"{where}/repeat~{rep}"
+        imaging = {**ccfg, "stage_ids": {**ccfg.get("stage_ids", {}), "simulate": sim}}
+
+        def volume(frame: str, shift: float, imaging=imaging, field=field) -> xr.DataArray:
+            img = case_image(imaging, field.assign(z=field["z"] + shift), frame, progress=progress)
+            lf = register(img, centers, cam)
+            stack = case_stack(ccfg, lf).persist()
+            return case_volume(ccfg, stack, lf, centers, progress=progress).load()
+
+        ref = volume("calibration_0", 0.0)
+        for i, s in enumerate(shifts):
+            results.append((s * step, case_piv(ccfg, ref, volume(f"calibration_{i + 1}", s * step))))
     out = depth_response(results, min_gain=float(dc["min_gain"]))
     out["shift_voxels"] = ("shift", out["shift"].values / step, {"units": "voxel", "long_name": "traverse"})
     out.attrs.update(io.provenance(ccfg, None))
