@@ -318,7 +318,6 @@ def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, prog
     depth layer. Only the camera model and the lenslet calibration are used (what an
     experiment with a traverse has), never the case's flow.
     """
-    from lfstudy.lightfield.registration import register
     from lfstudy.piv.depth import depth_response
 
     dc = ccfg["depth_calibration"]
@@ -338,9 +337,7 @@ def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, prog
 
         def volume(frame: str, shift: float, imaging=imaging, field=field) -> xr.DataArray:
             img = case_image(imaging, field.assign(z=field["z"] + shift), frame, progress=progress)
-            lf = register(img, centers, cam)
-            stack = case_stack(ccfg, lf).persist()
-            return case_volume(ccfg, stack, lf, centers, progress=progress).load()
+            return render_volume(img, centers, ccfg, progress=progress)[2].load()
 
         ref = volume("calibration_0", 0.0)
         for i, s in enumerate(shifts):
@@ -352,9 +349,10 @@ def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, prog
 
 
 def render_volume(
-    raw: xr.DataArray, centers: xr.Dataset, ccfg: Mapping[str, Any]
+    raw: xr.DataArray, centers: xr.Dataset, ccfg: Mapping[str, Any], *, progress: bool = False
 ) -> tuple[xr.DataArray, xr.DataArray, xr.DataArray]:
-    """The chain raw image → light field → focal stack → volume of one case config.
+    """The chain raw image → light field → focal stack → volume of one case config
+    (``progress``: the reconstruction's progress bar).
 
     Returns
     -------
@@ -367,4 +365,4 @@ def render_volume(
     lf = register(raw, centers, case_camera(ccfg))
     # persist: the reconstruction and the caller's write both read the stack
     stack = case_stack(ccfg, lf).persist()
-    return lf, stack, case_volume(ccfg, stack, lf, centers)
+    return lf, stack, case_volume(ccfg, stack, lf, centers, progress=progress)
