@@ -174,8 +174,8 @@ def run_depth_calibration(ccfg: Mapping[str, Any], centers: str | Path, out: str
 def run_piv(
     ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: str | Path, depth: str | Path | None = None
 ) -> None:
-    """3-D WIDIM PIV between the two reconstructed volumes, the axial displacement divided by the
-    design's depth gain when a depth calibration (``depth``) is given."""
+    """3-D WIDIM PIV between the two reconstructed volumes, the axial displacement mapped back
+    through the design's depth response when a depth calibration (``depth``) is given."""
     from lfstudy.piv.depth import correct_depth
 
     res = cl.case_piv(ccfg, io.open_array(vol_a).load(), io.open_array(vol_b).load(), progress=True)
