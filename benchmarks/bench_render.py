@@ -158,10 +158,11 @@ def speed(args: argparse.Namespace) -> None:
     if nm == ne:
         tfull, note = tm, ""
     else:
-        # A render has a fixed part (allocating and zeroing the 127 MB float64 image: ~0.4 s here) that
-        # does not grow with the particles: a second, twice as large subset separates the two, and the
-        # full-set time is extrapolated as fixed + per-particle x n (scaling the subset's time by n/nm
-        # would multiply the fixed part too, in the exact method's favour).
+        # A render has a fixed part that does not grow with the particles (allocating and zeroing the
+        # 127 MB float64 image and the chunk buffers: 1.6 s at 2 threads on the 2-core development
+        # machine). A second, twice as large subset separates the two, and the full-set time is
+        # extrapolated as fixed + per-particle x n (scaling the subset's time by n/nm would multiply
+        # the fixed part too, in the exact method's favour).
         f2 = min(2.0 * args.mc_fraction, 1.0)
         tm2, nm2, mm2 = _in_child("montecarlo", args.ppp, f2, args.threads, args.speed_rays)
         mm = max(mm, mm2)

@@ -104,9 +104,11 @@ from lfstudy.simulate.raytrace import (
 
 __all__ = ["render_exact", "render_pinhole_exact", "exact_memory_estimate"]
 
-# The helpers below allocate nothing and are compiled without the runtime's reference counting
-# (numba's ``_nrt=False``): with it every call passing arrays did two atomic updates per array
-# argument, a third of the kernel's time (perf, Table 4.3 camera); the result is bit-identical.
+# The kernel's helpers allocate nothing, so they are compiled without the runtime's reference
+# counting (numba's ``_nrt=False``): with it every call passing arrays made two atomic updates per
+# array argument, a third of the kernel's time (perf, Table 4.3 camera); the result is bit-identical.
+_helper = njit(cache=True, _nrt=False)
+
 _PIECES = 16  # kernel calls per render (progress granularity; does not change the result)
 _K = 6.0  # Gaussian support cut-off in σ (tails beyond: Φ(−6) ≈ 1e-9)
 _KS = 4.5  # half-width of the σs-bands of the blurred square, in σs (dropped tail ∫ ≤ 8e-7·σs per unit length)
@@ -463,7 +465,7 @@ def _ramp(num, sig):  # pragma: no cover - jitted
     return num if num > 0.0 else 0.0
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _mean_phi(mid, half):  # pragma: no cover - jitted
     """The mean of Φ over [mid − half, mid + half] for half < 0.125 (4-point Gauss–Legendre, error < 1e-15)."""
     acc = 0.0
@@ -532,7 +534,7 @@ def _m(ax, sc, v):  # pragma: no cover - jitted
     return _window(u, ax[_A_E1], ax[_A_E2], ax[_A_A1] != 0.0, ax[_A_A2] != 0.0, sc[_S_SM])
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _setup_axis(ax, sc, c, g0, e1, e2, a1, a2, bhalf, origin):  # pragma: no cover - jitted
     """Fill an axis descriptor: the lenslet window [e1, e2] (lenslet units) seen on the sensor
     from a disc centred at c, and the patch of pixel cells it can reach (cell t spans
@@ -569,7 +571,7 @@ def _setup_axis(ax, sc, c, g0, e1, e2, a1, a2, bhalf, origin):  # pragma: no cov
     ax[_A_E0] = origin + ta * pp
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _edge_table(ax, sc, e, q, out):  # pragma: no cover - jitted
     """out[k] = ∫_{cell k} Φ((x − q)/σc) dx for every cell: a σs-blurred lower window edge q
     (lenslet edge e) seen through the σl-blurred pixels (σc = sqrt(σs² + σl²)).
@@ -614,7 +616,7 @@ def _edge_table(ax, sc, e, q, out):  # pragma: no cover - jitted
         r_prev = sig_c * _ramp(a_prev, 1.0) if a_prev <= _UMAX else 0.0
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _axis_tables(ax, sc, lamlo, full, tmp):  # pragma: no cover - jitted
     """Per cell k: Λ_k(lo) (the blurred lower edge seen through the cell) and the full integral
     ∫ m·b_k (the cell's whole share of the window)."""
@@ -634,7 +636,7 @@ def _axis_tables(ax, sc, lamlo, full, tmp):  # pragma: no cover - jitted
             full[k] = lamlo[k] - tmp[k]
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _axis_angles(ax, rho, ang, is_x):  # pragma: no cover - jitted
     """Angles (with their cos, sin: rows of ang) at which the circle (radius ρ about the axis'
     disc centre) crosses the zone boundaries of this axis; returns their number (at most 8)."""
@@ -669,7 +671,7 @@ def _b(ax, sc, k, v):  # pragma: no cover - jitted
     return _cdf(x0 + sc[_S_PP] - v, sc[_S_SL]) - _cdf(x0 - v, sc[_S_SL])
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _num_int(ax, sc, k, a, b):  # pragma: no cover - jitted
     """∫_a^b m(x)·b_k(x) dx by Gauss–Legendre panels broken at the cell edges and window edges."""
     if b <= a:
@@ -700,7 +702,7 @@ def _num_int(ax, sc, k, a, b):  # pragma: no cover - jitted
     return acc
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _num_step(ax, sc, k, a, b):  # pragma: no cover - jitted
     """∫_a^b m(x)·b_k(x) dx over a short step (between consecutive arc nodes): 4-point Gauss–Legendre."""
     h = 0.5 * (b - a)
@@ -712,7 +714,7 @@ def _num_step(ax, sc, k, a, b):  # pragma: no cover - jitted
     return acc * h
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _u_partial(ax, sc, lamlo, full, k, v, zone):  # pragma: no cover - jitted
     """U_k(v) = ∫_{−∞}^{v} m·b_k for a cell k whose blurred support contains v."""
     pp = sc[_S_PP]
@@ -743,7 +745,7 @@ def _u_partial(ax, sc, lamlo, full, k, v, zone):  # pragma: no cover - jitted
 
 
 # ---------------------------------------------------------------- patch assembly
-@njit(cache=True, _nrt=False)
+@_helper
 def _nodes(pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, zp, sec_window, wk, cnt):  # pragma: no cover
     """Boundary nodes i < n of ∮ U_k(vp)·m_s(vs)·b_j(vs) d(vs) (nod rows: vp, vs, weight).
 
@@ -832,7 +834,7 @@ def _nodes(pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, zp, se
                     direct[j, k] += g * wk[0, k - k0]
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _nodes_vec(
     pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, sec_window, vb, wk, cnt
 ):  # pragma: no cover
@@ -909,7 +911,7 @@ def _nodes_vec(
                     direct[j, k] += g * wk[0, k - k0]
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _v_at(ax, sc, lamv, fullv, j, v, zone):  # pragma: no cover - jitted
     """V_j(v) = ∫_{−∞}^{v} m·b_j for any cell j (0 wholly above v, full wholly below)."""
     ksl = sc[_S_KSL]
@@ -921,7 +923,7 @@ def _v_at(ax, sc, lamv, fullv, j, v, zone):  # pragma: no cover - jitted
     return _u_partial(ax, sc, lamv, fullv, j, v, zone)
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _cut(pri, sec, sc, lam_p, full_p, lam_s, full_s, direct, carry, swap, v, s0, s1, sign, uk):  # pragma: no cover
     """A straight segment at primary coordinate v from s0 to s1 along the secondary axis:
     sign·U_p(v)·[V_s(s1) − V_s(s0)] for every cell pair (``uk``: scratch for the U_p(v) of each cell)."""
@@ -997,7 +999,7 @@ def _cs_small(d):  # pragma: no cover - jitted
     return math.cos(d), math.sin(d)
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _flush(
     bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, wk, cnt
 ):  # pragma: no cover
@@ -1019,7 +1021,7 @@ def _flush(
     ncnt[bt] = 0
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _arc(
     ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, pcs, ia, brk, wk, nodv, ncnt, vb, cnt
 ):  # pragma: no cover
@@ -1163,7 +1165,7 @@ def _arc(
         ncnt[bt] = 0
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _boundary(
     ax,
     ay,
@@ -1267,7 +1269,7 @@ def _boundary(
             direct[j, k] += fully[j] * acc
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _write_patch(direct, ax, ay, geo, buf, r0, r1, fac):  # pragma: no cover - jitted
     """Add fac·direct into the chunk buffer (rows r0..r1) and clear it; returns (total, on the sensor, spilled)."""
     nx = int(ax[_A_N])
@@ -1298,7 +1300,7 @@ def _write_patch(direct, ax, ay, geo, buf, r0, r1, fac):  # pragma: no cover - j
     return total, inside, spill
 
 
-@njit(cache=True, _nrt=False)
+@_helper
 def _write_outer(fx, ax, fy, ay, geo, buf, r0, r1, fac):  # pragma: no cover - jitted
     """Add fac·fy[j]·fx[k] (a separable patch) into the chunk buffer; returns (total, on the sensor, spilled)."""
     nx = int(ax[_A_N])
