@@ -945,7 +945,7 @@ def _cut(pri, sec, sc, lam_p, full_p, lam_s, full_s, direct, carry, swap, v, s0,
     if j1 < j0:
         return
     # U_p(v) does not depend on the secondary cell: once per primary cell (inside a band it is
-    # a numeric integral, the costliest step of a lenslet image).
+    # a numeric integral).
     for k in range(kfull + 1, kpart + 1):
         uk[k] = _u_partial(pri, sc, lam_p, full_p, k, v, zp)
     for j in range(j0, j1 + 1):
@@ -1405,6 +1405,8 @@ def _render_kernel(
         carry_y = np.zeros((psz, psz))
         pcs = np.zeros((3, 24))
         brk = np.zeros((3, 2 * psz + 16))
+        # Per-cell scratch: rows 0, 1 (node values), 3–5 (carried band antiderivatives) for _nodes,
+        # row 2 for _cut's U_p(v).
         wk = np.zeros((6, psz + 4))
         nodv = np.zeros((4, 5, 512))
         ncnt = np.zeros(4, dtype=np.int64)
