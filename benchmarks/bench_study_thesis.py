@@ -23,8 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lfstudy import io, workflow
-from lfstudy.config import expand_cases, load_config
-from lfstudy.study.case import calib_id
+from lfstudy.config import expand_cases, load_config, stage_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,20 +33,28 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="working directory (default: a temp dir)")
     ap.add_argument("--rays", type=int, default=25000, help="rays per particle (thesis: 25,000)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--ppp", type=float, default=0.001, choices=(0.001, 0.005, 0.01), help="seeding (sec. 7.3)")
+    ap.add_argument(
+        "--method", choices=("exact", "montecarlo"), default=None, help="raytrace.method (default: the config's)"
+    )
     args = ap.parse_args()
 
     cfg = load_config(ROOT / "config" / "thesis.yaml")
     cfg["raytrace"]["rays_per_particle"] = args.rays
-    case = next(c for c in expand_cases(cfg) if c.flow == "uniform_x" and c.ppp == 0.001)
+    if args.method is not None:
+        cfg["raytrace"]["method"] = args.method
+    case = next(c for c in expand_cases(cfg) if c.flow == "uniform_x" and c.ppp == args.ppp)
     cid = case.case_id
     out = args.out or Path(tempfile.mkdtemp(prefix="lfstudy-bench-"))
     d = out / cid
-    cal = out / "calib" / calib_id(cid)
     workflow.set_threads(args.threads)
 
     def sc(stage: str) -> dict:
         """What the Snakefile passes the stage: the config sections it reads."""
-        return workflow.stage_config(cfg, cid, stage)
+        return stage_config(cfg, cid, stage)
+
+    cal = out / "calib" / sc("pinhole")["calib_id"]
+    depth = cal / "depth_calibration.zarr" if sc("depthcal")["depth_calibration"]["enabled"] else None
 
     steps = [
         ("camera", lambda: workflow.run_optics(sc("camera"), d / "camera.json", d / "focal_planes.zarr")),
@@ -94,7 +101,15 @@ def main() -> None:
             )
             for f in "ab"
         ),
-        ("piv", lambda: workflow.run_piv(sc("piv"), d / "volume_a.zarr", d / "volume_b.zarr", d / "piv.zarr")),
+        *(
+            [("depthcal", lambda: workflow.run_depth_calibration(sc("depthcal"), cal / "centers.zarr", depth))]
+            if depth
+            else []
+        ),
+        (
+            "piv",
+            lambda: workflow.run_piv(sc("piv"), d / "volume_a.zarr", d / "volume_b.zarr", d / "piv.zarr", depth),
+        ),
         (
             "errors",
             lambda: workflow.run_errors(
@@ -102,7 +117,9 @@ def main() -> None:
             ),
         ),
     ]
-    print(f"case {cid}  ({args.rays} rays/particle, {args.threads} threads)  in {out}")
+    method = cfg["raytrace"].get("method", "exact")
+    rays = f"{args.rays} rays/particle" if method == "montecarlo" else "no rays"
+    print(f"case {cid}  ({method}, {rays}, {args.threads} threads)  in {out}")
     total = 0.0
     for name, fn in steps:
         t0 = time.perf_counter()
