@@ -1,15 +1,17 @@
 """End-to-end benchmark: the thesis' uniform-x case at full size (sec. 7.1).
 
 Table 4.3 camera (4872 x 3248 px, 289 x 193 lenslets), 0.001 ppp (15,824
-particles), 25,000 rays per particle, 7 mm depth span, 4.5 lenslet-pixel
-(0.5625 mm) shift in x. Runs every stage of the Snakemake rule chain in one
-process (the same functions the rules call), times each, and prints the
-measured displacement statistics beside the thesis' (mean -4.45 px,
-sigma 0.07 px; the thesis' sign is the image frame, ours the object frame).
+particles; ``--ppp 0.01``: 158,243), the config's rendering method (exact;
+``--method montecarlo`` traces ``--rays`` per particle, thesis 25,000), 7 mm
+depth span, 4.5 lenslet-pixel (0.5625 mm) shift in x. Runs every stage of the
+Snakemake rule chain in one process (the same functions the rules call, the
+design's depth calibration included), times each, and prints the measured
+displacement statistics beside the thesis' (mean -4.45 px, sigma 0.07 px; the
+thesis' sign is the image frame, ours the object frame).
 
-Target: at most 5 minutes on 2 cores.
+Target: at most 5 minutes on 2 cores at 0.001 ppp.
 
-    python benchmarks/bench_study_thesis.py [--out DIR] [--rays N]
+    python benchmarks/bench_study_thesis.py [--out DIR] [--ppp P] [--method M] [--rays N]
 """
 
 from __future__ import annotations
