@@ -11,7 +11,7 @@ thesis' sign is the image frame, ours the object frame).
 
 Target: at most 5 minutes on 2 cores at 0.001 ppp.
 
-    python benchmarks/bench_study_thesis.py [--out DIR] [--ppp P] [--method M] [--rays N]
+    python benchmarks/bench_study_thesis.py [--out DIR] [--ppp P] [--method M] [--rays N] [--seed S]
 """
 
 from __future__ import annotations
@@ -39,12 +39,21 @@ def main() -> None:
     ap.add_argument(
         "--method", choices=("exact", "montecarlo"), default=None, help="raytrace.method (default: the config's)"
     )
+    ap.add_argument("--seed", type=int, default=None, help="study seed (default: the config's, 2011)")
+    ap.add_argument(
+        "--no-depth-calibration", action="store_true", help="skip the design's depth calibration (w left as read)"
+    )
+    ap.add_argument("--skip-compare", action="store_true", help="skip the other reconstructions of the same stacks")
     args = ap.parse_args()
 
     cfg = load_config(ROOT / "config" / "thesis.yaml")
     cfg["raytrace"]["rays_per_particle"] = args.rays
     if args.method is not None:
         cfg["raytrace"]["method"] = args.method
+    if args.seed is not None:
+        cfg["seed"] = args.seed
+    if args.no_depth_calibration:
+        cfg["depth_calibration"]["enabled"] = False
     case = next(c for c in expand_cases(cfg) if c.flow == "uniform_x" and c.ppp == args.ppp)
     cid = case.case_id
     out = args.out or Path(tempfile.mkdtemp(prefix="lfstudy-bench-"))
@@ -146,6 +155,8 @@ def main() -> None:
         if err[v].ndim == 0:
             print(f"  {v:<28} {float(err[v]):.4f} {err[v].attrs.get('units', '')}")
 
+    if args.skip_compare:
+        return
     # Same focal stacks, other reconstructions: how much of the spread is the threshold's.
     from lfstudy.piv import widim
     from lfstudy.reconstruct import reconstruct
