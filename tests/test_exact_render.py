@@ -12,7 +12,7 @@ from scipy.special import ndtr
 from lfstudy.optics import PlenopticCamera
 from lfstudy.simulate import exact as ex
 from lfstudy.simulate import raytrace as rt
-from lfstudy.simulate.particles import make_field, seed_particles
+from lfstudy.simulate.particles import make_field, pinhole_spans, seed_particles
 
 #: Table 4.3 optics on a small sensor with an odd lenslet count (9 x 7): a lenslet on the axis.
 CAM = PlenopticCamera(150, 110, 0.0074, 0.125, 0.5, 50.0, -1.0)
@@ -313,6 +313,39 @@ def test_pinhole_image_exact_matches_monte_carlo_and_handles_a_rotated_grid():
     # Out of focus a rotated grid is refused (the exact method needs an unrotated grid there).
     with pytest.raises(ValueError, match="lenslet_rotation"):
         ex.render_exact(cam, _field((0.0, 0.0, 1.0)), 100)
+
+
+def test_pinhole_image_is_the_expectation_of_its_uniform_field():
+    """The pinhole image is the expected image of the uniform field that the Monte-Carlo's random points
+    sample. Checked against an independent discretisation of the same integral: a dense regular grid of
+    points over the whole field (spacing σm/1.5, the trapezoid rule, which converges spectrally for this
+    smooth integrand) rendered with the lenslet-plane blur σm itself, where the pinhole image moves σm
+    into the sensor blur and integrates over each lenslet's sharp square with a 3 x 3 Gauss rule."""
+    cam = CAM.with_(lenslet_rotation=0.005, lenslet_offset_x=0.01)
+    count, n = 3000, 40
+    pin = ex.render_pinhole_exact(cam, count=count, rays_per_point=n)
+    assert pin.attrs["pinhole_nodes"] == 3 and pin.attrs["sigma_lenslet_plane"] > 0
+    f16 = cam.with_(fnumber=16.0)
+    xs, ys = pinhole_spans(cam)
+    h = f16.sigma_lenslet_plane * f16.so / f16.si / 1.5
+    nx, ny = round(xs / h), round(ys / h)
+    gx, gy = np.meshgrid((np.arange(nx) + 0.5) * xs / nx - xs / 2, (np.arange(ny) + 0.5) * ys / ny - ys / 2)
+    grid = make_field(gx.ravel(), gy.ravel(), 0 * gx.ravel(), np.full(gx.size, count / gx.size))
+    dense = ex.render_exact(f16, grid, n)
+    peak = dense.values.max()
+    assert np.abs(pin.values - dense.values).max() < 1e-7 * peak
+    assert pin.values.sum() == pytest.approx(dense.values.sum(), rel=1e-7)
+    # The Gauss rule has converged: 3 nodes per axis against 6.
+    assert np.abs(ex.render_pinhole_exact(cam, count=count, rays_per_point=n, nodes=6).values - pin.values).max() < (
+        1e-7 * peak
+    )
+    # No sampling: the seed does not matter, and the image scales with the field's density.
+    other_seed = ex.render_pinhole_exact(cam, count=count, rays_per_point=n, seed=9)
+    np.testing.assert_array_equal(pin.values, other_seed.values)
+    np.testing.assert_allclose(ex.render_pinhole_exact(cam, count=2 * count, rays_per_point=n).values, 2 * pin.values)
+    for kw, match in (({"count": 0}, "count"), ({"nodes": 0}, "nodes"), ({"rays_per_point": 0}, "rays_per_point")):
+        with pytest.raises(ValueError, match=match):
+            ex.render_pinhole_exact(cam, **{"count": count, "rays_per_point": n, **kw})
 
 
 @pytest.mark.parametrize(

@@ -122,7 +122,8 @@ _DENS = 1.5
 _NG_MIN = 4
 _NGN = 16  # Gauss–Legendre nodes per ≤ _PANEL σ panel of the numeric (corner) antiderivatives (8e-11·σ)
 _PANEL = 8.0  # longest panel, in units of the narrowest blur active on it
-_EPS_FOCUS = 1e-9  # spot radius / σm below which M_k is a constant over the aperture image
+_PINHOLE_NODES = 3  # Gauss–Legendre nodes per axis and lenslet of the pinhole image (error: see the tests)
+_EPS_FOCUS = 1e-9  # spot radius / σm (/ lenslet pitch without σm) below which M_k is a constant over the aperture image
 _TWO_PI = 2.0 * math.pi
 _HALF_PI = 0.5 * math.pi
 
@@ -1445,7 +1446,7 @@ def _render_kernel(
             ly = si * t0y - oy
             g0x = cr * lx + sr * ly  # spot centre in the grid frame (eqs 4.10–4.11)
             g0y = -sr * lx + cr * ly
-            focus = rs == 0.0 or (sm > 0.0 and rs <= _EPS_FOCUS * sm)
+            focus = rs <= _EPS_FOCUS * (sm if sm > 0.0 else pl)  # also catches rounding of an exact focus
             reach = rs + _K * sm
             j0 = max(0, math.floor((g0x - reach) / pl + cx0 + 0.5))
             j1 = min(int(nlx) - 1, math.floor((g0x + reach) / pl + cx0 + 0.5))
@@ -1583,7 +1584,20 @@ def _render_kernel(
 
 
 # ------------------------------------------------------------------ wrappers
-def _geometry(camera: PlenopticCamera, diffraction: bool) -> np.ndarray:
+def _blurs(camera: PlenopticCamera, diffraction: bool, sigmas: tuple[float, float] | None) -> tuple[float, float]:
+    """(σm, σl) in mm: ``sigmas`` if given (validated), else the camera's diffraction blurs or none."""
+    if sigmas is None:
+        return (camera.sigma_lenslet_plane, camera.sigma_sensor_plane) if diffraction else (0.0, 0.0)
+    try:
+        sm, sl = (float(v) for v in sigmas)
+    except (TypeError, ValueError):
+        raise RaytraceError(f"sigmas = {sigmas!r}: must be two numbers (σm, σl) in mm") from None
+    if not (math.isfinite(sm) and math.isfinite(sl) and sm >= 0.0 and sl >= 0.0):
+        raise RaytraceError(f"sigmas = {sigmas!r}: allowed range is finite and >= 0 mm")
+    return sm, sl
+
+
+def _geometry(camera: PlenopticCamera, sm: float, sl: float) -> np.ndarray:
     g = np.zeros(_G_SIZE)
     g[_G_SO], g[_G_SI], g[_G_FM] = camera.so, camera.si, camera.main_focal_length
     g[_G_FL], g[_G_R] = camera.lenslet_focal_length, camera.aperture_diameter / 2.0
@@ -1592,8 +1606,7 @@ def _geometry(camera: PlenopticCamera, diffraction: bool) -> np.ndarray:
     g[_G_OX], g[_G_OY] = camera.lenslet_offset_x, camera.lenslet_offset_y
     g[_G_COS], g[_G_SIN] = math.cos(camera.lenslet_rotation), math.sin(camera.lenslet_rotation)
     g[_G_NLX], g[_G_NLY] = camera.n_lenslets_x, camera.n_lenslets_y
-    g[_G_SM] = camera.sigma_lenslet_plane if diffraction else 0.0
-    g[_G_SL] = camera.sigma_sensor_plane if diffraction else 0.0
+    g[_G_SM], g[_G_SL] = sm, sl
     g[_G_NROW], g[_G_NCOL] = camera.n_pixels_y, camera.n_pixels_x
     return g
 
@@ -1617,13 +1630,11 @@ def _weights(
 
 
 def _layout(
-    camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, n_chunks: int, diffraction: bool
+    camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, n_chunks: int, sm: float, sl: float
 ) -> tuple[Any, ...]:
     """Sort order, chunk bounds, chunk row ranges, the scratch patch size and the most lenslets per axis."""
     so, si, fm, fl = camera.so, camera.si, camera.main_focal_length, camera.lenslet_focal_length
     rad, pl, pp = camera.aperture_diameter / 2.0, camera.lenslet_pitch, camera.pixel_pitch
-    sm = camera.sigma_lenslet_plane if diffraction else 0.0
-    sl = camera.sigma_sensor_plane if diffraction else 0.0
     d = so + z
     c1 = 1.0 / d - 1.0 / fm
     yc = -(si + fl) * y / d  # image centre of the particle on the sensor (y up)
@@ -1668,7 +1679,7 @@ def exact_memory_estimate(
 ) -> int:
     """Bytes :func:`render_exact` allocates: the float64 image, the particle arrays and the per-chunk scratch."""
     x, y, z, _ = _particle_arrays(camera, particles)
-    _, bounds, _, _, psz, nlmax = _layout(camera, x, y, z, n_chunks, diffraction)
+    _, bounds, _, _, psz, nlmax = _layout(camera, x, y, z, n_chunks, *_blurs(camera, diffraction, None))
     return _memory(camera, x.size, psz, nlmax, bounds.size - 1)
 
 
@@ -1683,6 +1694,7 @@ def render_exact(
     n_chunks: int = DEFAULT_CHUNKS,
     max_image_bytes: float = 4e9,
     progress: bool = False,
+    sigmas: tuple[float, float] | None = None,
 ) -> xr.DataArray:
     """The expected raw plenoptic image of a particle field, computed exactly (no rays).
 
@@ -1721,6 +1733,9 @@ def render_exact(
         Refuse (RaytraceError) if the estimated allocation exceeds this.
     progress : bool
         Show a tqdm bar of the particles rendered (it does not change the result).
+    sigmas : tuple of float, optional
+        (σm, σl) in mm instead of the camera's diffraction blurs (``diffraction``
+        is then ignored); :func:`render_pinhole_exact` uses it.
 
     Returns
     -------
@@ -1735,7 +1750,8 @@ def render_exact(
     x, y, z, inten = _particle_arrays(camera, particles)
     if not isinstance(n_chunks, (int, np.integer)) or isinstance(n_chunks, bool) or n_chunks < 1:
         raise RaytraceError(f"n_chunks = {n_chunks!r}: must be an integer >= 1")
-    order, bounds, r0, r1, psz, nlmax = _layout(camera, x, y, z, int(n_chunks), diffraction)
+    sm, sl = _blurs(camera, diffraction, sigmas)
+    order, bounds, r0, r1, psz, nlmax = _layout(camera, x, y, z, int(n_chunks), sm, sl)
     ncol = camera.n_pixels_x
     k = bounds.size - 1
     need = _memory(camera, x.size, psz, nlmax, k)
@@ -1747,7 +1763,7 @@ def render_exact(
     wt = _weights(
         camera, particles, n, inten, solid_angle_correction=solid_angle_correction, match_ray_counts=match_ray_counts
     )
-    geo = _geometry(camera, diffraction)
+    geo = _geometry(camera, sm, sl)
     # Chunk c writes rows r0[c]..r1[c] of the image itself: its slice boff[c]..boff[c + 1] of the flat image.
     image = np.zeros((camera.n_pixels_y, ncol))
     flat = image.reshape(-1)
@@ -1788,9 +1804,9 @@ def render_exact(
         "n_particles": int(x.size),
         "solid_angle_correction": int(bool(solid_angle_correction)),
         "match_ray_counts": int(bool(match_ray_counts)),
-        "diffraction": int(bool(diffraction)),
-        "sigma_lenslet_plane": camera.sigma_lenslet_plane,
-        "sigma_sensor_plane": camera.sigma_sensor_plane,
+        "diffraction": int(bool(diffraction if sigmas is None else sm > 0.0 or sl > 0.0)),
+        "sigma_lenslet_plane": camera.sigma_lenslet_plane if sigmas is None else sm,
+        "sigma_sensor_plane": camera.sigma_sensor_plane if sigmas is None else sl,
         "n_chunks": int(k),
         "lenslet_images": int(tot[_ST_LENS]),
         "lenslet_images_interior": int(tot[_ST_INTERIOR]),
@@ -1813,26 +1829,72 @@ def render_pinhole_exact(
     count: int = 500_000,
     rays_per_point: int = 100,
     seed: int = 0,
+    nodes: int = _PINHOLE_NODES,
     **kwargs: Any,
 ) -> xr.DataArray:
-    """The calibration pinhole image (sec. 5.1) computed exactly.
+    """The calibration pinhole image (sec. 5.1): the expected image of its uniform field.
 
-    The same point field as :func:`lfstudy.simulate.raytrace.render_pinhole`
-    (``pinhole_field(camera, count=count, seed=seed)``, all in the object focal
-    plane) imaged at ``fnumber``; every point is in focus, so each lenslet it
-    reaches shows the σl-blurred image of the stopped-down aperture, weighted by
-    the lenslet-plane diffraction. Extra keyword arguments go to :func:`render_exact`.
+    :func:`lfstudy.simulate.raytrace.render_pinhole` images ``count`` random
+    points of :func:`~lfstudy.simulate.particles.pinhole_field` (a uniform
+    sample of the object focal plane) at ``fnumber``, ``rays_per_point`` rays
+    each. This is its expected value over the rays *and* the point positions:
+    the image of the uniform field of the same density, with no sampling noise
+    (``seed`` is not used; it is kept for the Monte-Carlo's signature).
+
+    In focus a point's lenslet-plane image is ``L = M·p``; the ray passes the
+    lenslet that ``L`` plus the diffraction shift η (σm) falls in, and lands on
+    the disc centred at ``c_k − fl·p/so`` (eq. 4.4) blurred by σl. Integrating the
+    uniform field over p for a fixed lenslet-plane point q = L + η turns η into
+    a shift of that disc by ``fl·η/si``, i.e. one more Gaussian blur:
+    lenslet k's image is the integral over q in its (sharp) square of the disc
+    blurred by ``σl' = sqrt(σl² + (σm·fl/si)²)``. That integrand is smooth in q
+    (the disc moves by ±fl·pl/(2·si), a fraction of σl' in pixels), so a
+    ``nodes`` x ``nodes`` Gauss–Legendre rule per lenslet computes it: each node
+    is a point of the field rendered by :func:`render_exact` with
+    ``sigmas=(0, σl')`` (it reaches its own lenslet only), carrying the
+    field's intensity over its share of the square. The solid angle (eq. 4.14)
+    is taken at the node rather than averaged over η (a relative change below
+    1e-9 here). Extra keyword arguments go to :func:`render_exact`.
+
+    Returns
+    -------
+    xarray.DataArray
+        As :func:`render_exact`, with ``pinhole_fnumber``, ``pinhole_count`` and
+        ``pinhole_nodes`` attributes.
     """
-    from lfstudy.simulate.particles import pinhole_field
+    from lfstudy.simulate.particles import make_field, pinhole_spans
 
-    _check_rays(rays_per_point, "rays_per_point")
+    n = _check_rays(rays_per_point, "rays_per_point")
+    if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or count < 1:
+        raise RaytraceError(f"count = {count!r}: must be an integer >= 1 (points of the pinhole field)")
+    if not isinstance(nodes, (int, np.integer)) or isinstance(nodes, bool) or not 1 <= nodes <= _NG_MAX:
+        raise RaytraceError(f"nodes = {nodes!r}: allowed range is 1..{_NG_MAX} (Gauss–Legendre nodes per axis)")
     cam = camera.with_(fnumber=float(fnumber))
-    field = pinhole_field(camera, count=count, seed=seed)
-    img = render_exact(cam, field, rays_per_point, **kwargs)
+    sm, sl = _blurs(cam, kwargs.pop("diffraction", True), None)
+    sl_eff = math.hypot(sl, sm * cam.lenslet_focal_length / cam.si)
+    # Nodes of the rule on every lenslet's square (grid frame offsets, rotated into the sensor frame).
+    xi, wi = _GL_X[nodes, :nodes], _GL_W[nodes, :nodes] / 2.0
+    half = cam.lenslet_pitch / 2.0
+    gx, gy = (a.ravel() * half for a in np.meshgrid(xi, xi))
+    w = np.outer(wi, wi).ravel()
+    c, s = math.cos(cam.lenslet_rotation), math.sin(cam.lenslet_rotation)
+    cx, cy = (a.reshape(-1, 1) for a in cam.lenslet_centers())
+    lx = (cx + (c * gx - s * gy)).ravel()
+    ly = (cy + (s * gx + c * gy)).ravel()
+    # Object-plane points p = L/M (M = −si/so in focus) and their share of the field's intensity.
+    xs, ys = pinhole_spans(camera)
+    cell = (cam.lenslet_pitch * cam.so / cam.si) ** 2
+    inten = np.tile(w * (count * cell / (xs * ys)), cx.size)
+    mag = -cam.si / cam.so
+    field = make_field(lx / mag, ly / mag, np.zeros_like(lx), inten)
+    img = render_exact(cam, field, n, sigmas=(0.0, sl_eff), **kwargs)
     img.attrs.update(
-        long_name="simulated pinhole calibration image (expected)",
+        long_name="simulated pinhole calibration image (expected, uniform field)",
         pinhole_fnumber=float(fnumber),
         pinhole_count=int(count),
+        pinhole_nodes=int(nodes),
+        sigma_lenslet_plane=sm,
+        sigma_sensor_plane=sl,
         seed=int(seed),
     )
     return img

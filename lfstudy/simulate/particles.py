@@ -16,7 +16,7 @@ import xarray as xr
 
 from lfstudy.optics import PlenopticCamera
 
-__all__ = ["ParticleError", "particle_count", "seed_particles", "pinhole_field", "make_field"]
+__all__ = ["ParticleError", "particle_count", "seed_particles", "pinhole_field", "pinhole_spans", "make_field"]
 
 
 class ParticleError(ValueError):
@@ -120,14 +120,18 @@ def seed_particles(
     )
 
 
+def pinhole_spans(camera: PlenopticCamera) -> tuple[float, float]:
+    """x and y extent [mm] of the calibration field: the field of view plus one lenslet on each side."""
+    margin = 2 * camera.lenslet_pitch / abs(camera.magnification)
+    return camera.fov_x + margin, camera.fov_y + margin
+
+
 def pinhole_field(camera: PlenopticCamera, *, count: int = 500_000, seed: int = 0) -> xr.Dataset:
     """Calibration "pinhole" field (sec. 5.1): many points on the object focal plane.
 
     The thesis used 500,000 points × 100 rays at f/16 to approximate a uniform
-    field; image it with ``camera.with_(fnumber=16)``. Points cover the field of
-    view plus one lenslet so edge lenslets are lit too.
+    field; image it with ``camera.with_(fnumber=16)``. Points cover
+    :func:`pinhole_spans` (the field of view plus one lenslet) so edge lenslets are lit too.
     """
-    margin = 2 * camera.lenslet_pitch / abs(camera.magnification)
-    return seed_particles(
-        camera, count=count, x_span=camera.fov_x + margin, y_span=camera.fov_y + margin, z_span=0.0, seed=seed
-    )
+    xs, ys = pinhole_spans(camera)
+    return seed_particles(camera, count=count, x_span=xs, y_span=ys, z_span=0.0, seed=seed)

@@ -562,10 +562,7 @@ def render(
     n = _check_rays(rays_per_particle)
     seed64 = _seed_u64(seed)
     x, y, z, inten = _particle_arrays(camera, particles)
-    if not (isinstance(read_noise, (int, float)) and math.isfinite(read_noise) and read_noise >= 0):
-        raise RaytraceError(f"read_noise = {read_noise!r}: must be a finite number >= 0")
-    if bit_depth is not None and (not isinstance(bit_depth, (int, np.integer)) or not 1 <= bit_depth <= 32):
-        raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
+    _check_noise(read_noise, bit_depth)
     if not isinstance(n_chunks, (int, np.integer)) or n_chunks < 1:
         raise RaytraceError(f"n_chunks = {n_chunks!r}: must be an integer >= 1")
     if method == "exact":
@@ -622,6 +619,14 @@ def render(
     }
     da = xr.DataArray(image, dims=("row", "col"), coords=_sensor_coords(camera), name="intensity", attrs=attrs)
     return _finish(da, int(seed), shot_noise, read_noise, full_well, bit_depth)
+
+
+def _check_noise(read_noise: Any, bit_depth: Any) -> None:
+    """The noise and export options of :func:`render`, checked before any work."""
+    if not (isinstance(read_noise, (int, float)) and math.isfinite(read_noise) and read_noise >= 0):
+        raise RaytraceError(f"read_noise = {read_noise!r}: must be a finite number >= 0")
+    if bit_depth is not None and (not isinstance(bit_depth, (int, np.integer)) or not 1 <= bit_depth <= 32):
+        raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
 
 
 def _finish(
@@ -696,12 +701,25 @@ def render_pinhole(
     images a small spot of the aperture at its projected centre. The camera's
     diffraction sigmas follow the new f-number automatically.
 
-    Extra keyword arguments go to :func:`render` (``method="exact"`` computes
-    the expected image, :func:`lfstudy.simulate.exact.render_pinhole_exact`).
+    Extra keyword arguments go to :func:`render`. ``method="exact"`` computes
+    the expected image of the uniform field these points sample
+    (:func:`lfstudy.simulate.exact.render_pinhole_exact`, no point or ray
+    noise); the noise options of :func:`render` apply to it as well.
     """
     from lfstudy.simulate.particles import pinhole_field
 
     _check_rays(rays_per_point, "rays_per_point")
+    if kwargs.get("method", "montecarlo") == "exact":
+        from lfstudy.simulate.exact import render_pinhole_exact
+
+        kwargs.pop("method")
+        defaults = (("shot_noise", False), ("read_noise", 0.0), ("full_well", None), ("bit_depth", None))
+        noise = [kwargs.pop(k, d) for k, d in defaults]
+        _check_noise(noise[1], noise[3])
+        da = render_pinhole_exact(
+            camera, fnumber=fnumber, count=count, rays_per_point=rays_per_point, seed=seed, **kwargs
+        )
+        return _finish(da, int(seed), *noise)
     cam = camera.with_(fnumber=float(fnumber))
     field = pinhole_field(camera, count=count, seed=seed)
     img = render(cam, field, rays_per_point, seed, **kwargs)
