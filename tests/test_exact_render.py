@@ -359,6 +359,9 @@ def test_pinhole_image_is_the_expectation_of_its_uniform_field():
         ({"particles": _field((0.0, 0.0, 0.0)).assign(intensity=("particle", [-1.0]))}, r"particles\.intensity"),
         ({"n_chunks": 0}, "n_chunks"),
         ({"max_image_bytes": 1000}, "max_image_bytes"),
+        ({"sigmas": (-1e-3, 1e-3)}, "sigmas"),
+        ({"sigmas": (1e-3, float("nan"))}, "sigmas"),
+        ({"sigmas": (1e-3,)}, "sigmas"),
     ],
 )
 def test_bad_input(kwargs, match):
