@@ -280,14 +280,17 @@ def pinhole(args: argparse.Namespace) -> None:
         f"error against the geometric centres (px, {ex_.size} lenslets)"
     )
     for seed in args.pinhole_seeds:
-        for method, noise in (("montecarlo", False), ("exact", True), ("exact", False)):
+        for method, noise, label in (
+            ("montecarlo", False, "montecarlo (ray noise)"),
+            ("exact", True, "exact + shot noise"),
+            ("exact", False, "exact"),
+        ):
             t0 = time.perf_counter()
             img = rt.render_pinhole(cam, seed=seed, method=method, shot_noise=noise)
             dt = time.perf_counter() - t0
             c = find_lenslet_centers(img, cam)
             ok = c["valid"].values.astype(bool)
             err = np.hypot(c["cx"].values - ex_, c["cy"].values - ey_)[ok]
-            label = method + (" + shot noise" if noise else "" if method == "exact" else " (ray noise)")
             print(
                 f"    seed {seed} {label:<24} {dt:6.2f} s  rms {np.sqrt(np.mean(err**2)):.4f} px  valid {int(ok.sum())}"
             )

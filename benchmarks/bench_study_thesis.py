@@ -128,7 +128,7 @@ def main() -> None:
             ),
         ),
     ]
-    method = cfg["raytrace"].get("method", "exact")
+    method = cfg["raytrace"]["method"]  # the validated config holds the schema's default
     rays = f"{args.rays} rays/particle" if method == "montecarlo" else "no rays"
     print(f"case {cid}  ({method}, {rays}, {args.threads} threads)  in {out}")
     total = 0.0
