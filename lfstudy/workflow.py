@@ -188,37 +188,22 @@ def run_piv(
 def run_errors(
     ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, particles: str | Path, out: str | Path
 ) -> None:
-    """Errors of one case against the known flow (+ reconstruction quality Q)."""
+    """Errors of one case against the known flow, its field of view, Q and depth gain
+    (:func:`lfstudy.study.metrics.case_metrics`)."""
     from lfstudy.simulate.flows import flow_from_config
-    from lfstudy.study.metrics import case_errors, reconstruction_quality
+    from lfstudy.study.metrics import case_metrics
 
     spec = ccfg["flow"]
-    res = io.open_zarr(piv).load()
-    err = case_errors(res, flow_from_config(spec), dt=spec.get("dt", 1.0), n_steps=spec.get("n_steps", 100))
     cam = cl.case_camera(ccfg)
-    for ax, fov in (("x", cam.fov_x), ("y", cam.fov_y)):
-        err[f"fov_{ax}_mm"] = ((), float(fov), {"units": "mm", "long_name": f"field of view in {ax}"})
-    sigma = cl.truth_sigma(cam)
-    q = reconstruction_quality(io.open_array(volume), io.open_zarr(particles).load(), sigma_mm=sigma)
-    err["Q"] = (
-        (),
-        float(q),
-        {
-            "units": "1",
-            "long_name": "reconstruction quality Q",
-            "description": "normalised correlation with the true particles as Gaussians of sigma (z, y, x) = "
-            f"{', '.join(f'{s:.4g}' for s in sigma)} mm (half the camera's resolution cell) on the same grid",
-        },
-    )
-    err["depth_gain"] = (
-        (),
-        float(res.attrs.get("depth_gain_total", float("nan"))),
-        {
-            "units": "1",
-            "long_name": "depth gain",
-            "description": "measured / true z displacement of the design's traversed-volume depth calibration, "
-            "which w was divided by (NaN: depth_calibration.enabled is false, w is the raw reading)",
-        },
+    err = case_metrics(
+        io.open_zarr(piv).load(),
+        flow_from_config(spec),
+        cam,
+        io.open_array(volume),
+        io.open_zarr(particles).load(),
+        sigma_mm=cl.truth_sigma(cam),
+        dt=spec.get("dt", 1.0),
+        n_steps=spec.get("n_steps", 100),
     )
     err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
     io.write_zarr(err, out)

@@ -21,7 +21,7 @@ import xarray as xr
 from lfstudy import io
 from lfstudy.process.recording import Recording
 from lfstudy.study import figures as rf
-from lfstudy.study.report import Block, _table, _try, write_html
+from lfstudy.study.report import Block, _table, _try, piv_figure_blocks, write_html
 
 __all__ = ["SECTIONS", "METRICS", "write_process_report"]
 
@@ -132,30 +132,7 @@ def _pair_blocks(
         one = piv.isel({dim: p}).load()
         if "corrector_rms" in one:
             one = one.dropna("pass", subset=["corrector_rms"])
-        yield _try(
-            "pairs",
-            "convergence",
-            "Corrector RMS and valid vectors per pass (Figs 6.14–6.15).",
-            "PIV convergence",
-            lambda one=one: rf.piv_convergence(one),
-            case=name,
-        )
-        yield _try(
-            "pairs",
-            "histograms",
-            "Measured displacement per component, valid vectors (cf. Figs 7.2–7.4).",
-            "displacement histograms",
-            lambda one=one: rf.displacement_histograms(one),
-            case=name,
-        )
-        yield _try(
-            "pairs",
-            "vectors",
-            "Vector-field slices (cf. Figs 7.1, 7.6, 7.9).",
-            "vector slices",
-            lambda one=one: rf.vector_slices(one),
-            case=name,
-        )
+        yield from piv_figure_blocks("pairs", one, case=name)
         stack = root / frame_dir(i) / "stack.zarr"
         yield _try(
             "pairs",

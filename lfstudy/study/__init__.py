@@ -3,7 +3,8 @@
 Modules: :mod:`~lfstudy.study.sweep` (the sweep table: settings, cases, where
 each stage's outputs live), :mod:`~lfstudy.study.case` (one case's config → its
 science: the layer the workflow, the CLI and notebooks share),
-:mod:`~lfstudy.study.metrics` (per-case errors, Q), :mod:`~lfstudy.study.table`
+:mod:`~lfstudy.study.metrics` (per-case errors, Q), :mod:`~lfstudy.study.metric_table` (every
+metric's units, long name, better direction and where it is shown), :mod:`~lfstudy.study.table`
 (the study Dataset and CSV), :mod:`~lfstudy.study.report` and
 :mod:`~lfstudy.study.figures` (the HTML report). The report (matplotlib) is imported on first use, so the
 per-case stages that only need the metrics start fast.
@@ -14,10 +15,11 @@ from __future__ import annotations
 from typing import Any
 
 from lfstudy.study.case import derive_seed, render_volume, simulate_case
+from lfstudy.study.metric_table import METRICS, Metric, metric, shown_in
 from lfstudy.study.metrics import (
     AXES,
-    METRIC_LABELS,
     case_errors,
+    case_metrics,
     error_statistics,
     locking_excess,
     peak_locking_c1,
@@ -34,8 +36,12 @@ __all__ = [
     "render_volume",
     "derive_seed",
     "AXES",
-    "METRIC_LABELS",
+    "METRICS",
+    "Metric",
+    "metric",
+    "shown_in",
     "case_errors",
+    "case_metrics",
     "error_statistics",
     "peak_locking_c1",
     "locking_excess",

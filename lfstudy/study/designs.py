@@ -10,9 +10,9 @@ seeding and processing settings); designs are compared flow by flow.
   merit (total RMS error in mm and relative, in-plane and depth resolution as
   vector spacing in mm, measured depth, field of view, valid vectors, Q).
 - :func:`pareto_front`: the non-dominated rows for given objectives.
-- :func:`recommend`: per flow, the Pareto set over (total error, in-plane
-  resolution, depth resolution) and one sentence naming the recommended design
-  and what it trades away.
+- :func:`recommend`: per flow, the Pareto set over the metric table's ``pareto``
+  metrics (total error, in-plane and depth resolution) and one sentence naming
+  the recommended design and what it trades away.
 - :func:`influence`: which swept settings move a metric most.
 """
 
@@ -26,30 +26,9 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-__all__ = ["OBJECTIVES", "design_table", "pareto_front", "recommend", "influence", "design_label"]
+from lfstudy.study import metric_table as mt
 
-#: The Pareto objectives: (column, sense). Smaller error, finer in-plane and depth spacing.
-OBJECTIVES: tuple[tuple[str, str], ...] = (
-    ("rms_total_mm", "min"),
-    ("spacing_mm_x", "min"),
-    ("spacing_mm_z", "min"),
-)
-
-_COLUMNS = (
-    "rms_total_mm",
-    "rel_error",
-    "spacing_mm_x",
-    "spacing_mm_y",
-    "spacing_mm_z",
-    "window_mm_x",
-    "window_mm_z",
-    "depth_mm",
-    "fov_x_mm",
-    "fov_y_mm",
-    "valid_percent",
-    "Q",
-    "time_total",
-)
+__all__ = ["design_table", "pareto_front", "recommend", "influence", "design_label"]
 
 
 def design_label(row: Mapping[str, object], dims: Sequence[str]) -> str:
@@ -67,8 +46,9 @@ def design_label(row: Mapping[str, object], dims: Sequence[str]) -> str:
 
 def design_table(study: xr.Dataset) -> pd.DataFrame:
     """One row per computed case: the swept values, ``design`` (label), ``case_id`` and the
-    physical figures of merit that the study holds (see ``_COLUMNS``)."""
-    cols = [c for c in _COLUMNS if c in study]
+    physical figures of merit that the study holds (the metric table's ``front``, ``resolution``
+    and ``pareto`` metrics)."""
+    cols = [c for c in mt.names("front", "resolution", "pareto") if c in study]
     extra = [v for v in ("computed", "case_id") if v in study]
     if not cols:
         return pd.DataFrame()
@@ -80,13 +60,15 @@ def design_table(study: xr.Dataset) -> pd.DataFrame:
     return df.reset_index(drop=True)
 
 
-def pareto_front(df: pd.DataFrame, objectives: Sequence[tuple[str, str]] = OBJECTIVES) -> np.ndarray:
+def pareto_front(df: pd.DataFrame, objectives: Sequence[tuple[str, str]] | None = None) -> np.ndarray:
     """Boolean mask of the non-dominated rows.
 
     A row is dominated when another row is at least as good in every objective
+    (``(column, "min" | "max")``; default the metric table's ``pareto`` metrics)
     and strictly better in one. Rows with a missing objective are never on the
     front (and dominate nothing).
     """
+    objectives = mt.objectives() if objectives is None else objectives
     cols = [c for c, _ in objectives if c in df]
     if not cols or df.empty:
         return np.zeros(len(df), bool)
@@ -103,9 +85,11 @@ def pareto_front(df: pd.DataFrame, objectives: Sequence[tuple[str, str]] = OBJEC
 
 
 def recommend(
-    study: xr.Dataset, *, min_valid: float = 80.0, objectives: Sequence[tuple[str, str]] = OBJECTIVES
+    study: xr.Dataset, *, min_valid: float = 80.0, objectives: Sequence[tuple[str, str]] | None = None
 ) -> tuple[pd.DataFrame, dict[str, str]]:
     """Per flow: the designs on the Pareto front, and a sentence recommending one.
+
+    The front is over ``objectives`` (default: the metric table's ``pareto`` metrics).
 
     The recommended design is the Pareto design with the lowest total RMS error
     in mm among those with at least ``min_valid`` % valid vectors (any Pareto

@@ -8,7 +8,12 @@ stage times are in :mod:`lfstudy.study.table`):
   scalars (bias, RMS, standard deviation, valid %, mean and spread of the
   measured displacement, peak locking) as in sec. 7.1–7.4;
 - :func:`reconstruction_quality`: the reconstruction quality factor Q of
-  Elsinga et al. (2006) against :func:`render_truth`.
+  Elsinga et al. (2006) against :func:`render_truth`;
+- :func:`case_metrics`: all of a case's metrics (the above, the field of view and
+  the depth gain), what the workflow's errors stage writes.
+
+Every scalar's units and long name come from the metric table
+(:mod:`lfstudy.study.metric_table`), not from here.
 
 Sign convention: everything is in the object frame (+z away from the camera).
 A particle moved +0.5625 mm in x images as +4.5 voxels of 0.125 mm; the
@@ -26,6 +31,7 @@ import xarray as xr
 from scipy.special import ndtr
 
 from lfstudy.simulate.flows import Flow, true_displacement
+from lfstudy.study.metric_table import metric_attrs
 
 __all__ = [
     "AXES",
@@ -35,30 +41,30 @@ __all__ = [
     "locking_excess",
     "reconstruction_quality",
     "render_truth",
-    "METRIC_LABELS",
+    "field_of_view",
+    "depth_gain",
+    "with_metrics",
+    "case_metrics",
 ]
 
 #: Displacement component of each axis (pivpy names) and its array dimension.
 AXES: dict[str, str] = {"x": "u", "y": "v", "z": "w"}
 
-#: Headline per-case metrics and how to label them (used by the report).
-METRIC_LABELS: dict[str, str] = {
-    "rel_error": "total RMS error / true displacement",
-    "rms_total_mm": "total RMS error [mm]",
-    "bias_z_mm": "bias z [mm]",
-    "rms_z_mm": "RMS error z [mm]",
-    "rms_x_mm": "RMS error x [mm]",
-    "valid_percent": "valid vectors [%]",
-    "Q": "reconstruction quality Q",
-    "spacing_mm_x": "vector spacing x [mm]",
-    "spacing_mm_z": "vector spacing z [mm]",
-    "depth_mm": "measured depth [mm]",
-    "time_total": "run time, all stages [s]",
-}
-
 
 def _attrs(units: str, long_name: str, **extra: Any) -> dict[str, Any]:
     return {"units": units, "long_name": long_name, **extra}
+
+
+def _table_attrs(ds: xr.Dataset) -> None:
+    """Every 0-d variable's units and long name, from the metric table (a ``KeyError`` for one it lacks)."""
+    for name, var in ds.data_vars.items():
+        if var.ndim == 0:
+            var.attrs = {**metric_attrs(str(name)), **var.attrs}
+
+
+def _scalar(value: float) -> tuple[tuple[()], float, dict[str, str]]:
+    """A 0-d variable (set it as ``out[name] = ...``); its attrs are added from the metric table."""
+    return ((), value, {})
 
 
 # --------------------------------------------------------------- statistics
@@ -310,47 +316,32 @@ def case_errors(
         out[f"{c}_true_mm"] = (dims, t_mm, _attrs("mm", f"true {ax} displacement at the window centre"))
         out[f"{c}_err"] = (dims, e_vx, _attrs("voxel", f"{ax} displacement error (measured − true)"))
         out[f"{c}_err_mm"] = (dims, e_mm, _attrs("mm", f"{ax} displacement error (measured − true)"))
-        for unit, err, meas, tru, sfx in (
-            ("voxel", e_vx, meas_vox[ax], t_vx, ""),
-            ("mm", e_mm, meas_mm[ax], t_mm, "_mm"),
-        ):
+        for err, meas, tru, sfx in ((e_vx, meas_vox[ax], t_vx, ""), (e_mm, meas_mm[ax], t_mm, "_mm")):
             bias, rms, std = error_statistics(err, fin)
             mb = error_statistics(meas, fin)[0]  # mean of the measured values
             tb = error_statistics(tru, fin)[0]
-            out[f"bias_{ax}{sfx}"] = ((), bias, _attrs(unit, f"bias error {ax} (mean of measured − true)"))
-            out[f"rms_{ax}{sfx}"] = ((), rms, _attrs(unit, f"RMS error {ax}"))
-            out[f"std_{ax}{sfx}"] = ((), std, _attrs(unit, f"random error {ax} (std of measured − true)"))
-            out[f"mean_{ax}{sfx}"] = ((), mb, _attrs(unit, f"mean measured {ax} displacement"))
-            out[f"true_{ax}{sfx}"] = ((), tb, _attrs(unit, f"mean true {ax} displacement"))
+            out[f"bias_{ax}{sfx}"] = _scalar(bias)
+            out[f"rms_{ax}{sfx}"] = _scalar(rms)
+            out[f"std_{ax}{sfx}"] = _scalar(std)
+            out[f"mean_{ax}{sfx}"] = _scalar(mb)
+            out[f"true_{ax}{sfx}"] = _scalar(tb)
         mv = meas_vox[ax][fin]
         # C1 (peak_locking_c1) reads ~1 for any uniform displacement, so the study keeps the
         # truth-aware excess near-integer fraction instead
-        out[f"locking_excess_{ax}"] = (
-            (),
-            locking_excess(mv, t_vx[fin]),
-            _attrs(
-                "1",
-                f"excess near-integer fraction {ax}",
-                description="fraction of measured displacements within 0.25 voxel of an integer minus "
-                "that expected for Gaussian errors about the truth",
-            ),
-        )
+        out[f"locking_excess_{ax}"] = _scalar(locking_excess(mv, t_vx[fin]))
     rt = math.sqrt(sum(float(out[f"rms_{ax}"]) ** 2 for ax in axes)) if n_valid else math.nan
-    out["rms_total"] = ((), rt, _attrs("voxel", "total RMS error (all components)"))
+    out["rms_total"] = _scalar(rt)
     rt_mm = math.sqrt(sum(float(out[f"rms_{ax}_mm"]) ** 2 for ax in axes)) if n_valid else math.nan
-    out["rms_total_mm"] = ((), rt_mm, _attrs("mm", "total RMS error (all components)"))
+    out["rms_total_mm"] = _scalar(rt_mm)
     mag = np.sqrt(sum(np.broadcast_to(true_mm[ax], zeros.shape) ** 2 for ax in axes))
     true_mag = float(mag[fin].mean()) if n_valid else math.nan
-    out["true_mag_mm"] = ((), true_mag, _attrs("mm", "mean magnitude of the true displacement"))
-    out["rel_error"] = (
-        (),
-        rt_mm / true_mag if n_valid and true_mag > 0 else math.nan,
-        _attrs("1", "total RMS error / mean true displacement magnitude"),
-    )
+    out["true_mag_mm"] = _scalar(true_mag)
+    out["rel_error"] = _scalar(rt_mm / true_mag if n_valid and true_mag > 0 else math.nan)
     _resolution(out, piv, dims, steps, fin)
-    out["n_vectors"] = ((), n_vec, _attrs("1", "number of PIV vectors"))
-    out["n_valid"] = ((), n_valid, _attrs("1", "number of valid vectors"))
-    out["valid_percent"] = ((), 100.0 * n_valid / n_vec if n_vec else 0.0, _attrs("percent", "valid vectors"))
+    out["n_vectors"] = _scalar(n_vec)
+    out["n_valid"] = _scalar(n_valid)
+    out["valid_percent"] = _scalar(100.0 * n_valid / n_vec if n_vec else 0.0)
+    _table_attrs(out)
     out.attrs.update(
         title="PIV errors against the known flow",
         flow=getattr(flow, "name", type(flow).__name__),
@@ -372,14 +363,14 @@ def _resolution(out: xr.Dataset, piv: xr.Dataset, dims: tuple[str, ...], steps: 
         vox = float(np.median(steps[ax]))
         i = dims.index(ax)
         if win is not None and len(win) == len(dims):
-            out[f"window_mm_{ax}"] = ((), float(win[i]) * vox, _attrs("mm", f"final PIV window along {ax}"))
+            out[f"window_mm_{ax}"] = _scalar(float(win[i]) * vox)
         if spa is not None and len(spa) == len(dims):
-            out[f"spacing_mm_{ax}"] = ((), float(spa[i]) * vox, _attrs("mm", f"vector spacing along {ax}"))
+            out[f"spacing_mm_{ax}"] = _scalar(float(spa[i]) * vox)
     if "z" in dims:
         zc = np.broadcast_to(piv["z"].values.reshape([-1 if d == "z" else 1 for d in dims]), fin.shape)[fin]
         span = float(zc.max() - zc.min()) if zc.size else 0.0
         w = float(out["window_mm_z"]) if "window_mm_z" in out else 0.0
-        out["depth_mm"] = ((), span + w if zc.size else math.nan, _attrs("mm", "depth spanned by valid vectors"))
+        out["depth_mm"] = _scalar(span + w if zc.size else math.nan)
 
 
 # ----------------------------------------------------------- reconstruction Q
@@ -504,3 +495,73 @@ def reconstruction_quality(
     if e2 == 0.0 or t2 == 0.0:
         return math.nan
     return num / math.sqrt(e2 * t2)
+
+
+# ------------------------------------------------------- the case's metrics
+def field_of_view(camera: Any) -> dict[str, float]:
+    """The design's field of view in x and y [mm] (:attr:`PlenopticCamera.fov_x`, ``fov_y``)."""
+    return {"fov_x_mm": float(camera.fov_x), "fov_y_mm": float(camera.fov_y)}
+
+
+def depth_gain(piv: xr.Dataset) -> float:
+    """The depth gain the PIV result's w was divided by (:func:`lfstudy.piv.depth.correct_depth`);
+    NaN when it was not depth-corrected."""
+    return float(piv.attrs.get("depth_gain_total", math.nan))
+
+
+def with_metrics(ds: xr.Dataset, values: Mapping[str, float], **extra_attrs: Mapping[str, Any]) -> xr.Dataset:
+    """``ds`` with each of ``values`` as a 0-d variable whose attrs come from the metric table.
+
+    ``extra_attrs`` maps a name to attrs added beside the table's (case-specific facts such as
+    the truth's size behind Q). A name missing from the table raises ``KeyError``.
+    """
+    out = ds.copy()
+    for name, value in values.items():
+        out[name] = ((), float(value), {**metric_attrs(name), **dict(extra_attrs.get(name, {}))})
+    return out
+
+
+def case_metrics(
+    piv: xr.Dataset,
+    flow: Flow,
+    camera: Any,
+    volume: xr.DataArray,
+    particles: xr.Dataset,
+    *,
+    sigma_mm: float | Sequence[float],
+    dt: float = 1.0,
+    n_steps: int = 100,
+) -> xr.Dataset:
+    """Every metric of one case: :func:`case_errors`, the field of view, Q and the depth gain.
+
+    Parameters
+    ----------
+    piv : xarray.Dataset
+        The case's PIV result (loaded).
+    flow : Flow
+        The imposed flow.
+    camera : PlenopticCamera
+        The case's design (its field of view).
+    volume : xarray.DataArray
+        The reconstruction of frame a (may be lazy), for :func:`reconstruction_quality`.
+    particles : xarray.Dataset
+        The true particles of frame a.
+    sigma_mm : float or (sz, sy, sx)
+        Size of the true particles for Q (:func:`lfstudy.study.case.truth_sigma`).
+    dt, n_steps : float, int
+        Of the true displacement (:func:`case_errors`).
+
+    Returns
+    -------
+    xarray.Dataset
+        The fields and scalars of :func:`case_errors` plus ``fov_x_mm``, ``fov_y_mm``, ``Q``
+        (with ``truth_sigma_mm``) and ``depth_gain``; every scalar's attrs from the metric table.
+    """
+    err = case_errors(piv, flow, dt=dt, n_steps=n_steps)
+    q = reconstruction_quality(volume, particles, sigma_mm=sigma_mm)
+    sigma = [float(s) for s in np.broadcast_to(np.asarray(sigma_mm, float), (3,))]
+    return with_metrics(
+        err,
+        {**field_of_view(camera), "Q": q, "depth_gain": depth_gain(piv)},
+        Q={"truth_sigma_mm": sigma},
+    )

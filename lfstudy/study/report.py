@@ -14,13 +14,14 @@ objects (Agg canvas), not through ``pyplot``, so nothing leaks between calls.
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
 import io as _io
 import math
 import re
 import time
 import warnings
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ import xarray as xr
 from lfstudy import io
 from lfstudy.config import case_config
 from lfstudy.optics import PlenopticCamera
+from lfstudy.study import metric_table as mt
 from lfstudy.study.case import case_planes
 from lfstudy.study.sweep import format_value
 
@@ -44,6 +46,7 @@ __all__ = [
     "case_table",
     "Block",
     "SECTIONS",
+    "piv_figure_blocks",
 ]
 
 #: Section ids and titles, in report order: the answer first.
@@ -57,25 +60,6 @@ SECTIONS: dict[str, str] = {
     "cases": "Per-case results",
     "legend": "Study table columns",
 }
-
-#: Columns of the case tables (when present in the study): physical units first.
-HEADLINE = (
-    "rel_error",
-    "rms_total_mm",
-    "bias_z_mm",
-    "rms_z_mm",
-    "spacing_mm_x",
-    "spacing_mm_z",
-    "depth_mm",
-    "depth_gain",
-    "valid_percent",
-    "Q",
-    "locking_excess_z",
-    "time_total",
-)
-
-#: The metrics of the overview and the per-setting panels.
-PANELS = ("rel_error", "rms_total_mm", "valid_percent", "Q")
 
 #: Thesis figures for the uniform displacements (image-frame sign), sec. 7.1–7.2.
 THESIS_REFERENCE = {
@@ -163,9 +147,10 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", name.replace("/", "__")).strip("-")
 
 
-def case_table(study: xr.Dataset, columns: tuple[str, ...] | list[str] = HEADLINE) -> pd.DataFrame:
-    """Computed cases as rows (index: swept parameters) and the given metrics as columns."""
-    cols = [c for c in columns if c in study]
+def case_table(study: xr.Dataset, columns: Sequence[str] | None = None) -> pd.DataFrame:
+    """Computed cases as rows (index: swept parameters) and the given metrics as columns
+    (default: the metric table's ``headline`` metrics)."""
+    cols = [c for c in (mt.names("headline") if columns is None else columns) if c in study]
     if not cols:
         return pd.DataFrame()
     df = study[cols + (["computed"] if "computed" in study else [])].to_dataframe()
@@ -176,45 +161,86 @@ def case_table(study: xr.Dataset, columns: tuple[str, ...] | list[str] = HEADLIN
 def best_designs(study: xr.Dataset) -> pd.DataFrame:
     """Per flow, the case that wins each criterion, judged in physical units.
 
-    Criteria (when the variables exist): lowest total RMS error in mm, lowest
-    error relative to the true displacement, lowest |bias| in mm, finest
-    in-plane and depth vector spacing, most valid vectors, highest Q, shortest
-    run time. Voxel errors are not compared across designs: a voxel is pitch/|M|
-    across and differs between them. Returns an empty table for an empty study.
+    The criteria are the metric table's ``criterion`` metrics that the study holds
+    (or that derive from what it holds, like |bias|), best by their
+    ``lower_is_better``: total and relative error, bias, in-plane and depth vector
+    spacing, valid vectors, Q, run time. Voxel errors are not compared across
+    designs: a voxel is pitch/|M| across and differs between them. Returns an
+    empty table for an empty study.
     """
     df = case_table(study, [c for c in study.data_vars if c != "computed" and study[c].dtype.kind in "biuf"])
     if df.empty:
         return df
-    if all(f"bias_{a}_mm" in df for a in "xyz"):
-        df["bias_norm_mm"] = np.sqrt(sum(df[f"bias_{a}_mm"] ** 2 for a in "xyz"))
-    crit = [
-        ("lowest total RMS error", "rms_total_mm", "min", "mm"),
-        ("lowest error / displacement", "rel_error", "min", "1"),
-        ("lowest bias |b|", "bias_norm_mm", "min", "mm"),
-        ("finest in-plane spacing", "spacing_mm_x", "min", "mm"),
-        ("finest depth spacing", "spacing_mm_z", "min", "mm"),
-        ("most valid vectors", "valid_percent", "max", "%"),
-        ("highest reconstruction quality Q", "Q", "max", ""),
-        ("shortest run time", "time_total", "min", "s"),
-    ]
     rows = []
+    for m in mt.shown_in("criterion"):
+        if m.name not in df and m.derive is not None:
+            with contextlib.suppress(KeyError):
+                df[m.name] = m.derive(df)
     for flow, sub in df.groupby(level="flow", sort=False):
-        for label, col, how, unit in crit:
-            if col not in sub or not sub[col].notna().any():
+        for m in mt.shown_in("criterion"):
+            if m.name not in sub or not sub[m.name].notna().any():
                 continue
-            idx = sub[col].idxmin() if how == "min" else sub[col].idxmax()
+            idx = sub[m.name].idxmin() if m.lower_is_better else sub[m.name].idxmax()
             p = dict(zip(sub.index.names, idx))
             rows.append(
                 {
                     "flow": flow,
-                    "criterion": label,
-                    "value": float(sub.loc[idx, col]),
-                    "unit": unit,
+                    "criterion": m.criterion_label,
+                    "value": float(sub.loc[idx, m.name]),
+                    "unit": m.units,
                     **{k: v for k, v in p.items() if k != "flow"},
                     "total RMS [mm]": float(sub.loc[idx, "rms_total_mm"]) if "rms_total_mm" in sub else math.nan,
                 }
             )
     return pd.DataFrame(rows)
+
+
+def piv_figure_blocks(
+    section: str, piv: xr.Dataset, errors: xr.Dataset | None = None, *, case: str | None = None
+) -> Iterator[Block]:
+    """The figures of one PIV result: convergence per pass, displacement histograms and vector slices.
+
+    Shared by the study report (per case, with the errors against the known flow: the histograms
+    mark the mean true displacement) and the recording report (per pair, no truth).
+
+    Parameters
+    ----------
+    section : str
+        Report section of the blocks.
+    piv : xarray.Dataset
+        One WIDIM result (loaded).
+    errors : xarray.Dataset, optional
+        Its errors store (:func:`lfstudy.study.metrics.case_metrics`), when the flow is known.
+    case : str, optional
+        Group the blocks under this case (or pair) name.
+    """
+    from lfstudy.study import figures as rf
+
+    yield _try(
+        section,
+        "convergence",
+        "Corrector RMS and valid vectors per pass (Figs 6.14–6.15).",
+        "PIV convergence",
+        lambda: rf.piv_convergence(piv),
+        case=case,
+    )
+    yield _try(
+        section,
+        "histograms",
+        "Measured displacement per component, valid vectors (Figs 7.2–7.4, 7.8)"
+        + ("; dashed: mean true displacement." if errors is not None else "."),
+        "displacement histograms",
+        lambda: rf.displacement_histograms(piv, errors),
+        case=case,
+    )
+    yield _try(
+        section,
+        "vectors",
+        "Vector-field slices (Figs 7.1, 7.6, 7.9).",
+        "vector slices",
+        lambda: rf.vector_slices(piv),
+        case=case,
+    )
 
 
 def _varied(study: xr.Dataset) -> list[str]:
@@ -306,26 +332,11 @@ def _answer_blocks(study: xr.Dataset) -> Iterator[Block]:
         html="".join(f"<p><b>{html.escape(s)}</b></p>" for s in sentences.values())
         + "<p>Designs are compared in millimetres and as a fraction of the true displacement: a voxel is "
         "pitch/|M| across and a fraction of a refocus-plane spacing deep, and differs between designs. A design "
-        "is on the Pareto front when no other has a lower total RMS error, a finer in-plane vector spacing and a "
-        "finer depth spacing all at once; the recommended one is the front's lowest error with at least 80 % "
-        "valid vectors.</p>",
+        "is on the Pareto front when no other is better in all of "
+        + html.escape(", ".join(f"{m.long_name} ({m.better})" for m in mt.shown_in("pareto")))
+        + " at once; the recommended one is the front's lowest total RMS error with at least 80 % valid vectors.</p>",
     )
-    cols = [
-        c
-        for c in (
-            "design",
-            "flow",
-            "rms_total_mm",
-            "rel_error",
-            "spacing_mm_x",
-            "spacing_mm_z",
-            "depth_mm",
-            "valid_percent",
-            "Q",
-            "recommended",
-        )
-        if c in table
-    ]
+    cols = [c for c in ("design", "flow", *mt.names("front"), "recommended") if c in table]
     for flow in sentences:
         yield _try(
             "answer",
@@ -364,7 +375,7 @@ def _overview_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> I
             "designs they are compared in mm and relative to the true displacement.</p>" + _table(sweep)
         ),
     )
-    var = "rel_error" if "rel_error" in study else "rms_total_mm"
+    var = next((m for m in mt.names("overview") if m in study), "")
     ranked = [d for d, _ in influence(study, var)]
     if not ranked:
         yield Block("overview", "map", note="Overview figure: not available (no setting takes two values).")
@@ -391,9 +402,9 @@ def _comparison_blocks(study: xr.Dataset) -> Iterator[Block]:
             f"panels_{p}",
             f"Headline metrics against {p} (one line per flow, mean over the other settings).",
             f"metrics against {p}",
-            lambda p=p: rf.parameter_panels(study, p, PANELS),
+            lambda p=p: rf.parameter_panels(study, p, mt.names("panel")),
         )
-        cols = [m for m in HEADLINE if m in study]
+        cols = [m for m in mt.names("headline") if m in study]
         if cols:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
@@ -415,22 +426,7 @@ def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
     from lfstudy.study.designs import design_table
 
     dt = design_table(study)
-    cols = [
-        c
-        for c in (
-            "design",
-            "flow",
-            "window_mm_x",
-            "window_mm_z",
-            "spacing_mm_x",
-            "spacing_mm_y",
-            "spacing_mm_z",
-            "depth_mm",
-            "fov_x_mm",
-            "fov_y_mm",
-        )
-        if c in dt
-    ]
+    cols = [c for c in ("design", "flow", *mt.names("resolution")) if c in dt]
     if not dt.empty and len(cols) > 2:
         yield Block(
             "designs",
@@ -547,17 +543,32 @@ def _representative_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]
 
 
 def _legend_blocks(study: xr.Dataset) -> Iterator[Block]:
-    """What every column of study.csv holds: name, units, meaning (from the variables' attrs)."""
-    rows = [{"column": "case_id", "units": "", "meaning": "results sub-path of the case"}]
+    """What every column of study.csv holds: name, units, meaning (the variables' attrs, which the
+    metric table sets) and, for a metric, which way is better."""
+    known = {m.name: m for m in mt.METRICS}
+    rows = [{"column": "case_id", "units": "", "meaning": "results sub-path of the case", "better": ""}]
     for d in study.dims:
         c = study[d]
         rows.append(
-            {"column": str(d), "units": c.attrs.get("units", ""), "meaning": f"swept: {c.attrs.get('long_name', d)}"}
+            {
+                "column": str(d),
+                "units": c.attrs.get("units", ""),
+                "meaning": f"swept: {c.attrs.get('long_name', d)}",
+                "better": "",
+            }
         )
     for name, v in study.data_vars.items():
         if name in ("computed", "case_id"):
             continue
-        rows.append({"column": str(name), "units": v.attrs.get("units", ""), "meaning": v.attrs.get("long_name", "")})
+        m = known.get(str(name))
+        rows.append(
+            {
+                "column": str(name),
+                "units": v.attrs.get("units", ""),
+                "meaning": v.attrs.get("long_name", ""),
+                "better": m.better if m else "",
+            }
+        )
     yield Block("legend", "columns", html=_table(pd.DataFrame(rows), index=False))
 
 
@@ -591,31 +602,7 @@ def _case_blocks(
         except Exception:
             err = None
         if piv is not None:
-            yield _try(
-                "cases",
-                "convergence",
-                "Corrector RMS and valid vectors per pass (Figs 6.14–6.15).",
-                "PIV convergence",
-                lambda piv=piv: rf.piv_convergence(piv),
-                case=cid,
-            )
-            yield _try(
-                "cases",
-                "histograms",
-                "Measured displacement per component, valid vectors "
-                "(Figs 7.2–7.4, 7.8); dashed: mean true displacement.",
-                "displacement histograms",
-                lambda piv=piv, err=err: rf.displacement_histograms(piv, err),
-                case=cid,
-            )
-            yield _try(
-                "cases",
-                "vectors",
-                "Vector-field slices (Figs 7.1, 7.6, 7.9).",
-                "vector slices",
-                lambda piv=piv: rf.vector_slices(piv),
-                case=cid,
-            )
+            yield from piv_figure_blocks("cases", piv, err, case=cid)
             yield _try(
                 "cases",
                 "error_map",

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from lfstudy.study.metrics import METRIC_LABELS
+from lfstudy.study import metric_table
 from lfstudy.study.sweep import NAMED, Case, Setting, format_value
 
 __all__ = ["study_value", "combine_cases", "to_csv", "from_csv", "stage_times"]
@@ -66,8 +66,10 @@ def combine_cases(
     xarray.Dataset
         One dimension per setting (named :attr:`Setting.dim`, with units and a
         long name), one float variable per scalar (NaN where not computed),
-        ``computed`` (bool) and ``case_id`` (text) per case. Variable attrs come
-        from the first case that has the variable; headline metrics come first.
+        ``computed`` (bool) and ``case_id`` (text) per case. A metric's attrs come
+        from the metric table (:mod:`lfstudy.study.metric_table`), another
+        variable's from the first case that has it; the table's ``summary``
+        metrics come first.
     """
     settings = list(settings) if settings is not None else list(NAMED.values())
     rows = []
@@ -99,9 +101,11 @@ def combine_cases(
                 data[name] = np.full(shape, np.nan)
                 attrs[name] = dict(var.attrs)
             data[name][at] = float(var.values)
-    order = [m for m in METRIC_LABELS if m in data] + sorted(n for n in data if n not in METRIC_LABELS)
+    lead = metric_table.names("summary")
+    order = [m for m in lead if m in data] + sorted(n for n in data if n not in lead)
+    known = {m.name: m.attrs for m in metric_table.METRICS}
     ds = xr.Dataset(
-        {n: (dims, data[n], attrs[n]) for n in order},
+        {n: (dims, data[n], known.get(n, attrs[n])) for n in order},
         coords={
             s.dim: (s.dim, coords[s.key], {"units": s.units, "long_name": s.label, "sweep_key": s.key})
             for s in settings
@@ -136,7 +140,7 @@ _SHORT_TO_KEY = {s.short: s.key for s in NAMED.values()}
 
 
 def from_csv(path: str | Path) -> xr.Dataset:
-    """Read a table written by :func:`to_csv` back into a study Dataset (no units).
+    """Read a table written by :func:`to_csv` back into a study Dataset (units of the metric table's metrics).
 
     The swept settings are the segments of the case ids (``mag~-1/.../reconstruct.method~mart``).
     """

@@ -1,0 +1,248 @@
+"""The one table of the study's per-case metrics: what each is, and where it is shown.
+
+Every scalar a case's errors store holds (:func:`lfstudy.study.metrics.case_metrics`) has a row
+here: its name, units, long name, whether lower is better, and the places of the report and of the
+design comparison it appears in. Everything else reads this table at call time:
+
+- the variables' attrs in ``errors.zarr`` and in the study (:func:`lfstudy.study.table.combine_cases`),
+  and so the report's legend of the ``study.csv`` columns;
+- the leading columns of the study table (place ``summary``);
+- the report's case tables, panels and overview map (``headline``, ``panel``, ``overview``);
+- the best-design rows (``criterion``), the Pareto objectives (``pareto``) and the report's
+  Pareto-front and resolution tables (``front``, ``resolution``).
+
+Adding a metric is one :class:`Metric` row plus the code that computes its value
+(``docs/howto/add-metric.md``). Like xclim's indicators, units and long names are declared once
+and every output's attrs come from that declaration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["PLACES", "Metric", "METRICS", "metric", "shown_in", "names", "metric_attrs", "objectives"]
+
+#: Where a metric can be shown, and what that means.
+PLACES: dict[str, str] = {
+    "summary": "leads the study table's variables (and study.csv's columns after the settings)",
+    "headline": "a column of the report's case tables (mean over the other settings; all computed cases)",
+    "panel": "a panel of the report's figures against each swept setting",
+    "overview": "the report's overview map (the first of these the study holds)",
+    "criterion": "a row of the best-design table: the case that does best on it, per flow",
+    "pareto": "an objective of the Pareto front the recommendation is chosen from",
+    "front": "a column of the report's Pareto-front table (and of the design table)",
+    "resolution": "a column of the report's resolution and field-of-view table (and of the design table)",
+}
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One per-case metric: one row of :data:`METRICS`.
+
+    Parameters
+    ----------
+    name : str
+        Variable name in the errors store, the study and ``study.csv``.
+    units : str
+        CF-style units (``"mm"``, ``"voxel"``, ``"1"``, ``"percent"``, ``"s"``).
+    long_name : str
+        What it is, in a few words (the legend's meaning, the panels' titles).
+    lower_is_better : bool or None
+        ``True``/``False`` where designs are ranked on it; ``None`` where neither end is better
+        (a signed bias, the depth gain, a count). Required for ``criterion`` and ``pareto``.
+    shown : iterable of str
+        Places of :data:`PLACES` it appears in (besides the study table and CSV, which hold every metric).
+    group : str
+        Kind of figure: ``error``, ``displacement``, ``resolution``, ``quality``, ``count``, ``cost``.
+    description : str
+        Longer explanation, stored as the ``description`` attribute.
+    criterion : str
+        Wording of its best-design row; default "lowest/highest <long name>".
+    derive : callable, optional
+        For a metric computed from others in a table (the best-design table): ``derive(table)``
+        returns its column from the table's columns (a ``KeyError`` when one is missing).
+    """
+
+    name: str
+    units: str
+    long_name: str
+    lower_is_better: bool | None = None
+    shown: frozenset[str] = field(default_factory=frozenset)
+    group: str = ""
+    description: str = ""
+    criterion: str = ""
+    derive: Callable[[Any], Any] | None = None
+
+    def __post_init__(self) -> None:
+        shown = frozenset([self.shown] if isinstance(self.shown, str) else self.shown)
+        object.__setattr__(self, "shown", shown)
+        unknown = sorted(shown - set(PLACES))
+        if unknown:
+            raise ValueError(f"metric {self.name!r}: unknown place(s) {unknown}; places are {sorted(PLACES)}")
+        if shown & {"criterion", "pareto"} and self.lower_is_better is None:
+            raise ValueError(
+                f"metric {self.name!r} ranks designs ({sorted(shown & {'criterion', 'pareto'})}): set lower_is_better"
+            )
+
+    @property
+    def attrs(self) -> dict[str, str]:
+        """The variable attributes: units, long name and (if any) description."""
+        out = {"units": self.units, "long_name": self.long_name}
+        if self.description:
+            out["description"] = self.description
+        return out
+
+    @property
+    def better(self) -> str:
+        """``"lower"``, ``"higher"`` or ``""``."""
+        return "" if self.lower_is_better is None else ("lower" if self.lower_is_better else "higher")
+
+    @property
+    def criterion_label(self) -> str:
+        """The best-design row's wording."""
+        return self.criterion or f"{'lowest' if self.lower_is_better else 'highest'} {self.long_name}"
+
+
+def _bias_norm_mm(table: Any) -> Any:
+    """|b| = sqrt(bx² + by² + bz²) [mm] from a table's per-axis biases."""
+    return np.sqrt(sum(table[f"bias_{a}_mm"] ** 2 for a in "xyz"))
+
+
+def _per_axis(
+    name: str,
+    units: str,
+    long_name: str,
+    *,
+    axes: str = "xyz",
+    shown: dict[str, Iterable[str]] | None = None,
+    **kw: Any,
+) -> tuple[Metric, ...]:
+    """One metric per axis: ``name`` and ``long_name`` hold ``{ax}``; ``shown`` maps an axis to its places."""
+    shown = shown or {}
+    return tuple(
+        Metric(name.format(ax=a), units, long_name.format(ax=a), shown=frozenset(shown.get(a, ())), **kw) for a in axes
+    )
+
+
+_LOCKING = (
+    "fraction of measured displacements within 0.25 voxel of an integer minus that expected for Gaussian errors "
+    "about the truth"
+)
+
+#: Every per-case metric, in order: the ``summary`` ones lead the study table in this order, and every
+#: report table and figure lists its metrics in this order.
+METRICS: tuple[Metric, ...] = (
+    # the answer: errors comparable across designs
+    Metric(
+        "rel_error", "1", "total RMS error / mean true displacement magnitude", True,
+        {"summary", "headline", "panel", "overview", "criterion", "front"}, "error",
+        criterion="lowest error / displacement",
+    ),
+    Metric(
+        "rms_total_mm", "mm", "total RMS error (all components)", True,
+        {"summary", "headline", "panel", "overview", "criterion", "pareto", "front"}, "error",
+        criterion="lowest total RMS error",
+    ),
+    Metric(
+        "bias_norm_mm", "mm", "bias magnitude |b|", True, {"criterion"}, "error",
+        criterion="lowest bias |b|", derive=_bias_norm_mm,
+    ),
+    Metric("bias_z_mm", "mm", "bias error z (mean of measured − true)", None, {"summary", "headline"}, "error"),
+    Metric("rms_z_mm", "mm", "RMS error z", True, {"summary", "headline"}, "error"),
+    Metric("rms_x_mm", "mm", "RMS error x", True, {"summary"}, "error"),
+    Metric(
+        "valid_percent", "percent", "valid vectors", False,
+        {"summary", "headline", "panel", "criterion", "front"}, "quality", criterion="most valid vectors",
+    ),
+    Metric(
+        "Q", "1", "reconstruction quality Q", False, {"summary", "headline", "panel", "criterion", "front"},
+        "quality",
+        description="normalised correlation of the reconstructed volume with the true particles as Gaussians of "
+        "half the camera's resolution cell on the same grid (Elsinga et al. 2006; truth_sigma_mm in errors.zarr)",
+    ),
+    # resolution in mm
+    Metric(
+        "spacing_mm_x", "mm", "vector spacing along x", True,
+        {"summary", "headline", "criterion", "pareto", "front", "resolution"}, "resolution",
+        criterion="finest in-plane spacing",
+    ),
+    Metric("spacing_mm_y", "mm", "vector spacing along y", True, {"resolution"}, "resolution"),
+    Metric(
+        "spacing_mm_z", "mm", "vector spacing along z", True,
+        {"summary", "headline", "criterion", "pareto", "front", "resolution"}, "resolution",
+        criterion="finest depth spacing",
+    ),
+    Metric(
+        "depth_mm", "mm", "depth spanned by valid vectors", None,
+        {"summary", "headline", "front", "resolution"}, "resolution",
+    ),
+    Metric(
+        "depth_gain", "1", "depth gain", None, {"headline"}, "resolution",
+        description="measured / true z displacement of the design's traversed-volume depth calibration, which w "
+        "was divided by (NaN: depth_calibration.enabled is false, w is the raw reading)",
+    ),
+    Metric("window_mm_x", "mm", "final PIV window along x", True, {"resolution"}, "resolution"),
+    Metric("window_mm_y", "mm", "final PIV window along y", True, (), "resolution"),
+    Metric("window_mm_z", "mm", "final PIV window along z", True, {"resolution"}, "resolution"),
+    Metric("fov_x_mm", "mm", "field of view in x", None, {"resolution"}, "resolution"),
+    Metric("fov_y_mm", "mm", "field of view in y", None, {"resolution"}, "resolution"),
+    Metric(
+        "locking_excess_z", "1", "excess near-integer fraction z", None, {"headline"}, "error", description=_LOCKING
+    ),
+    Metric(
+        "time_total", "s", "total run time", True, {"summary", "headline", "criterion"}, "cost",
+        criterion="shortest run time",
+    ),
+    # the rest: in the study table and study.csv only
+    *_per_axis("locking_excess_{ax}", "1", "excess near-integer fraction {ax}", axes="xy", group="error",
+               description=_LOCKING),
+    Metric("rms_total", "voxel", "total RMS error (all components)", True, (), "error"),
+    *_per_axis("rms_{ax}", "voxel", "RMS error {ax}", lower_is_better=True, group="error"),
+    Metric("rms_y_mm", "mm", "RMS error y", True, (), "error"),
+    *_per_axis("bias_{ax}", "voxel", "bias error {ax} (mean of measured − true)", group="error"),
+    *_per_axis("bias_{ax}_mm", "mm", "bias error {ax} (mean of measured − true)", axes="xy", group="error"),
+    *_per_axis("std_{ax}", "voxel", "random error {ax} (std of measured − true)", lower_is_better=True, group="error"),
+    *_per_axis("std_{ax}_mm", "mm", "random error {ax} (std of measured − true)", lower_is_better=True, group="error"),
+    *_per_axis("mean_{ax}", "voxel", "mean measured {ax} displacement", group="displacement"),
+    *_per_axis("mean_{ax}_mm", "mm", "mean measured {ax} displacement", group="displacement"),
+    *_per_axis("true_{ax}", "voxel", "mean true {ax} displacement", group="displacement"),
+    *_per_axis("true_{ax}_mm", "mm", "mean true {ax} displacement", group="displacement"),
+    Metric("true_mag_mm", "mm", "mean magnitude of the true displacement", None, (), "displacement"),
+    Metric("n_vectors", "1", "number of PIV vectors", None, (), "count"),
+    Metric("n_valid", "1", "number of valid vectors", None, (), "count"),
+)  # fmt: skip
+
+
+def metric(name: str) -> Metric:
+    """The row of ``name``; a ``KeyError`` naming the table when it has none."""
+    for m in METRICS:
+        if m.name == name:
+            return m
+    raise KeyError(f"{name!r} is not in the metric table (lfstudy.study.metric_table.METRICS)")
+
+
+def shown_in(place: str) -> tuple[Metric, ...]:
+    """The metrics shown in ``place`` (one of :data:`PLACES`), in table order."""
+    if place not in PLACES:
+        raise ValueError(f"unknown place {place!r}; places are {sorted(PLACES)}")
+    return tuple(m for m in METRICS if place in m.shown)
+
+
+def names(*places: str) -> list[str]:
+    """Names of the metrics shown in any of ``places``, in table order."""
+    chosen = {m.name for p in places for m in shown_in(p)}
+    return [m.name for m in METRICS if m.name in chosen]
+
+
+def metric_attrs(name: str) -> dict[str, str]:
+    """The attrs of metric ``name`` (units, long name, description)."""
+    return metric(name).attrs
+
+
+def objectives() -> tuple[tuple[str, str], ...]:
+    """The Pareto objectives, ``(name, "min" | "max")``, from the ``pareto`` metrics."""
+    return tuple((m.name, "min" if m.lower_is_better else "max") for m in shown_in("pareto"))
