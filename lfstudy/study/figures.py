@@ -9,13 +9,15 @@ Figure numbers refer to Lynch (2011).
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import xarray as xr
+from matplotlib import rc_context
 from matplotlib.figure import Figure
 
 from lfstudy.optics import OpticsError, PlenopticCamera
@@ -36,6 +38,18 @@ __all__ = [
 _COMP = {"x": "u", "y": "v", "z": "w"}
 
 
+def _plain_ticks(make: Callable[..., Figure]) -> Callable[..., Figure]:
+    """Draw with plain tick labels: a metric that barely varies (0.83570 … 0.83571) labels its
+    ticks with their values, not as an offset (``1e−5+8.357e−1``) that reads as the value."""
+
+    @functools.wraps(make)
+    def plain(*args: Any, **kwargs: Any) -> Figure:
+        with rc_context({"axes.formatter.useoffset": False}):
+            return make(*args, **kwargs)
+
+    return plain
+
+
 def _fig(w: float, h: float, **adjust: float) -> Figure:
     # Fixed margins, not a layout engine: constrained layout triples the
     # drawing time of a report with hundreds of small figures.
@@ -47,6 +61,7 @@ def _fig(w: float, h: float, **adjust: float) -> Figure:
 
 
 # ------------------------------------------------------------------ optics
+@_plain_ticks
 def ambiguity_vs_magnification(
     camera: PlenopticCamera, magnifications: Sequence[float] | None = None, *, marked: Sequence[float] = ()
 ) -> Figure:
@@ -91,6 +106,7 @@ def ambiguity_vs_magnification(
     return fig
 
 
+@_plain_ticks
 def focal_plane_diamonds(cameras: Mapping[str, tuple[PlenopticCamera, xr.Dataset]]) -> Figure:
     """Depth-of-focus diamonds of the refocus planes in image space (Fig. 5.9, eqs 5.16–5.20).
 
@@ -126,6 +142,7 @@ def focal_plane_diamonds(cameras: Mapping[str, tuple[PlenopticCamera, xr.Dataset
 
 
 # ----------------------------------------------------------------- images
+@_plain_ticks
 def raw_crop(raw: xr.DataArray, *, size: int = 160) -> Figure:
     """The central ``size`` × ``size`` pixels of a raw plenoptic image (cf. Fig. 4.21).
 
@@ -150,6 +167,7 @@ def raw_crop(raw: xr.DataArray, *, size: int = 160) -> Figure:
     return fig
 
 
+@_plain_ticks
 def refocused_planes(stack: xr.DataArray, *, n: int = 4) -> Figure:
     """``n`` planes of a focal stack spread over its depth (cf. Figs 5.12–5.16)."""
     nz = stack.sizes["z"]
@@ -167,6 +185,7 @@ def refocused_planes(stack: xr.DataArray, *, n: int = 4) -> Figure:
     return fig
 
 
+@_plain_ticks
 def intensity_histogram(values: np.ndarray, *, k: float = 3.0, bins: int = 100, title: str = "") -> Figure:
     """Histogram of rendered intensities with the threshold mean + kσ (Figs 5.17, 7.13–7.14, sec. 5.5)."""
     v = np.asarray(values, float).ravel()
@@ -188,6 +207,7 @@ def intensity_histogram(values: np.ndarray, *, k: float = 3.0, bins: int = 100, 
 
 
 # -------------------------------------------------------------------- PIV
+@_plain_ticks
 def piv_convergence(piv: xr.Dataset) -> Figure:
     """Corrector RMS and valid-vector percentage per pass, with the level Rf (Figs 6.14–6.15)."""
     p = piv["pass"].values if "pass" in piv.coords else np.arange(1, piv.sizes["pass"] + 1)
@@ -214,6 +234,7 @@ def piv_convergence(piv: xr.Dataset) -> Figure:
     return fig
 
 
+@_plain_ticks
 def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *, bins: int = 50) -> Figure:
     """Histograms of the measured displacement per component with μ and σ (Figs 7.2–7.4, 7.8).
 
@@ -250,6 +271,7 @@ def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *
     return fig
 
 
+@_plain_ticks
 def vector_slices(piv: xr.Dataset) -> Figure:
     """Quiver plots: u, v on the middle z slice; u, w on the middle y slice; and
     the middle z slice with the mean displacement subtracted (cf. Figs 7.1, 7.6, 7.9)."""
@@ -300,6 +322,7 @@ def vector_slices(piv: xr.Dataset) -> Figure:
     return fig
 
 
+@_plain_ticks
 def series_metrics(table: xr.Dataset, metrics: Sequence[str], dim: str, *, ncols: int = 3) -> Figure:
     """Scalar metrics of a processed recording against its pairs (time, or pair number).
 
@@ -326,6 +349,7 @@ def _label(da: xr.DataArray) -> str:
     return f"{ln} [{u}]" if u and u != "1" else str(ln)
 
 
+@_plain_ticks
 def metrics_vs_parameter(
     study: xr.Dataset, metrics: Sequence[str], param: str, line_param: str | None = None, *, ncols: int = 4
 ) -> Figure:
@@ -410,6 +434,7 @@ def _categorical(ax: Any, values: Sequence[Any], axis: str = "x") -> np.ndarray:
     return pos
 
 
+@_plain_ticks
 def overview_heatmap(study: xr.Dataset, var: str, dims: Sequence[str]) -> Figure:
     """The headline metric over the two most influential swept settings, one panel per flow.
 
@@ -455,6 +480,7 @@ def overview_heatmap(study: xr.Dataset, var: str, dims: Sequence[str]) -> Figure
     return fig
 
 
+@_plain_ticks
 def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Figure:
     """A few headline metrics against one swept setting (categorical axis), one line per flow,
     the other settings averaged over the computed cases."""
@@ -484,6 +510,7 @@ def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Fig
     return fig
 
 
+@_plain_ticks
 def pareto_figure(table: Any, flow: str) -> Figure:
     """Total RMS error [mm] against in-plane vector spacing [mm], colour: depth spacing [mm];
     the Pareto designs ringed and labelled, the recommended one starred."""
@@ -509,6 +536,7 @@ def pareto_figure(table: Any, flow: str) -> Figure:
     return fig
 
 
+@_plain_ticks
 def vector_error_slice(piv: xr.Dataset, err: xr.Dataset | None) -> Figure:
     """Middle x–y slice: the measured vectors beside the error magnitude |measured − true| [mm]."""
     fig = _fig(10.5, 4.2, left=0.07, right=0.95, top=0.88, bottom=0.14, wspace=0.3)

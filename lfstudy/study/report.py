@@ -131,9 +131,16 @@ def _table(df: pd.DataFrame, *, index: bool = True, fmt: str = "{:.3g}") -> str:
             return "–" if not np.isfinite(v) else fmt.format(v)
         return str(v)
 
-    return df.to_html(
+    out = df.to_html(
         index=index, escape=True, border=0, classes="tbl", na_rep="–", formatters=dict.fromkeys(df.columns, f)
     )
+    # Column headers may break after an underscore (locking_excess_z), so a wide table narrows to its
+    # box instead of running off it; the text is escaped already, <wbr> adds no character to a copy.
+    head, sep, body = out.partition("</thead>")
+    return _HEADER_CELL.sub(lambda m: m[1] + m[2].replace("_", "_<wbr>") + m[3], head) + sep + body
+
+
+_HEADER_CELL = re.compile(r"(<th[^>]*>)([^<]*)(</th>)")
 
 
 def _png(fig: Any) -> bytes:
@@ -630,9 +637,10 @@ nav ul{columns:2}figure{margin:1em 0}figure img{max-width:100%;height:auto;borde
 figcaption{font-size:.9em;color:#555}.note{color:#a40;font-style:italic}
 table.tbl{border-collapse:collapse;font-size:.82em;margin:.5em 0}
 table.tbl td,table.tbl th{border:1px solid #ddd;padding:2px 6px;text-align:right}
+table.tbl td{white-space:nowrap}
 table.tbl th{background:#f2f4f7}details{margin:.4em 0;border:1px solid #e4e4e4;padding:.3em .6em}
 summary{cursor:pointer;font-family:monospace}code{background:#f4f4f4;padding:0 3px}
-.scroll{overflow-x:auto}
+.scroll{overflow-x:auto;max-width:100%}
 """
 
 
