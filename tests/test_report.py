@@ -210,3 +210,128 @@ def test_designs_are_ranked_in_mm_not_voxels(tmp_path):
     row = best[best["criterion"] == "lowest total RMS error"].iloc[0]
     assert row["lenslet_pitch"] == pytest.approx(0.0888) and row["unit"] == "mm"
     assert "lowest total RMS error" in set(best["criterion"]) and not any(best["unit"] == "voxel")
+
+
+# ------------------------------------------------------------ the metric table
+def _study_with(values: dict[str, list[float]]):
+    """A two-case study (two ppp values) holding the given metrics, with attrs from their dict."""
+    from lfstudy.study.sweep import Case
+
+    rows = []
+    for i, ppp in enumerate((0.001, 0.002)):
+        case = Case.of(magnification=-1.0, fnumber="matched", lenslet_pitch=0.0888, ppp=ppp, flow="uniform_x")
+        rows.append((case, xr.Dataset({k: ((), v[i], {"units": "?", "long_name": k}) for k, v in values.items()})))
+    return combine_cases(rows)
+
+
+def test_the_metric_table_drives_every_place(monkeypatch, tmp_path):
+    """A metric registered in the table alone reaches the attrs, the legend, the panels, the case
+    tables, the best designs, the Pareto objectives and the design tables as its flags say."""
+    import dataclasses
+
+    from lfstudy.study import metric_table as mt
+    from lfstudy.study import report as rp
+    from lfstudy.study.designs import design_table, recommend
+    from lfstudy.study.metrics import with_metrics
+
+    fake = mt.Metric(
+        "wobble_mm",
+        "mm",
+        "wobble of the vectors",
+        lower_is_better=False,
+        shown={"summary", "headline", "panel", "criterion", "pareto", "front"},
+        group="error",
+    )
+    hidden = mt.Metric("hum", "1", "hum of the camera", None, (), "count")
+    monkeypatch.setattr(mt, "METRICS", (*mt.METRICS, fake, hidden))
+    base = {"rms_total_mm": [0.01, 0.02], "spacing_mm_x": [0.7, 0.7], "spacing_mm_z": [0.7, 0.7]}
+    study = _study_with({**base, "valid_percent": [99.0, 98.0], "hum": [1.0, 2.0], "wobble_mm": [0.3, 0.5]})
+    # attrs come from the table, not from the case's Dataset; summary metrics lead the study
+    assert study["wobble_mm"].attrs == {"units": "mm", "long_name": "wobble of the vectors"}
+    assert study["hum"].attrs["long_name"] == "hum of the camera"
+    lead = ["rms_total_mm", "valid_percent", "spacing_mm_x", "spacing_mm_z", "wobble_mm"]
+    assert list(study.data_vars)[:6] == [*lead, "hum"]
+    assert with_metrics(xr.Dataset(), {"wobble_mm": 1.0})["wobble_mm"].attrs["units"] == "mm"
+    # the report's places
+    assert "wobble_mm" in rp.case_table(study).columns and "hum" not in rp.case_table(study).columns
+    best = rp.best_designs(study)
+    row = best[best["criterion"] == "highest wobble of the vectors"].iloc[0]
+    assert row["value"] == 0.5 and row["unit"] == "mm" and row["ppp"] == 0.002  # higher is better
+    assert ("wobble_mm", "max") in mt.objectives()
+    table, _ = recommend(study)
+    assert "wobble_mm" in design_table(study) and table["pareto"].sum() == 2  # wobble trades against error
+    out = write_report(study, {}, load_config(ROOT / "config" / "demo.yaml"), tmp_path / "r.html", progress=False)
+    text = out.read_text()
+    legend = text[text.index('id="legend"') :]
+    assert "wobble_<wbr>mm" in text[text.index('id="answer"') : text.index('id="overview"')]  # front table
+    assert re.search(r"<td>wobble_mm</td>\s*<td>mm</td>\s*<td>wobble of the vectors</td>\s*<td>higher</td>", legend)
+    assert re.search(r"<td>hum</td>\s*<td>1</td>\s*<td>hum of the camera</td>\s*<td></td>", legend)
+    figs = write_figures(study, {}, {}, tmp_path / "figs", progress=False)
+    panels = next(p for p in figs if p.name == "comparison_panels_ppp.png")
+    # one more panel: the figure is wider by one panel's width (3.3 in at 90 dpi)
+    monkeypatch.setattr(mt, "METRICS", tuple(dataclasses.replace(m, shown=m.shown - {"panel"}) if m is fake else m
+                                             for m in mt.METRICS))  # fmt: skip
+    fewer = write_figures(study, {}, {}, tmp_path / "figs2", progress=False)
+    from PIL import Image
+
+    w1 = Image.open(panels).size[0]
+    w0 = Image.open(next(p for p in fewer if p.name == "comparison_panels_ppp.png")).size[0]
+    assert w1 - w0 == pytest.approx(3.3 * 90, abs=2)
+
+
+def test_every_metric_name_comes_from_the_table():
+    """report.py and designs.py hold no list of metric names of their own: no literal sequence of two
+    or more, and every metric-like name they spell out is a row of the table."""
+    import ast
+
+    from lfstudy.study import metric_table as mt
+
+    known = {m.name for m in mt.METRICS}
+    looks = re.compile(r"^(rel_error|Q|n_valid|n_vectors|valid_percent|time_total|depth_gain|"
+                       r"(rms|bias|std|mean|true|spacing|window|fov|locking_excess|depth)(_[a-z]+)+)$")  # fmt: skip
+    for mod in ("report", "designs"):
+        tree = ast.parse((ROOT / "lfstudy" / "study" / f"{mod}.py").read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+                names = [e.value for e in node.elts if isinstance(e, ast.Constant) and e.value in known]
+                assert len(names) < 2, f"{mod}.py line {node.lineno}: a list of metric names {names}"
+            if isinstance(node, ast.Dict):
+                names = [k.value for k in node.keys if isinstance(k, ast.Constant) and k.value in known]
+                assert len(names) < 2, f"{mod}.py line {node.lineno}: a dict keyed by metric names {names}"
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and looks.match(node.value):
+                assert node.value in known, f"{mod}.py line {node.lineno}: {node.value!r} is not in the metric table"
+    for gone in ("HEADLINE", "PANELS"):
+        assert not hasattr(__import__("lfstudy.study.report", fromlist=["x"]), gone)
+
+
+def test_a_table_row_must_say_which_way_is_better_to_rank_designs():
+    from lfstudy.study.metric_table import Metric
+
+    with pytest.raises(ValueError, match="lower_is_better"):
+        Metric("x_mm", "mm", "x", None, {"criterion"})
+    with pytest.raises(ValueError, match="unknown place"):
+        Metric("x_mm", "mm", "x", True, {"hedline"})
+
+
+def test_panels_have_plain_tick_labels():
+    """A metric that barely varies labels its ticks with its values (0.835700), not as an offset from
+    them (0.5 beside 1e-6+8.357e-1)."""
+    from lfstudy.study.figures import parameter_panels
+
+    study = _study_with({"Q": [0.8357001, 0.8357031], "valid_percent": [99.0, 98.0]})
+    fig = parameter_panels(study, "ppp", ["Q", "valid_percent"])
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
+    assert labels and all(0.8356 < float(lab.replace("−", "-")) < 0.8358 for lab in labels), labels
+
+
+def test_wide_tables_fit_their_box(study_dirs, tmp_path):
+    """The case tables sit in a box that scrolls and their column headers may break after '_'."""
+    study, _, cfg = study_dirs
+    text = write_report(study, {}, cfg, tmp_path / "r.html", progress=False).read_text()
+    i = text.index("<h4>All computed cases</h4>")
+    assert text.rfind('<div class="scroll">', 0, i) > text.rfind("</div>", 0, i)
+    assert re.search(r"\.scroll\{[^}]*overflow-x:auto", text)
+    head = text[i : text.index("</thead>", i)]
+    assert "locking_<wbr>excess_<wbr>z" in head and "<td" not in head

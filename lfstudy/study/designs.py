@@ -140,7 +140,9 @@ def _sentence(pick: pd.Series, cand: pd.DataFrame, flow: str, min_valid: float, 
         + (f", {pick['valid_percent']:.3g} % valid" if "valid_percent" in pick else "")
         + "."
     )
-    finest = cand.sort_values(["spacing_mm_x", "spacing_mm_z"]).iloc[0] if "spacing_mm_x" in cand else None
+    # finest-resolving: by the table's resolution objectives, in table order (in-plane, then depth)
+    finer = [m.name for m in mt.shown_in("pareto") if m.group == "resolution" and m.name in cand]
+    finest = cand.sort_values(finer).iloc[0] if finer and "spacing_mm_x" in cand else None
     if finest is not None and finest.name != pick.name:
         s += (
             f" It trades away resolution: {finest['design']} resolves {_fmt(finest['spacing_mm_x'], 'mm')} in x–y "
