@@ -292,3 +292,42 @@ def test_resolution_and_relative_error_in_mm():
     assert float(err["rel_error"]) == pytest.approx(0.1 * VOX / 0.5625)
     for v in ("window_mm_x", "spacing_mm_z", "depth_mm", "rel_error", "true_mag_mm"):
         assert err[v].attrs["units"] in ("mm", "1") and err[v].attrs["long_name"]
+
+
+def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
+    """The science run_errors used to do inline: a pure function of the PIV result, the camera, the
+    volume and the particles; every scalar's attrs from the metric table."""
+    from types import SimpleNamespace
+
+    from lfstudy.study.metric_table import METRICS, metric
+    from lfstudy.study.metrics import case_metrics
+
+    piv = synthetic_piv(4.5, 0.0, 0.0)
+    piv.attrs.update(depth_gain_total=0.61, final_window=[16, 32, 32])
+    z, y, x = (np.linspace(-1, 1, n) for n in (9, 10, 11))
+    parts = xr.Dataset({"x": ("particle", [0.1]), "y": ("particle", [0.0]), "z": ("particle", [0.2])})
+    vol = xr.DataArray(render_truth({"z": z, "y": y, "x": x}, parts, sigma_mm=0.2), dims=("z", "y", "x"))
+    vol = vol.assign_coords(z=z, y=y, x=x)
+    cam = SimpleNamespace(fov_x=12.5, fov_y=9.0)
+    out = case_metrics(piv, UniformFlow((0.5625, 0.0, 0.0)), cam, vol, parts, sigma_mm=0.2)
+    assert float(out["Q"]) == pytest.approx(1.0) and out["Q"].attrs["truth_sigma_mm"] == [0.2, 0.2, 0.2]
+    assert float(out["fov_x_mm"]) == 12.5 and float(out["fov_y_mm"]) == 9.0
+    assert float(out["depth_gain"]) == pytest.approx(0.61)
+    assert float(out["rms_total_mm"]) == pytest.approx(
+        float(case_errors(piv, UniformFlow((0.5625, 0, 0)))["rms_total_mm"])
+    )
+    del piv.attrs["depth_gain_total"]
+    assert np.isnan(float(case_metrics(piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2)["depth_gain"]))
+    # every scalar is a row of the table and carries its attrs; every row but the derived ones is computed
+    scalars = [n for n, v in out.data_vars.items() if v.ndim == 0]
+    for n in scalars:
+        m = metric(n)
+        assert out[n].attrs["units"] == m.units and out[n].attrs["long_name"] == m.long_name
+    derived = {m.name for m in METRICS if m.derive is not None} | {"time_total"}
+    assert {m.name for m in METRICS} - derived == set(scalars)
+
+
+def test_from_csv_gets_units_back_from_the_table(tmp_path):
+    study = combine_cases([(_case(-1.0, "matched", 0.125, 0.001, "uniform_x"), _scalars(0.07, 0.8))])
+    back = from_csv(to_csv(study, tmp_path / "s.csv"))
+    assert back["rms_x"].attrs["units"] == "voxel" and back["Q"].attrs["long_name"] == "reconstruction quality Q"
