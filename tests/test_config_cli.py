@@ -7,7 +7,8 @@ import pytest
 import yaml
 
 from lfstudy.cli import main
-from lfstudy.config import ConfigError, case_config, expand_cases, load_config, sweep_of, validate_config
+from lfstudy.config import ConfigError
+from lfstudy.study.config import case_config, expand_cases, load_config, sweep_of, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from lfstudy.config import ConfigError, validate_config
+from lfstudy.config import ConfigError
 from lfstudy.lightfield import find_lenslet_centers, focal_stack, register, synthetic_pinhole
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct import (
@@ -22,6 +22,7 @@ from lfstudy.reconstruct import (
 from lfstudy.reconstruct.mart import mart
 from lfstudy.reconstruct.projector import PlenopticProjector
 from lfstudy.simulate import make_field, render
+from lfstudy.study.config import validate_config
 
 CAM = PlenopticCamera(300, 300, 0.0074, 0.125, 0.5, 50.0, -1.0)  # Table 4.3 optics, 18 x 18 lenslets
 #: Well separated particles at sub-voxel positions: in focus, in front of and behind the focal plane.

@@ -18,8 +18,9 @@ from typing import Any
 
 import yaml
 
-from lfstudy.config import ConfigError, load_schema, read_yaml, validate_section
+from lfstudy.config import ConfigError, read_yaml, validate_section
 from lfstudy.optics import OpticsError, PlenopticCamera
+from lfstudy.study.schema import load_schema
 
 __all__ = ["load_process_schema", "validate_process_config", "load_process_config"]
 

@@ -39,6 +39,7 @@ from typing import Any, ClassVar
 import numpy as np
 import xarray as xr
 
+from lfstudy.config import ConfigError, validate_section
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct.grid import ReconstructionGrid
 
@@ -255,8 +256,6 @@ def _check_params(cls: type[ReconstructionMethod], params: dict[str, Any]) -> di
             f"reconstruct.{cls.name}: unknown parameter(s) {', '.join(unknown)}; "
             f"allowed: {', '.join(sorted(cls.parameters)) or 'none'}"
         )
-    from lfstudy.config import ConfigError, validate_section
-
     try:
         return validate_section(cls.schema(), params, f"reconstruct.{cls.name}")
     except ConfigError as exc:

@@ -30,9 +30,9 @@ import pandas as pd
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import case_config
 from lfstudy.optics import PlenopticCamera
 from lfstudy.study.case import case_planes
+from lfstudy.study.config import case_config
 from lfstudy.study.sweep import format_value
 
 __all__ = [
