@@ -11,7 +11,9 @@ one :class:`ConfigError` naming the key, the value and what is allowed.
 from __future__ import annotations
 
 import copy
+import difflib
 import functools
+import re
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
@@ -62,6 +64,10 @@ def _key(path) -> str:
     return ".".join(str(p) for p in path) or "<root>"
 
 
+_TYPES = {"object": "a mapping of keys", "array": "a list", "number": "a number", "integer": "an integer",
+          "string": "a string", "boolean": "true or false", "null": "null"}  # fmt: skip
+
+
 def _describe(err: jsonschema.ValidationError) -> str:
     s, _v = err.schema, err.instance
     if err.validator in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum"):
@@ -72,14 +78,14 @@ def _describe(err: jsonschema.ValidationError) -> str:
         lo_s = "-inf" if lo is None else f"{lo}"
         hi_s = "inf" if hi is None else f"{hi}"
         return f"allowed range is {lb}{lo_s}, {hi_s}{rb}"
+    if err.validator == "type":  # jsonschema's own message repeats the whole value
+        kinds = s["type"] if isinstance(s["type"], list) else [s["type"]]
+        return "expected " + " or ".join(_TYPES.get(k, k) for k in kinds)
     if err.validator == "minItems":
         n = s["minItems"]
         return f"give at least {n} value{'s' if n > 1 else ''}"
     if err.validator == "enum":
         return "allowed values are " + ", ".join(repr(e) for e in s["enum"])
-    if err.validator == "additionalProperties":
-        allowed = sorted(s.get("properties", {}))
-        return f"{err.message}; allowed keys are {', '.join(allowed)}"
     if err.validator == "oneOf":
         opts = []
         for sub in s["oneOf"]:
@@ -91,6 +97,25 @@ def _describe(err: jsonschema.ValidationError) -> str:
                 opts.append(sub.get("type", "?"))
         return "allowed: " + " or ".join(opts)
     return err.message
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a whole section is no help in a one-line message)."""
+    r = repr(value)
+    return r if len(r) <= limit else r[: limit - 4].rstrip() + " ..."
+
+
+def _unknown_keys(err: jsonschema.ValidationError, where: str) -> str:
+    """The message for keys a section does not have: their dotted paths, the allowed keys, a near miss."""
+    props = err.schema.get("properties", {})
+    patterns = err.schema.get("patternProperties", {})
+    extra = [k for k in err.instance if k not in props and not any(re.search(p, str(k)) for p in patterns)]
+    paths = ", ".join(f"'{where + '.' if where else ''}{k}'" for k in extra)
+    hints = [f"{k!r} -> {m[0]!r}" for k in extra if (m := difflib.get_close_matches(str(k), props, n=1))]
+    section = f"under '{where}'" if where else "at the top level"
+    msg = f"config key{'s' if len(extra) > 1 else ''} {paths}: not a setting; allowed keys {section} are "
+    msg += ", ".join(sorted(props))
+    return msg + (f" (did you mean {', '.join(hints)}?)" if hints else "")
 
 
 def validate_section(
@@ -113,8 +138,10 @@ def validate_section(
     if errors:
         # The deepest, most specific message is the useful one.
         err = max(errors, key=lambda e: len(e.path))
-        key = ".".join(p for p in (prefix, _key(err.path) if err.path else "") if p) or "<root>"
-        raise ConfigError(f"config key '{key}' = {err.instance!r}: {_describe(err)}")
+        where = ".".join(p for p in (prefix, _key(err.path) if err.path else "") if p)
+        if err.validator == "additionalProperties" and isinstance(err.instance, dict):
+            raise ConfigError(_unknown_keys(err, where))
+        raise ConfigError(f"config key '{where or '<root>'}' = {_short(err.instance)}: {_describe(err)}")
     # Re-run once so defaults nested inside freshly defaulted sections are filled.
     _Validator(schema, **kw).validate(out)
     return out
