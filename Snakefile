@@ -24,7 +24,7 @@ import sys
 
 from snakemake.exceptions import WorkflowError
 
-from lfstudy.config import stage_config, validate_config
+from lfstudy.study.config import stage_config, validate_config
 from lfstudy.study.sweep import SHARED, STAGES, Sweep
 from lfstudy.workflow import logged
 

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from lfstudy import io
-from lfstudy.config import load_config, stage_config, sweep_of, validate_config
+from lfstudy.study.config import load_config, stage_config, sweep_of, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 THESIS_72 = {"mean": -2.47, "std": 0.57}  # sec. 7.2, Fig. 7.8 (px = refocus planes, image-frame sign)

@@ -190,7 +190,7 @@ def _thesis_case(raw: dict, seed: int, method: str, out) -> dict[str, float]:
     import copy
 
     from lfstudy import io, workflow
-    from lfstudy.config import stage_config, sweep_of, validate_config
+    from lfstudy.study.config import stage_config, sweep_of, validate_config
 
     cfg = copy.deepcopy(raw)
     cfg["seed"] = seed

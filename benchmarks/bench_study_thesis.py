@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from lfstudy import io, workflow
-from lfstudy.config import expand_cases, load_config, stage_config
+from lfstudy.study.config import expand_cases, load_config, stage_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

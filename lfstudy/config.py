@@ -1,14 +1,19 @@
-"""Study configuration: load, validate against the JSON schema, fill defaults, expand the sweep.
+"""Config plumbing every stage shares: the error, YAML reading, schema validation.
 
-The schema lives in ``lfstudy/schema.yaml`` (``config/schema.yaml`` links to it).
-Every invalid value stops with one :class:`ConfigError` naming the key, the
-value and what is allowed.
+This is the bottom layer: it imports nothing else of lfstudy, so every stage
+(:mod:`lfstudy.reconstruct`, :mod:`lfstudy.process`, :mod:`lfstudy.study`) can
+use it. The study config itself (its schema with the reconstruction methods'
+parameters, :func:`~lfstudy.study.config.validate_config`, the per-case
+configs) lives in :mod:`lfstudy.study.config`. Every invalid value stops with
+one :class:`ConfigError` naming the key, the value and what is allowed.
 """
 
 from __future__ import annotations
 
 import copy
+import difflib
 import functools
+import re
 from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
@@ -17,44 +22,25 @@ from typing import Any
 import jsonschema
 import yaml
 
-from lfstudy.optics import OpticsError, PlenopticCamera
-
-__all__ = [
-    "ConfigError",
-    "load_schema",
-    "read_yaml",
-    "load_config",
-    "validate_config",
-    "validate_section",
-    "sweep_of",
-    "expand_cases",
-    "case_config",
-    "stage_config",
-    "cases_table",
-]
+__all__ = ["ConfigError", "read_schema", "read_yaml", "validate_section"]
 
 
 class ConfigError(ValueError):
     """An invalid configuration value (the message names key, value and allowed range)."""
 
 
-@functools.lru_cache(maxsize=1)
-def _schema() -> dict[str, Any]:
-    schema = yaml.safe_load(resources.files("lfstudy").joinpath("schema.yaml").read_text())
-    # Each reconstruction method declares its own parameters: reconstruct.<name>.
-    from lfstudy.reconstruct.registry import available_methods, method_schemas
-
-    rec = schema["properties"]["reconstruct"]["properties"]
-    rec["method"]["enum"] = available_methods()
-    for name, sub in method_schemas().items():
-        rec[name] = sub
-    return schema
+@functools.cache
+def _read_schema(name: str) -> dict[str, Any]:
+    return yaml.safe_load(resources.files("lfstudy").joinpath(name).read_text())
 
 
-def load_schema() -> dict[str, Any]:
-    """The JSON schema of a study config: ``schema.yaml`` plus every reconstruction
-    method's parameters (``reconstruct.<method>``, from the method registry)."""
-    return copy.deepcopy(_schema())
+def read_schema(name: str) -> dict[str, Any]:
+    """A JSON schema shipped with lfstudy (``lfstudy/<name>``, e.g. ``schema.yaml``), as written.
+
+    The study schema with the reconstruction methods' parameters filled in is
+    :func:`lfstudy.study.config.load_schema`.
+    """
+    return copy.deepcopy(_read_schema(name))
 
 
 def _with_defaults(validator_class):
@@ -78,6 +64,10 @@ def _key(path) -> str:
     return ".".join(str(p) for p in path) or "<root>"
 
 
+_TYPES = {"object": "a mapping of keys", "array": "a list", "number": "a number", "integer": "an integer",
+          "string": "a string", "boolean": "true or false", "null": "null"}  # fmt: skip
+
+
 def _describe(err: jsonschema.ValidationError) -> str:
     s, _v = err.schema, err.instance
     if err.validator in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum"):
@@ -88,14 +78,14 @@ def _describe(err: jsonschema.ValidationError) -> str:
         lo_s = "-inf" if lo is None else f"{lo}"
         hi_s = "inf" if hi is None else f"{hi}"
         return f"allowed range is {lb}{lo_s}, {hi_s}{rb}"
+    if err.validator == "type":  # jsonschema's own message repeats the whole value
+        kinds = s["type"] if isinstance(s["type"], list) else [s["type"]]
+        return "expected " + " or ".join(_TYPES.get(k, k) for k in kinds)
     if err.validator == "minItems":
         n = s["minItems"]
         return f"give at least {n} value{'s' if n > 1 else ''}"
     if err.validator == "enum":
         return "allowed values are " + ", ".join(repr(e) for e in s["enum"])
-    if err.validator == "additionalProperties":
-        allowed = sorted(s.get("properties", {}))
-        return f"{err.message}; allowed keys are {', '.join(allowed)}"
     if err.validator == "oneOf":
         opts = []
         for sub in s["oneOf"]:
@@ -107,6 +97,25 @@ def _describe(err: jsonschema.ValidationError) -> str:
                 opts.append(sub.get("type", "?"))
         return "allowed: " + " or ".join(opts)
     return err.message
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a whole section is no help in a one-line message)."""
+    r = repr(value)
+    return r if len(r) <= limit else r[: limit - 4].rstrip() + " ..."
+
+
+def _unknown_keys(err: jsonschema.ValidationError, where: str) -> str:
+    """The message for keys a section does not have: their dotted paths, the allowed keys, a near miss."""
+    props = err.schema.get("properties", {})
+    patterns = err.schema.get("patternProperties", {})
+    extra = [k for k in err.instance if k not in props and not any(re.search(p, str(k)) for p in patterns)]
+    paths = ", ".join(f"'{where + '.' if where else ''}{k}'" for k in extra)
+    hints = [f"{k!r} -> {m[0]!r}" for k in extra if (m := difflib.get_close_matches(str(k), props, n=1))]
+    section = f"under '{where}'" if where else "at the top level"
+    msg = f"config key{'s' if len(extra) > 1 else ''} {paths}: not a setting; allowed keys {section} are "
+    msg += ", ".join(sorted(props))
+    return msg + (f" (did you mean {', '.join(hints)}?)" if hints else "")
 
 
 def validate_section(
@@ -129,79 +138,13 @@ def validate_section(
     if errors:
         # The deepest, most specific message is the useful one.
         err = max(errors, key=lambda e: len(e.path))
-        key = ".".join(p for p in (prefix, _key(err.path) if err.path else "") if p) or "<root>"
-        raise ConfigError(f"config key '{key}' = {err.instance!r}: {_describe(err)}")
+        where = ".".join(p for p in (prefix, _key(err.path) if err.path else "") if p)
+        if err.validator == "additionalProperties" and isinstance(err.instance, dict):
+            raise ConfigError(_unknown_keys(err, where))
+        raise ConfigError(f"config key '{where or '<root>'}' = {_short(err.instance)}: {_describe(err)}")
     # Re-run once so defaults nested inside freshly defaulted sections are filled.
     _Validator(schema, **kw).validate(out)
     return out
-
-
-def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """Validate a config mapping, returning a deep copy with defaults filled in.
-
-    Besides the schema, checks what a schema cannot: that the camera can be
-    built (f-number reachable, pitch vs pixel) for every swept combination,
-    and that swept flows are defined.
-
-    Raises
-    ------
-    ConfigError
-        On the first problem, naming the key, the value and what is allowed.
-    """
-    cfg = validate_section(load_schema(), cfg)
-    lens = cfg["camera"]["lenslet"]
-    if lens.get("focal_length") is None and lens.get("fnumber") is None:
-        raise ConfigError("config key 'camera.lenslet': give focal_length or fnumber (fl = N·pl)")
-    for name in cfg["sweep"].get("flow", []):
-        if name not in cfg["flows"]:
-            raise ConfigError(
-                f"config key 'sweep.flow' = {name!r}: unknown flow; allowed values are "
-                + ", ".join(repr(k) for k in cfg["flows"])
-            )
-    for name, spec in cfg["flows"].items():
-        if spec["kind"] == "uniform" and "displacement" not in spec:
-            raise ConfigError(f"config key 'flows.{name}.displacement': required for kind 'uniform' ([dx, dy, dz] mm)")
-        if spec["kind"] == "hill" and ("radius" not in spec or "u0" not in spec):
-            raise ConfigError(f"config key 'flows.{name}': kind 'hill' needs radius (> 0 mm) and u0")
-    count = cfg["particles"].get("count")
-    if count is not None and len(cfg["sweep"].get("ppp", [])) > 1:
-        raise ConfigError(
-            f"config key 'particles.count' = {count}: a fixed particle count overrides ppp, so every swept "
-            "ppp value would image the same field; drop particles.count or sweep.ppp"
-        )
-    from lfstudy.reconstruct.grid import GridError
-    from lfstudy.study.case import case_grid
-    from lfstudy.study.resources import check_memory
-    from lfstudy.study.sweep import NAMED, format_value
-
-    sweep = sweep_of(cfg)
-    schema = load_schema()
-    dotted = [s for s in sweep.settings if s.key not in NAMED]
-    for case in sweep.cases():
-        ccfg = sweep.apply(case)
-        if dotted:  # a value the sweep sets must be valid where it lands (e.g. piv.window)
-            try:
-                validate_section(schema, {k: v for k, v in ccfg.items() if k not in ("flow", "case_id")})
-            except ConfigError as exc:
-                where = ", ".join(f"{s.key}={format_value(case[s.key])}" for s in dotted)
-                raise ConfigError(f"{exc} (case {where})") from None
-        try:
-            PlenopticCamera.from_config(ccfg)
-        except OpticsError as exc:
-            where = ", ".join(f"{k}={v}" for k, v in case.params.items() if k != "flow")
-            raise ConfigError(f"config key 'camera' (case {where}): {exc}") from None
-        sen = ccfg["sensor"]
-        if sen["full_well"] is not None and sen["full_well"] <= sen["dark_level"]:
-            raise ConfigError(
-                f"config key 'sensor.full_well' = {sen['full_well']!r} (case {case.case_id}): must exceed "
-                f"sensor.dark_level = {sen['dark_level']!r} e- (the pedestal would fill the well)"
-            )
-        try:  # the grid a case reconstructs on (grid.z_range, voxel sizes, its memory cap)
-            case_grid(ccfg)
-        except GridError as exc:
-            raise ConfigError(f"config key 'grid' (case {case.case_id}): {exc}") from None
-        check_memory(ccfg, where=f"case {case.case_id}")
-    return cfg
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
@@ -222,77 +165,3 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     if not isinstance(raw, dict):
         raise ConfigError(f"config file {str(path)!r}: expected a mapping at the top level")
     return raw
-
-
-def load_config(path: str | Path) -> dict[str, Any]:
-    """Read a YAML config file and validate it (defaults filled in)."""
-    return validate_config(read_yaml(path))
-
-
-def sweep_of(cfg: Mapping[str, Any]) -> Any:
-    """The :class:`~lfstudy.study.sweep.Sweep` of a validated config."""
-    from lfstudy.study.sweep import Sweep
-
-    return Sweep(cfg)
-
-
-def expand_cases(cfg: Mapping[str, Any]) -> list[Any]:
-    """All cases of the sweep (Cartesian product of its lists), in a stable order.
-
-    A named parameter that is not swept keeps the single value of the base config.
-    """
-    return sweep_of(cfg).cases()
-
-
-def case_config(cfg: Mapping[str, Any], case: Any) -> dict[str, Any]:
-    """The full config of one case: the base config with the case's swept values set.
-
-    The chosen flow's spec is placed under ``flow`` (with its name); ``case_id``,
-    ``calib_id`` and ``stage_ids`` (where each stage's outputs live) are added.
-    """
-    sweep = sweep_of(cfg)
-    case = sweep.case(case)
-    out = sweep.apply(case)
-    out["calib_id"] = sweep.calib_id(case)
-    out["stage_ids"] = sweep.ids(case)
-    return out
-
-
-def stage_config(cfg: Mapping[str, Any], case: Any, stage: str) -> dict[str, Any]:
-    """The part of a case's config that ``stage`` reads (:data:`lfstudy.study.sweep.STAGES`),
-    plus ``stage_id`` (where the stage's outputs live) and ``calib_id``.
-
-    ``case_id`` is added only for the per-case ``errors`` stage: every other stage's output
-    is shared by all cases at its location, so its config (the Snakemake rule's params, and
-    the provenance attrs it writes) must not depend on which of them stands for it —
-    otherwise a change of the sweep reruns shared stages whose settings did not change.
-    """
-    from lfstudy.study.sweep import STAGES
-
-    ccfg = case_config(cfg, case)
-    sections = {p.split(".")[0] for p in STAGES[stage].reads}
-    out: dict[str, Any] = {"stage_id": ccfg["stage_ids"][stage], "calib_id": ccfg["calib_id"]}
-    if stage == "errors":
-        out["case_id"] = ccfg["case_id"]
-    return {**out, **{k: ccfg[k] for k in sorted(sections)}}
-
-
-def cases_table(cfg: Mapping[str, Any]):
-    """The expanded sweep as a pandas DataFrame indexed by case id, with derived camera columns."""
-    import pandas as pd
-
-    sweep = sweep_of(cfg)
-    rows = []
-    for case in sweep.cases():
-        cam = PlenopticCamera.from_config(sweep.apply(case))
-        rows.append(
-            {
-                "case_id": case.case_id,
-                **case.params,
-                "main_fnumber": cam.main_fnumber,
-                "lenslets": f"{cam.n_lenslets_x}x{cam.n_lenslets_y}",
-                "px_per_lenslet": round(cam.pixels_per_lenslet, 3),
-                "fill": round(cam.lenslet_image_fill, 3),
-            }
-        )
-    return pd.DataFrame(rows).set_index("case_id")

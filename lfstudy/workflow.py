@@ -273,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     The Snakefile's shell rules call this: a plain interpreter start is
     several times cheaper than Snakemake spawning itself for a ``run:`` job,
     which matters for sweeps of many small cases. ``--config`` is the
-    stage's JSON config (:func:`lfstudy.config.stage_config`); ARGS are the stage function's
+    stage's JSON config (:func:`lfstudy.study.config.stage_config`); ARGS are the stage function's
     remaining arguments (frame and paths) in order. ``--compute`` is the config's ``compute``
     section as JSON: the stages of :data:`DASK_STAGES` then run under the dask scheduler it
     names (:func:`lfstudy.compute.dask_scheduler`); the others ignore it.

@@ -13,11 +13,12 @@ import pytest
 import yaml
 
 from lfstudy import io
-from lfstudy.config import ConfigError, load_config, validate_config
+from lfstudy.config import ConfigError
 from lfstudy.lightfield import find_lenslet_centers, register, synthetic_pinhole
 from lfstudy.optics import PlenopticCamera
 from lfstudy.piv import widim
 from lfstudy.simulate import RaytraceError, make_field, render
+from lfstudy.study.config import load_config, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CAM = PlenopticCamera(160, 120, 0.0074, 0.0888, 0.3552, 50.0, -1.0)
@@ -185,7 +186,7 @@ def test_store_deleted_or_damaged_between_stages(files, cli_error, tmp_path):
     assert "cen.zarr" in line and "does not exist" in line
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
     # a workflow stage reading it fails with exit 1, the message in its log, and writes nothing
-    from lfstudy.config import expand_cases, stage_config
+    from lfstudy.study.config import expand_cases, stage_config
     from lfstudy.workflow import main as stage_main
 
     cfg = load_config(files / "c.yaml")

@@ -10,7 +10,8 @@ import pytest
 
 from lfstudy import io, workflow
 from lfstudy.compute import dask_scheduler
-from lfstudy.config import ConfigError, case_config, expand_cases, load_config, validate_config
+from lfstudy.config import ConfigError
+from lfstudy.study.config import case_config, expand_cases, load_config, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"

@@ -7,7 +7,8 @@ import pytest
 import yaml
 
 from lfstudy.cli import main
-from lfstudy.config import ConfigError, case_config, expand_cases, load_config, sweep_of, validate_config
+from lfstudy.config import ConfigError
+from lfstudy.study.config import case_config, expand_cases, load_config, sweep_of, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,6 +78,42 @@ def test_bad_config_names_key(demo_raw, path, value, match):
     node[path[-1]] = value
     with pytest.raises(ConfigError, match=match):
         validate_config(cfg)
+
+
+@pytest.mark.parametrize(
+    "where, key, message",
+    [
+        ((), "camerra", "config key 'camerra': not a setting; allowed keys at the top level are camera, compute, "),
+        (
+            ("camera", "lenslet"),
+            "pich",
+            "config key 'camera.lenslet.pich': not a setting; allowed keys under 'camera.lenslet' are fnumber, "
+            "focal_length, offset_x, offset_y, pitch, rotation (did you mean 'pich' -> 'pitch'?)",
+        ),
+        (("reconstruct", "mart"), "iters", "config key 'reconstruct.mart.iters': not a setting; allowed keys under "),
+    ],
+)
+def test_unknown_key_names_its_path_not_the_whole_config(demo_raw, where, key, message):
+    cfg = copy.deepcopy(demo_raw)
+    node = cfg
+    for k in where:
+        node = node.setdefault(k, {})
+    node[key] = 1
+    with pytest.raises(ConfigError) as err:
+        validate_config(cfg)
+    msg = str(err.value)
+    assert msg.startswith(message), msg
+    assert "demo" not in msg and "{" not in msg and len(msg) < 300, msg  # no dump of the config
+
+
+def test_a_wrong_type_names_what_is_expected_without_the_whole_value(demo_raw):
+    cfg = copy.deepcopy(demo_raw)
+    cfg["sweep"] = [[0.001] * 50] * 50
+    with pytest.raises(ConfigError) as err:
+        validate_config(cfg)
+    msg = str(err.value)
+    assert msg.startswith("config key 'sweep' = [[0.001, ") and msg.endswith(" ...: expected a mapping of keys"), msg
+    assert len(msg) < 150, msg
 
 
 def test_sweep_fnumber_unreachable(demo_raw):

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from lfstudy.config import case_config, expand_cases, load_config
 from lfstudy.piv.depth import correct_depth, depth_response
 from lfstudy.study import case as cl
+from lfstudy.study.config import case_config, expand_cases, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

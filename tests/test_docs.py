@@ -21,8 +21,8 @@ sys.path.insert(0, str(DOCS / "_ext"))
 
 import lfstudy_docs  # noqa: E402
 
-from lfstudy.config import load_schema  # noqa: E402
 from lfstudy.process import load_process_schema  # noqa: E402
+from lfstudy.study.config import load_schema  # noqa: E402
 
 STAGES = ("lfstudy.simulate", "lfstudy.lightfield", "lfstudy.reconstruct", "lfstudy.piv", "lfstudy.study")
 

@@ -12,13 +12,13 @@ import pytest
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import validate_config
 from lfstudy.lightfield.calibrate import find_lenslet_centers, synthetic_pinhole
 from lfstudy.lightfield.refocus import focal_stack
 from lfstudy.lightfield.registration import RegistrationError, register
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct import default_voxel_z
 from lfstudy.study.case import render_volume
+from lfstudy.study.config import validate_config
 
 CAM = PlenopticCamera(420, 340, 0.0074, 0.125, 0.5, 50.0, -1.0)  # Table 4.3 optics, small sensor
 HALF_VOXEL = CAM.lenslet_pitch / abs(CAM.magnification) / 2

@@ -19,7 +19,7 @@ import yaml
 
 from lfstudy import io
 from lfstudy.cli import main
-from lfstudy.config import load_config
+from lfstudy.study.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"

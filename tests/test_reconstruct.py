@@ -64,7 +64,8 @@ def test_none_method_keeps_the_stack():
 
 
 def test_config_rejects_unknown_method():
-    from lfstudy.config import ConfigError, validate_config
+    from lfstudy.config import ConfigError
+    from lfstudy.study.config import validate_config
 
     with pytest.raises(ConfigError, match=r"reconstruct\.method.*'nosuch'.*deconvolution.*mart.*threshold"):
         validate_config({"camera": {}, "reconstruct": {"method": "nosuch"}})

@@ -2,26 +2,38 @@
 
 from __future__ import annotations
 
+import inspect
+from importlib.metadata import EntryPoint
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
 import yaml
 
-from lfstudy.config import ConfigError, validate_config
+from lfstudy.config import ConfigError
 from lfstudy.lightfield import find_lenslet_centers, focal_stack, register, synthetic_pinhole
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct import (
     GridError,
     ReconstructionError,
     ReconstructionInputs,
+    ReconstructionMethod,
+    available_methods,
     default_voxel_z,
+    focal_stack_as_is,
+    get_method,
     make_grid,
     reconstruct,
+    register_method,
+    threshold_dilate,
 )
+from lfstudy.reconstruct.deconvolution import richardson_lucy
 from lfstudy.reconstruct.mart import mart
 from lfstudy.reconstruct.projector import PlenopticProjector
+from lfstudy.reconstruct.registry import BUILTIN, ENTRY_POINT_GROUP, detect_parameters
 from lfstudy.simulate import make_field, render
+from lfstudy.study.config import load_schema, validate_config
 
 CAM = PlenopticCamera(300, 300, 0.0074, 0.125, 0.5, 50.0, -1.0)  # Table 4.3 optics, 18 x 18 lenslets
 #: Well separated particles at sub-voxel positions: in focus, in front of and behind the focal plane.
@@ -194,3 +206,109 @@ def test_method_schemas_reach_the_config():
     cfg = validate_config({"camera": camera, "reconstruct": {"method": "mart"}})
     assert cfg["reconstruct"]["mart"]["iterations"] == 3 and cfg["reconstruct"]["threshold"]["k"] == 3.0
     assert cfg["grid"] == {"spacing": "uniform", "voxel_xy": None, "voxel_z": None, "z_range": None, "max_bytes": 4e9}
+
+
+# --------------------------------------------------------------------------- defaults and plug-ins
+
+#: each built-in method's algorithm function (the public pure function its run() calls)
+ALGORITHMS = {
+    "threshold": threshold_dilate,
+    "none": focal_stack_as_is,
+    "mart": mart,
+    "deconvolution": richardson_lucy,
+}
+
+
+def _keyword_defaults(func) -> dict:
+    return {p.name: p.default for p in inspect.signature(func).parameters.values() if p.default is not p.empty}
+
+
+@pytest.mark.parametrize("name", sorted(BUILTIN))
+def test_a_methods_defaults_are_stated_once(name):
+    """run()'s signature states the defaults; the config schema and the algorithm function agree with it."""
+    cls = get_method(name)
+    run = detect_parameters(cls)
+    assert set(run) == set(cls.parameters)
+    assert all("default" not in spec for spec in cls.parameters.values()), "a default stated twice"
+    schema = load_schema()["properties"]["reconstruct"]["properties"][name]["properties"]
+    assert {k: v["default"] for k, v in schema.items()} == run
+    algo = _keyword_defaults(ALGORITHMS[name])
+    assert {k: algo[k] for k in run if k in algo} == run, f"{ALGORITHMS[name].__name__} has other defaults"
+    assert set(run) <= set(algo), f"{ALGORITHMS[name].__name__} does not take {sorted(set(run) - set(algo))}"
+
+
+def test_a_methods_parameters_must_match_its_run_signature():
+    class Base(ReconstructionMethod):
+        name = "t"
+        parameters: ClassVar[dict] = {"a": {"type": "number"}}
+
+    class KwArgs(Base):
+        def run(self, inputs, *, progress=False, **params): ...
+
+    class NoDefault(Base):
+        def run(self, inputs, *, a, progress=False): ...
+
+    class Undeclared(Base):
+        def run(self, inputs, *, a=1.0, b=2, progress=False): ...
+
+    class TwoDefaults(Base):
+        parameters: ClassVar[dict] = {"a": {"type": "number", "default": 2.0}}
+
+        def run(self, inputs, *, a=1.0, progress=False): ...
+
+    class Good(Base):
+        parameters: ClassVar[dict] = {"a": {"type": "number", "default": 1.0}}  # the same default: allowed
+
+        def run(self, inputs, *, a=1.0, progress=False): ...
+
+    for cls, msg in [
+        (KwArgs, r"\*\*params"),
+        (NoDefault, "'a' needs a default"),
+        (Undeclared, r"takes the parameters \['a', 'b'\] but `parameters` declares \['a'\]"),
+        (TwoDefaults, "default 2.0 in `parameters` but 1.0 in run"),
+    ]:
+        with pytest.raises(ReconstructionError, match=msg):
+            register_method(cls)
+    assert detect_parameters(Good) == {"a": 1.0}
+
+
+@pytest.fixture
+def plugins(monkeypatch):
+    """Installed entry points replaced by the test's (the registry's and the schema's caches cleared)."""
+    from lfstudy.reconstruct import registry
+    from lfstudy.study import schema
+
+    def install(*eps: EntryPoint) -> None:
+        monkeypatch.setattr(registry, "entry_points", lambda group: [e for e in eps if e.group == group])
+        registry._plugins.cache_clear()
+        schema._schema.cache_clear()
+
+    yield install
+    monkeypatch.undo()
+    registry._plugins.cache_clear()
+    schema._schema.cache_clear()
+
+
+def test_a_plugin_that_fails_to_load_is_skipped_with_a_warning(plugins):
+    plugins(
+        EntryPoint("broken", "lfstudy_no_such_package.methods:Broken", ENTRY_POINT_GROUP),
+        EntryPoint("notamethod", "lfstudy.reconstruct.threshold:disk", ENTRY_POINT_GROUP),
+        EntryPoint("thr2", "lfstudy.reconstruct.threshold:Threshold", ENTRY_POINT_GROUP),
+    )
+    camera = {
+        "sensor": {"n_pixels_x": 300, "n_pixels_y": 300, "pixel_pitch": 0.0074},
+        "lenslet": {"pitch": 0.125, "focal_length": 0.5},
+        "main_lens": {"focal_length": 50.0},
+        "magnification": -1.0,
+    }
+    with pytest.warns(RuntimeWarning) as rec:
+        cfg = validate_config({"camera": camera, "reconstruct": {"method": "thr2"}})
+    msgs = [str(w.message) for w in rec]
+    assert any("'broken'" in m and "lfstudy_no_such_package" in m and "ModuleNotFoundError" in m for m in msgs)
+    assert any("'notamethod'" in m and "not a ReconstructionMethod" in m for m in msgs)
+    assert cfg["reconstruct"]["thr2"] == {"k": 3.0, "dilation_radius": 1, "dilation_ndim": 2}
+    assert "thr2" in available_methods() and "broken" not in available_methods()
+    with pytest.raises(ReconstructionError, match=r"'broken': the method installed .* failed to load: ModuleNot"):
+        get_method("broken")
+    with pytest.raises(ConfigError, match=r"reconstruct.method' = 'broken'"):
+        validate_config({"camera": camera, "reconstruct": {"method": "broken"}})

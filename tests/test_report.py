@@ -10,8 +10,8 @@ import pytest
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import expand_cases, load_config
 from lfstudy.simulate.flows import flow_from_config
+from lfstudy.study.config import expand_cases, load_config
 from lfstudy.study.metrics import case_errors
 from lfstudy.study.report import SECTIONS, best_designs, write_figures, write_report
 from lfstudy.study.table import combine_cases

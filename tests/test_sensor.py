@@ -104,9 +104,10 @@ def test_case_image_renders_with_the_method_and_records_with_the_sensor():
     from the case (same config -> same bytes); a noise-free ideal sensor returns the exact image."""
     from pathlib import Path
 
-    from lfstudy.config import case_config, expand_cases, read_yaml, validate_config
+    from lfstudy.config import read_yaml
     from lfstudy.simulate.exact import render_exact
     from lfstudy.study.case import case_camera, case_image, case_particles
+    from lfstudy.study.config import case_config, expand_cases, validate_config
 
     raw = read_yaml(Path(__file__).parent / "data" / "tiny.yaml")
     raw["camera"]["sensor"].update(n_pixels_x=96, n_pixels_y=80)

@@ -20,7 +20,7 @@ import pandas as pd
 import pytest
 
 from lfstudy import io
-from lfstudy.config import expand_cases, load_config
+from lfstudy.study.config import expand_cases, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lfstudy import io
-from lfstudy.config import case_config, expand_cases, load_config
+from lfstudy.study.config import case_config, expand_cases, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"
@@ -200,7 +200,7 @@ def test_stage_entry_point(tmp_path):
     exit 1, the traceback in the log and no output left behind."""
     import json
 
-    from lfstudy.config import stage_config
+    from lfstudy.study.config import stage_config
 
     cfg = load_config(TINY)
     cid = expand_cases(cfg)[0].case_id

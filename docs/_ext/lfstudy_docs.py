@@ -1,7 +1,7 @@
 """Sphinx extension: the parts of the docs that are generated from the code, so they cannot drift.
 
 * :func:`config_reference` walks the study config schema (``lfstudy/schema.yaml`` plus every
-  reconstruction method's parameters, :func:`lfstudy.config.load_schema`) and writes every key
+  reconstruction method's parameters, :func:`lfstudy.study.config.load_schema`) and writes every key
   with its type, default, allowed values and description; the ``lfstudy-config-reference``
   directive puts it into a page.
 * :func:`api_pages` writes one API page per pipeline stage: the package's docstring, a summary
@@ -241,7 +241,7 @@ def _literal(text: str) -> str:
 def config_reference(schema: Mapping[str, Any] | None = None, top_title: str = "Top-level settings") -> str:
     """The config reference as reStructuredText: one table per top-level section."""
     if schema is None:
-        from lfstudy.config import load_schema
+        from lfstudy.study.config import load_schema
 
         schema = load_schema()
     top = schema.get("properties", {})
@@ -349,10 +349,16 @@ STAGES: dict[str, tuple[str, str, str]] = {
         "reconstruction, PIV; no known flow)",
         "Processing a pair or a time series of recorded plenoptic images (``lfstudy process``).",
     ),
-    "lfstudy.config": (
-        "Configuration",
+    "lfstudy.study.config": (
+        "Study configuration",
         "— (the parameters of ch. 4–7 as a validated YAML file)",
-        "Loading and validating a study config, expanding the sweep.",
+        "Loading and validating a study config (every swept case), expanding the sweep, each case's "
+        "and each stage's config.",
+    ),
+    "lfstudy.config": (
+        "Configuration plumbing",
+        "— (no science: the error, YAML reading and schema validation every stage shares)",
+        "The bottom layer of the configs: it imports no other lfstudy module.",
     ),
     "lfstudy.io": (
         "Input and output",
@@ -367,7 +373,7 @@ STAGES: dict[str, tuple[str, str, str]] = {
 }
 
 #: Modules after which discovered stage subpackages are placed (before the support modules).
-_BEFORE_SUPPORT = "lfstudy.config"
+_BEFORE_SUPPORT = "lfstudy.study.config"
 
 
 def stage_packages() -> list[str]:

@@ -25,8 +25,8 @@ def run(args: argparse.Namespace) -> int:
     cam = None
     params = None
     if args.config:
-        from lfstudy.config import case_config, load_config
         from lfstudy.optics import PlenopticCamera
+        from lfstudy.study.config import case_config, load_config
 
         cfg = load_config(args.config)
         if args.case:

@@ -16,7 +16,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import pandas as pd
 
-    from lfstudy.config import cases_table, load_config
+    from lfstudy.study.config import cases_table, load_config
 
     table = cases_table(load_config(args.config))
     if args.ids:

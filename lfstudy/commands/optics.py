@@ -14,9 +14,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lfstudy.config import case_config, load_config
     from lfstudy.optics import PlenopticCamera
     from lfstudy.study.case import case_grid, case_planes
+    from lfstudy.study.config import case_config, load_config
 
     cfg = load_config(args.config)
     if args.case:

@@ -32,8 +32,8 @@ def _frame(path: str):
 
 def run(args: argparse.Namespace) -> int:
     from lfstudy import io
-    from lfstudy.config import load_config, validate_config
     from lfstudy.piv import widim
+    from lfstudy.study.config import load_config, validate_config
 
     cfg = load_config(args.config) if args.config else validate_config({"camera": _NO_CAMERA})
     p = dict(cfg["piv"])

@@ -20,8 +20,8 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from lfstudy import io
-    from lfstudy.config import case_config, load_config
     from lfstudy.study.case import render_volume
+    from lfstudy.study.config import case_config, load_config
 
     cfg = load_config(args.config)
     if args.case:

@@ -22,9 +22,9 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from lfstudy import io
-    from lfstudy.config import case_config, expand_cases, load_config
     from lfstudy.simulate.raytrace import write_image
     from lfstudy.study.case import simulate_case
+    from lfstudy.study.config import case_config, expand_cases, load_config
 
     cfg = load_config(args.config)
     case_id = args.case or expand_cases(cfg)[0].case_id

@@ -18,8 +18,10 @@ from typing import Any
 
 import yaml
 
-from lfstudy.config import ConfigError, load_schema, read_yaml, validate_section
+from lfstudy.config import ConfigError, read_yaml, validate_section
 from lfstudy.optics import OpticsError, PlenopticCamera
+from lfstudy.study.resources import check_memory
+from lfstudy.study.schema import load_schema
 
 __all__ = ["load_process_schema", "validate_process_config", "load_process_config"]
 
@@ -99,8 +101,6 @@ def validate_process_config(cfg: Mapping[str, Any], base: str | Path | None = No
     if "depth_calibration" in rec:
         dc = rec["depth_calibration"]
         dc["images"] = resolve(dc["images"]) if isinstance(dc["images"], str) else [resolve(p) for p in dc["images"]]
-    from lfstudy.study.resources import check_memory
-
     # a recording has no simulated particles: the memory estimate's simulate stage gets a placeholder
     check_memory({**out, "particles": {"count": 1, "ppp": 1e-9}})
     return out

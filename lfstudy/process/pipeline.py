@@ -40,15 +40,10 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.process.metrics import divergence, pair_metrics, peak_ratio
-from lfstudy.process.recording import Recording, mean_dark, open_recording, read_frame, warn_saturated
+from lfstudy.process.recording import Recording, frame_dir, mean_dark, open_recording, read_frame, warn_saturated
 from lfstudy.study import case as cl
 
-__all__ = ["calibrate_recording", "process_recording", "open_result", "frame_dir"]
-
-
-def frame_dir(k: int) -> str:
-    """Directory (relative to the output) of frame ``k``'s light field, stack and volume."""
-    return f"frames/{k:03d}"
+__all__ = ["calibrate_recording", "process_recording", "open_result"]
 
 
 def calibrate_recording(image: xr.DataArray, camera: Any, kind: str = "pinhole") -> xr.Dataset:

@@ -40,6 +40,7 @@ __all__ = [
     "mean_dark",
     "read_frame",
     "warn_saturated",
+    "frame_dir",
 ]
 
 _TAG_MAX_SAMPLE_VALUE = 281  # TIFF baseline MaxSampleValue
@@ -51,6 +52,11 @@ class RecordingError(ValueError):
 
 class SaturationWarning(UserWarning):
     """Frames with pixels at full scale: intensities there are clipped, particle centres biased."""
+
+
+def frame_dir(k: int) -> str:
+    """Directory (relative to the output) of frame ``k``'s light field, stack and volume."""
+    return f"frames/{k:03d}"
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ import pandas as pd
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.process.recording import Recording
+from lfstudy.process.recording import Recording, frame_dir
 from lfstudy.study import figures as rf
 from lfstudy.study.report import Block, _table, _try, piv_figure_blocks, write_html
 
@@ -119,8 +119,6 @@ def _recording_blocks(root: Path, rec: Recording, cfg: Mapping[str, Any]) -> Ite
 def _pair_blocks(
     root: Path, rec: Recording, piv: xr.Dataset, cfg: Mapping[str, Any], max_pairs: int
 ) -> Iterator[Block]:
-    from lfstudy.process.pipeline import frame_dir
-
     dim = rec.pair_dim
     k_thr = float(cfg["reconstruct"].get("threshold", {}).get("k", 3.0))
     n = piv.sizes[dim]

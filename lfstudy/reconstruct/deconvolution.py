@@ -172,14 +172,12 @@ class RichardsonLucy(ReconstructionMethod):
             "type": "integer",
             "minimum": 1,
             "maximum": 1000,
-            "default": 30,
             "description": "Richardson-Lucy iterations",
         },
         "epsilon": {
             "type": "number",
             "exclusiveMinimum": 0,
             "maximum": 1,
-            "default": 1e-6,
             "description": "floor of the model in S / (H E), relative to the stack maximum",
         },
     }

@@ -4,14 +4,18 @@ A method is a subclass of :class:`ReconstructionMethod` with a ``name``, a
 ``description``, the inputs it ``requires`` (what a real experiment has: the
 registered light field, the lenslet calibration, the camera, the
 reconstruction grid, and the focal stack refocused on that grid) and its
-``parameters`` (JSON-schema properties with defaults and ranges, which the
-config schema includes as ``reconstruct.<name>``). Its ``run`` takes those
-parameters as explicit keyword-only arguments and returns a volume on the grid.
+``parameters`` (JSON-schema properties with types and ranges, which the config
+schema includes as ``reconstruct.<name>``). Its ``run`` takes those parameters
+as explicit keyword-only arguments and returns a volume on the grid. The
+defaults live in one place, ``run``'s signature (:func:`detect_parameters`, as
+xarray's backends): the schema and the filled-in config read them from there.
 
 Built-in methods are listed in :data:`BUILTIN` and imported on first use;
 methods of other packages are found through the entry-point group
 ``lfstudy.reconstruct`` (``name = "package.module:Class"``), so
-``reconstruct.method: mine`` works without an import in the config;
+``reconstruct.method: mine`` works without an import in the config (one that
+fails to load is skipped with a warning, so the others and every config that
+does not use it keep working);
 :func:`register_method` adds one at run time (a notebook, a test)::
 
     @register_method
@@ -19,7 +23,7 @@ methods of other packages are found through the entry-point group
         name = "blur"
         description = "Gaussian blur of the focal stack"
         requires = ("stack",)
-        parameters = {"sigma": {"type": "number", "exclusiveMinimum": 0, "default": 1.0}}
+        parameters = {"sigma": {"type": "number", "exclusiveMinimum": 0}}
 
         def run(self, inputs, *, sigma=1.0, progress=False):
             ...
@@ -29,8 +33,10 @@ methods of other packages are found through the entry-point group
 
 from __future__ import annotations
 
+import functools
 import importlib
 import inspect
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
@@ -39,6 +45,7 @@ from typing import Any, ClassVar
 import numpy as np
 import xarray as xr
 
+from lfstudy.config import ConfigError, validate_section
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct.grid import ReconstructionGrid
 
@@ -50,6 +57,7 @@ __all__ = [
     "ReconstructionInputs",
     "ReconstructionMethod",
     "available_methods",
+    "detect_parameters",
     "get_method",
     "method_schemas",
     "register_method",
@@ -139,18 +147,57 @@ class ReconstructionMethod:
 
     @classmethod
     def schema(cls) -> dict[str, Any]:
-        """The JSON schema of this method's parameters (``reconstruct.<name>``)."""
+        """The JSON schema of this method's parameters (``reconstruct.<name>``), defaults from ``run``."""
+        defaults = detect_parameters(cls)
         return {
             "type": "object",
             "additionalProperties": False,
             "default": {},
             "description": f"parameters of reconstruct.method '{cls.name}': {cls.description}",
-            "properties": {k: dict(v) for k, v in cls.parameters.items()},
+            "properties": {k: {**v, "default": defaults[k]} for k, v in cls.parameters.items()},
         }
 
     @classmethod
     def defaults(cls) -> dict[str, Any]:
-        return {k: v["default"] for k, v in cls.parameters.items() if "default" in v}
+        """``{parameter: default}``, from ``run``'s signature."""
+        return detect_parameters(cls)
+
+
+def detect_parameters(cls: type[ReconstructionMethod]) -> dict[str, Any]:
+    """A method's parameters and their defaults, read from its ``run`` signature.
+
+    The keyword-only arguments of ``run`` other than ``progress`` are the
+    parameters; their defaults are the only statement of the defaults (the
+    schema's ``default`` values are filled in from here).
+
+    Raises
+    ------
+    ReconstructionError
+        ``run`` takes ``*args`` or ``**kwargs``, a parameter has no default,
+        the keyword-only arguments are not the names of ``parameters``, or a
+        ``default`` stated in ``parameters`` differs from the signature's.
+    """
+    where = f"reconstruction method {cls.__name__} ({cls.name!r})"
+    out: dict[str, Any] = {}
+    for p in inspect.signature(cls.run).parameters.values():
+        if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+            raise ReconstructionError(f"{where}: run() takes {p}; name every parameter as a keyword-only argument")
+        if p.kind is p.KEYWORD_ONLY and p.name != "progress":
+            if p.default is p.empty:
+                raise ReconstructionError(f"{where}: run() parameter {p.name!r} needs a default")
+            out[p.name] = p.default
+    if set(out) != set(cls.parameters):
+        raise ReconstructionError(
+            f"{where}: run() takes the parameters {sorted(out)} but `parameters` declares "
+            f"{sorted(cls.parameters)}; they must be the same"
+        )
+    for k, spec in cls.parameters.items():
+        if "default" in spec and spec["default"] != out[k]:
+            raise ReconstructionError(
+                f"{where}: parameter {k!r} has default {spec['default']!r} in `parameters` but {out[k]!r} in "
+                "run(); state it once, in run()"
+            )
+    return out
 
 
 def _load(spec: str) -> type[ReconstructionMethod]:
@@ -158,13 +205,39 @@ def _load(spec: str) -> type[ReconstructionMethod]:
     return getattr(importlib.import_module(mod), attr)
 
 
-def _entry_points() -> dict[str, Any]:
-    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+@functools.lru_cache(maxsize=1)
+def _plugins() -> tuple[dict[str, type[ReconstructionMethod]], dict[str, str]]:
+    """The methods of the entry-point group, loaded: ``({name: class}, {name: why it was skipped})``.
+
+    A plugin that fails to import, is not a method or declares its parameters
+    wrongly is skipped with a warning (as xarray's backend loader does), so one
+    broken package does not stop every config from loading.
+    """
+    found: dict[str, type[ReconstructionMethod]] = {}
+    skipped: dict[str, str] = {}
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            cls = ep.load()
+            if not (isinstance(cls, type) and issubclass(cls, ReconstructionMethod)):
+                raise ReconstructionError(f"{cls!r} is not a ReconstructionMethod subclass")
+            detect_parameters(cls)
+        except Exception as exc:  # a third-party import may raise anything
+            why = f"{type(exc).__name__}: {exc}"
+            skipped[ep.name] = why
+            warnings.warn(
+                f"reconstruction method {ep.name!r} (entry point {ep.value!r} of group {ENTRY_POINT_GROUP!r}) "
+                f"is skipped, it failed to load: {why}",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+            continue
+        found[ep.name] = cls
+    return found, skipped
 
 
 def available_methods() -> list[str]:
     """Names accepted by :func:`reconstruct`: built-in, installed (entry points) and registered."""
-    return sorted(set(BUILTIN) | set(_entry_points()) | set(_REGISTERED))
+    return sorted(set(BUILTIN) | set(_plugins()[0]) | set(_REGISTERED))
 
 
 def get_method(name: str) -> type[ReconstructionMethod]:
@@ -179,12 +252,14 @@ def get_method(name: str) -> type[ReconstructionMethod]:
         return _REGISTERED[name]
     if name in BUILTIN:
         return _load(BUILTIN[name])
-    eps = _entry_points()
-    if name in eps:
-        cls = eps[name].load()
-        if not (isinstance(cls, type) and issubclass(cls, ReconstructionMethod)):
-            raise ReconstructionError(f"entry point {name!r} of {ENTRY_POINT_GROUP} is not a ReconstructionMethod")
-        return cls
+    plugins, skipped = _plugins()
+    if name in plugins:
+        return plugins[name]
+    if name in skipped:
+        raise ReconstructionError(
+            f"reconstruct.method = {name!r}: the method installed under this name (entry point group "
+            f"{ENTRY_POINT_GROUP!r}) failed to load: {skipped[name]}"
+        )
     raise ReconstructionError(
         f"reconstruct.method = {name!r}: unknown reconstruction method; available: {', '.join(available_methods())}"
     )
@@ -198,14 +273,26 @@ def method_schemas() -> dict[str, dict[str, Any]]:
 def _function_method(name: str, func: Callable[..., xr.DataArray]) -> type[ReconstructionMethod]:
     """Wrap ``func(stack, **params) -> volume`` as a method requiring only the stack."""
     sig = inspect.signature(func)
-    params = {
-        p.name: {"default": p.default}
+    kw_params = [
+        p.replace(kind=p.KEYWORD_ONLY)
         for p in list(sig.parameters.values())[1:]
-        if p.default is not inspect.Parameter.empty
-    }
+        if p.default is not p.empty and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+    ]
+    params: dict[str, dict[str, Any]] = {p.name: {} for p in kw_params}
 
     def run(self, inputs, *, progress=False, **kw):
         return func(inputs.stack, **kw)
+
+    # the parameters as run()'s keyword-only arguments, where detect_parameters reads the defaults
+    P = inspect.Parameter
+    run.__signature__ = inspect.Signature(
+        [
+            P("self", P.POSITIONAL_OR_KEYWORD),
+            P("inputs", P.POSITIONAL_OR_KEYWORD),
+            *kw_params,
+            P("progress", P.KEYWORD_ONLY, default=False),
+        ]
+    )
 
     doc = (func.__doc__ or "").strip().splitlines()
     return type(
@@ -231,6 +318,7 @@ def register_method(obj: Any) -> Any:
         bad = set(obj.requires) - set(INPUTS)
         if bad:
             raise ReconstructionError(f"{obj.__name__}.requires: unknown inputs {sorted(bad)}; allowed {INPUTS}")
+        detect_parameters(obj)
         _REGISTERED[obj.name] = obj
         return obj
     if not isinstance(obj, str) or not obj:
@@ -255,8 +343,6 @@ def _check_params(cls: type[ReconstructionMethod], params: dict[str, Any]) -> di
             f"reconstruct.{cls.name}: unknown parameter(s) {', '.join(unknown)}; "
             f"allowed: {', '.join(sorted(cls.parameters)) or 'none'}"
         )
-    from lfstudy.config import ConfigError, validate_section
-
     try:
         return validate_section(cls.schema(), params, f"reconstruct.{cls.name}")
     except ConfigError as exc:
@@ -282,7 +368,7 @@ def reconstruct(
     progress : bool
         Show the method's progress bar (iterations).
     **params
-        The method's parameters (defaults from its ``parameters``).
+        The method's parameters (defaults from its ``run`` signature).
 
     Returns
     -------

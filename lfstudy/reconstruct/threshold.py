@@ -123,20 +123,17 @@ class Threshold(ReconstructionMethod):
             "type": "number",
             "minimum": 0,
             "maximum": 100,
-            "default": 3.0,
             "description": "threshold in standard deviations above the volume mean (thesis: 3)",
         },
         "dilation_radius": {
             "type": "integer",
             "minimum": 0,
             "maximum": 10,
-            "default": 1,
             "description": "radius [voxels] of the disk dilating the mask (thesis: 1)",
         },
         "dilation_ndim": {
             "type": "integer",
             "enum": [2, 3],
-            "default": 2,
             "description": "2: dilate each plane (the thesis' imdilate); 3: a 3-D ball",
         },
     }

@@ -1,7 +1,9 @@
 """The study (thesis ch. 7): errors against the truth, the sweep table and the report.
 
-Modules: :mod:`~lfstudy.study.sweep` (the sweep table: settings, cases, where
-each stage's outputs live), :mod:`~lfstudy.study.case` (one case's config → its
+Modules: :mod:`~lfstudy.study.config` (the study config: validated with every
+swept case, each case's and stage's config; its schema in
+:mod:`~lfstudy.study.schema`), :mod:`~lfstudy.study.sweep` (the sweep table:
+settings, cases, where each stage's outputs live), :mod:`~lfstudy.study.case` (one case's config → its
 science: the layer the workflow, the CLI and notebooks share),
 :mod:`~lfstudy.study.metrics` (per-case errors, Q), :mod:`~lfstudy.study.metric_table` (every
 metric's units, long name, better direction and where it is shown), :mod:`~lfstudy.study.table`

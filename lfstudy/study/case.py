@@ -1,6 +1,6 @@
 """The case layer: one case's config → the science of that case.
 
-Every function here takes a case config (:func:`lfstudy.config.case_config`,
+Every function here takes a case config (:func:`lfstudy.study.config.case_config`,
 or the part of it a stage reads) and calls the pure science functions of the
 stage packages. The Snakemake rules (:mod:`lfstudy.workflow`), the CLI and a
 notebook all go through this module, so they produce the same bytes; the

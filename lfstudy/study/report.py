@@ -31,10 +31,10 @@ import pandas as pd
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.config import case_config
 from lfstudy.optics import PlenopticCamera
 from lfstudy.study import metric_table as mt
 from lfstudy.study.case import case_planes
+from lfstudy.study.config import case_config
 from lfstudy.study.sweep import format_value
 
 __all__ = [

@@ -14,6 +14,8 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
+from lfstudy.config import ConfigError
+
 __all__ = ["machine_memory", "case_memory", "check_memory"]
 
 _BASE = 0.3e9  # interpreter, numpy, xarray, numba: measured ~0.25 GB per stage process
@@ -96,8 +98,6 @@ def check_memory(ccfg: Mapping[str, Any], *, available: float | None = None, whe
     where : str
         The case, for the message.
     """
-    from lfstudy.config import ConfigError
-
     avail = available if available is not None else 0.9 * machine_memory()
     if not avail:
         return

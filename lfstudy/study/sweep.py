@@ -33,6 +33,9 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from lfstudy.config import ConfigError
+from lfstudy.study.schema import load_schema
+
 __all__ = [
     "SECTION_ORDER",
     "STAGES",
@@ -291,15 +294,13 @@ class Sweep:
     Parameters
     ----------
     cfg : mapping
-        A config with defaults filled in (:func:`lfstudy.config.validate_config`,
+        A config with defaults filled in (:func:`lfstudy.study.config.validate_config`,
         or the raw schema-valid mapping while validating).
     schema : mapping, optional
         The config schema, for labels, units and checking dotted paths.
     """
 
     def __init__(self, cfg: Mapping[str, Any], schema: Mapping[str, Any] | None = None) -> None:
-        from lfstudy.config import ConfigError, load_schema
-
         self.cfg = cfg
         schema = schema if schema is not None else load_schema()
         sweep = dict(cfg.get("sweep", {}) or {})
@@ -398,8 +399,6 @@ class Sweep:
         ConfigError
             The id is not one of the sweep's.
         """
-        from lfstudy.config import ConfigError
-
         if isinstance(case_id, Case):
             return case_id
         for c in self.cases():
@@ -410,8 +409,6 @@ class Sweep:
     def apply(self, case: Case) -> dict[str, Any]:
         """The full config of one case: base config with the case's values set, the flow's
         spec under ``flow`` (with its name) and ``case_id``."""
-        from lfstudy.config import ConfigError
-
         out = copy.deepcopy(dict(self.cfg))
         for s, v in zip(self.settings, case.values):
             if s.key == "flow":

@@ -1,0 +1,168 @@
+"""The study config: validate it (every swept case included), expand the sweep, each case's and stage's config.
+
+The layers run one way: :mod:`lfstudy.config` (the error, YAML, schema
+validation) ← :mod:`lfstudy.reconstruct` (the method registry) ←
+:mod:`lfstudy.study.schema` (the full schema) ← the study modules
+(:mod:`~lfstudy.study.sweep`, :mod:`~lfstudy.study.case`,
+:mod:`~lfstudy.study.resources`) ← this module ← the workflow, the CLI and the
+``Snakefile``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from lfstudy.config import ConfigError, read_yaml, validate_section
+from lfstudy.optics import OpticsError, PlenopticCamera
+from lfstudy.reconstruct.grid import GridError
+from lfstudy.study.case import case_grid
+from lfstudy.study.resources import check_memory
+from lfstudy.study.schema import load_schema
+from lfstudy.study.sweep import NAMED, STAGES, Case, Sweep, format_value
+
+__all__ = [
+    "load_schema",
+    "load_config",
+    "validate_config",
+    "sweep_of",
+    "expand_cases",
+    "case_config",
+    "stage_config",
+    "cases_table",
+]
+
+
+def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Validate a config mapping, returning a deep copy with defaults filled in.
+
+    Besides the schema, checks what a schema cannot: that the camera can be
+    built (f-number reachable, pitch vs pixel) for every swept combination,
+    and that swept flows are defined.
+
+    Raises
+    ------
+    ConfigError
+        On the first problem, naming the key, the value and what is allowed.
+    """
+    cfg = validate_section(load_schema(), cfg)
+    lens = cfg["camera"]["lenslet"]
+    if lens.get("focal_length") is None and lens.get("fnumber") is None:
+        raise ConfigError("config key 'camera.lenslet': give focal_length or fnumber (fl = N·pl)")
+    for name in cfg["sweep"].get("flow", []):
+        if name not in cfg["flows"]:
+            raise ConfigError(
+                f"config key 'sweep.flow' = {name!r}: unknown flow; allowed values are "
+                + ", ".join(repr(k) for k in cfg["flows"])
+            )
+    for name, spec in cfg["flows"].items():
+        if spec["kind"] == "uniform" and "displacement" not in spec:
+            raise ConfigError(f"config key 'flows.{name}.displacement': required for kind 'uniform' ([dx, dy, dz] mm)")
+        if spec["kind"] == "hill" and ("radius" not in spec or "u0" not in spec):
+            raise ConfigError(f"config key 'flows.{name}': kind 'hill' needs radius (> 0 mm) and u0")
+    count = cfg["particles"].get("count")
+    if count is not None and len(cfg["sweep"].get("ppp", [])) > 1:
+        raise ConfigError(
+            f"config key 'particles.count' = {count}: a fixed particle count overrides ppp, so every swept "
+            "ppp value would image the same field; drop particles.count or sweep.ppp"
+        )
+
+    sweep = sweep_of(cfg)
+    schema = load_schema()
+    dotted = [s for s in sweep.settings if s.key not in NAMED]
+    for case in sweep.cases():
+        ccfg = sweep.apply(case)
+        if dotted:  # a value the sweep sets must be valid where it lands (e.g. piv.window)
+            try:
+                validate_section(schema, {k: v for k, v in ccfg.items() if k not in ("flow", "case_id")})
+            except ConfigError as exc:
+                where = ", ".join(f"{s.key}={format_value(case[s.key])}" for s in dotted)
+                raise ConfigError(f"{exc} (case {where})") from None
+        try:
+            PlenopticCamera.from_config(ccfg)
+        except OpticsError as exc:
+            where = ", ".join(f"{k}={v}" for k, v in case.params.items() if k != "flow")
+            raise ConfigError(f"config key 'camera' (case {where}): {exc}") from None
+        sen = ccfg["sensor"]
+        if sen["full_well"] is not None and sen["full_well"] <= sen["dark_level"]:
+            raise ConfigError(
+                f"config key 'sensor.full_well' = {sen['full_well']!r} (case {case.case_id}): must exceed "
+                f"sensor.dark_level = {sen['dark_level']!r} e- (the pedestal would fill the well)"
+            )
+        try:  # the grid a case reconstructs on (grid.z_range, voxel sizes, its memory cap)
+            case_grid(ccfg)
+        except GridError as exc:
+            raise ConfigError(f"config key 'grid' (case {case.case_id}): {exc}") from None
+        check_memory(ccfg, where=f"case {case.case_id}")
+    return cfg
+
+
+def load_config(path: str | Path) -> dict[str, Any]:
+    """Read a YAML config file and validate it (defaults filled in)."""
+    return validate_config(read_yaml(path))
+
+
+def sweep_of(cfg: Mapping[str, Any]) -> Sweep:
+    """The :class:`~lfstudy.study.sweep.Sweep` of a validated config."""
+    return Sweep(cfg)
+
+
+def expand_cases(cfg: Mapping[str, Any]) -> list[Case]:
+    """All cases of the sweep (Cartesian product of its lists), in a stable order.
+
+    A named parameter that is not swept keeps the single value of the base config.
+    """
+    return sweep_of(cfg).cases()
+
+
+def case_config(cfg: Mapping[str, Any], case: Case | str) -> dict[str, Any]:
+    """The full config of one case: the base config with the case's swept values set.
+
+    The chosen flow's spec is placed under ``flow`` (with its name); ``case_id``,
+    ``calib_id`` and ``stage_ids`` (where each stage's outputs live) are added.
+    """
+    sweep = sweep_of(cfg)
+    case = sweep.case(case)
+    out = sweep.apply(case)
+    out["calib_id"] = sweep.calib_id(case)
+    out["stage_ids"] = sweep.ids(case)
+    return out
+
+
+def stage_config(cfg: Mapping[str, Any], case: Case | str, stage: str) -> dict[str, Any]:
+    """The part of a case's config that ``stage`` reads (:data:`lfstudy.study.sweep.STAGES`),
+    plus ``stage_id`` (where the stage's outputs live) and ``calib_id``.
+
+    ``case_id`` is added only for the per-case ``errors`` stage: every other stage's output
+    is shared by all cases at its location, so its config (the Snakemake rule's params, and
+    the provenance attrs it writes) must not depend on which of them stands for it —
+    otherwise a change of the sweep reruns shared stages whose settings did not change.
+    """
+    ccfg = case_config(cfg, case)
+    sections = {p.split(".")[0] for p in STAGES[stage].reads}
+    out: dict[str, Any] = {"stage_id": ccfg["stage_ids"][stage], "calib_id": ccfg["calib_id"]}
+    if stage == "errors":
+        out["case_id"] = ccfg["case_id"]
+    return {**out, **{k: ccfg[k] for k in sorted(sections)}}
+
+
+def cases_table(cfg: Mapping[str, Any]):
+    """The expanded sweep as a pandas DataFrame indexed by case id, with derived camera columns."""
+    import pandas as pd
+
+    sweep = sweep_of(cfg)
+    rows = []
+    for case in sweep.cases():
+        cam = PlenopticCamera.from_config(sweep.apply(case))
+        rows.append(
+            {
+                "case_id": case.case_id,
+                **case.params,
+                "main_fnumber": cam.main_fnumber,
+                "lenslets": f"{cam.n_lenslets_x}x{cam.n_lenslets_y}",
+                "px_per_lenslet": round(cam.pixels_per_lenslet, 3),
+                "fill": round(cam.lenslet_image_fill, 3),
+            }
+        )
+    return pd.DataFrame(rows).set_index("case_id")

@@ -1,0 +1,34 @@
+"""The study config's JSON schema: ``lfstudy/schema.yaml`` plus every reconstruction method's parameters.
+
+The schema file (``config/schema.yaml`` links to it) states the sections; each
+reconstruction method declares its own parameters (``reconstruct.<name>``,
+from :mod:`lfstudy.reconstruct`), so the full schema is assembled here, above
+both the config plumbing (:mod:`lfstudy.config`) and the method registry.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+from typing import Any
+
+from lfstudy.config import read_schema
+from lfstudy.reconstruct.registry import available_methods, method_schemas
+
+__all__ = ["load_schema"]
+
+
+@functools.lru_cache(maxsize=1)
+def _schema() -> dict[str, Any]:
+    schema = read_schema("schema.yaml")
+    rec = schema["properties"]["reconstruct"]["properties"]
+    rec["method"]["enum"] = available_methods()
+    for name, sub in method_schemas().items():
+        rec[name] = sub
+    return schema
+
+
+def load_schema() -> dict[str, Any]:
+    """The JSON schema of a study config: ``schema.yaml`` plus every reconstruction
+    method's parameters (``reconstruct.<method>``, from the method registry)."""
+    return copy.deepcopy(_schema())
