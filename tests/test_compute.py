@@ -52,6 +52,7 @@ def _same_bytes(a: Path, b: Path) -> None:
         assert u.tobytes() == v.tobytes(), (a.name, name)
 
 
+@pytest.mark.slow  # ~50 s (measured): a dask LocalCluster
 def test_distributed_equals_threaded(case, tmp_path):
     from distributed import get_task_stream
 

@@ -94,6 +94,7 @@ def test_config_reference_of_a_hand_made_schema():
     assert r"section \*a\*" in text and "``x`` or ``y``" in text
 
 
+@pytest.mark.slow
 @pytest.mark.docs
 def test_api_reference_lists_every_public_name():
     pytest.importorskip(

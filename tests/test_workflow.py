@@ -20,6 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
+pytestmark = pytest.mark.slow  # Snakemake runs: the tiny study alone takes minutes on 2 cores
+
 
 def _snakemake(
     workdir: Path, *extra: str, timeout: float = 600, config: Path | None = TINY
