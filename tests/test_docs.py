@@ -9,6 +9,7 @@ the docs pages resolves inside the repository.
 from __future__ import annotations
 
 import importlib
+import inspect
 import re
 import sys
 from pathlib import Path
@@ -118,6 +119,37 @@ def test_api_reference_lists_every_public_name():
         assert "**Thesis (Lynch 2011):**" in pages[f"{module}.rst"]
     assert all(f"   {m}" in pages["index.rst"] for m in found)
     assert text.count(".. autoclass:: PlenopticCamera") == 1  # re-exported twice, documented once
+
+
+def _documented_objects(module: str, documented: set[int]) -> list[tuple[str, object]]:
+    """The objects whose docstrings an API page shows, as :func:`lfstudy_docs.api_page` picks them:
+    each public name not documented on an earlier page, and a class's public members."""
+    mod = importlib.import_module(module)
+    out = []
+    for name in lfstudy_docs.public_names(module):
+        obj = getattr(mod, name)
+        if not (inspect.isclass(obj) or inspect.isroutine(obj)) or id(obj) in documented:
+            continue
+        documented.add(id(obj))
+        out.append((name, obj))
+        if inspect.isclass(obj):
+            out += [(f"{name}.{m}", v) for m, v in vars(obj).items() if not m.startswith("_") and inspect.isroutine(v)]
+    return out
+
+
+def test_footnotes_are_unique_on_each_api_page():
+    """Numbered References (``.. [1]``) of two docstrings on one API page would be duplicate targets,
+    an error in the -W docs build: the second such docstring must number on from the first."""
+    documented: set[int] = set()
+    clashes = []
+    for module in lfstudy_docs.api_modules():
+        seen: dict[str, str] = {}
+        for name, obj in _documented_objects(module, documented):
+            for label in set(re.findall(r"(?m)^\s*\.\. \[([^\]]+)\]", inspect.getdoc(obj) or "")):
+                if label in seen:
+                    clashes.append(f"{module}: [{label}] in {seen[label]} and {name}")
+                seen.setdefault(label, name)
+    assert not clashes, clashes
 
 
 def test_generated_references_are_parsed_as_restructuredtext():
