@@ -214,6 +214,25 @@ def open_study(path: str | Path) -> xr.DataTree:
     ------
     FileNotFoundError
         The directory holds no ``study.zarr``.
+
+    Examples
+    --------
+    A results directory with a two-row study table and one case's vector field:
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import numpy as np, xarray as xr
+    >>> from lfstudy import io
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     table = xr.Dataset({"rms_total": ("ppp", [0.21, 0.34])}, coords={"ppp": [0.002, 0.004]})
+    ...     _ = io.write_zarr(table, Path(tmp) / "study.zarr")
+    ...     piv = xr.Dataset({"u": (("z", "y", "x"), np.zeros((2, 3, 4)))})
+    ...     _ = io.write_zarr(piv, Path(tmp) / "ppp~0.002" / "piv.zarr")
+    ...     tree = io.open_study(tmp)
+    ...     print(tree.groups)
+    ...     print(tree["rms_total"].values, tree["ppp~0.002/piv"]["u"].shape)
+    ('/', '/ppp~0.002', '/ppp~0.002/piv')
+    [0.21 0.34] (2, 3, 4)
     """
     root = Path(path)
     if not (root / "study.zarr").exists():

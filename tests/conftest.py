@@ -39,6 +39,15 @@ def tiny_study(tmp_path_factory) -> Path:
     return work
 
 
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
+def pytest_collection_modifyitems(config, items):
+    """A test that uses the tiny study (directly or through a fixture) is `slow`: the first one runs
+    the whole Snakemake workflow (minutes on 2 cores)."""
+    for item in items:
+        if "tiny_study" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture
 def cli_error(capsys):
     """Run the CLI expecting a refusal: exit 2, one 'lfstudy <command>: error: ' line on stderr,

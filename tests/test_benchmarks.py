@@ -8,6 +8,7 @@ needs at its top and builds its option parser, then exits before any work.
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,8 +19,37 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 SCRIPTS = sorted(BENCH.glob("bench_*.py"))
 
 
+ROOT = BENCH.parent
+#: Where benchmark scripts are named (their docstrings and the docs quote measured numbers from them).
+_NAMING = ("README.md", "Snakefile", "docs", "lfstudy", "benchmarks", "reports", "config", "profiles", "examples")
+_TEXT = ("", ".py", ".md", ".rst", ".yaml", ".yml", ".ipynb", ".txt")
+_NAMED = re.compile(r"benchmarks/(bench_\w+\.py)")
+
+
+def _named_benchmarks() -> dict[str, list[str]]:
+    """Benchmark script -> the files that name it as ``benchmarks/<script>``."""
+    named: dict[str, list[str]] = {}
+    for top in _NAMING:
+        path = ROOT / top
+        files = [path] if path.is_file() else sorted(path.rglob("*"))
+        for f in files:
+            rel = f.relative_to(ROOT)
+            if not f.is_file() or f.suffix not in _TEXT or {"_build", "api", "out", "__pycache__"} & set(rel.parts):
+                continue
+            for name in _NAMED.findall(f.read_text(errors="replace")):
+                named.setdefault(name, []).append(rel.as_posix())
+    return named
+
+
 def test_every_benchmark_is_checked():
-    assert len(SCRIPTS) >= 6, f"benchmark scripts not found under {BENCH}"
+    """Every script in benchmarks/ is one of the cases below (a script not named bench_*.py would
+    escape them; helpers start with ``_``), and every benchmark the code and the docs name exists."""
+    scripts = sorted(p for p in BENCH.rglob("*.py") if not p.name.startswith("_") and "out" not in p.parts)
+    assert scripts == SCRIPTS, f"benchmark scripts not named bench_*.py: {sorted(set(scripts) - set(SCRIPTS))}"
+    named = _named_benchmarks()
+    assert named, "no file names a benchmark script: the search above is broken"
+    missing = {name: where for name, where in named.items() if not (BENCH / name).is_file()}
+    assert not missing, f"benchmark scripts named but missing: {missing}"
 
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)

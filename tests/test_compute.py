@@ -53,6 +53,7 @@ def _same_bytes(a: Path, b: Path) -> None:
         assert u.tobytes() == v.tobytes(), (a.name, name)
 
 
+@pytest.mark.slow  # the `case` fixture simulates a case (~40 s measured), then a dask LocalCluster
 def test_distributed_equals_threaded(case, tmp_path):
     from distributed import get_task_stream
 
@@ -70,6 +71,7 @@ def test_distributed_equals_threaded(case, tmp_path):
     assert float(piv["valid"].mean()) > 0.8  # a real result, not two empty ones
 
 
+@pytest.mark.slow  # the `case` fixture (~40 s measured)
 def test_workflow_stage_runs_under_the_client(case, tmp_path):
     """`python -m lfstudy.workflow refocus --compute JSON` (what the Snakefile runs)."""
     ccfg, d = case

@@ -98,6 +98,7 @@ def test_repeated_calibration_volumes_are_pooled_and_their_spread_is_kept():
         depth_response([(0.25, low), (0.25, high), (0.5, low)])
 
 
+@pytest.mark.slow  # ~27 s (measured)
 def test_the_calibration_corrects_a_held_out_depth_shift():
     """The demo's first MART design reads depth about a third short. Calibrated on its own traversed
     volume (another particle field, traverses of 0.5 and 1 voxel), a uniform z shift of 0.75 voxel —

@@ -9,6 +9,7 @@ the docs pages resolves inside the repository.
 from __future__ import annotations
 
 import importlib
+import inspect
 import re
 import sys
 from pathlib import Path
@@ -94,7 +95,14 @@ def test_config_reference_of_a_hand_made_schema():
     assert r"section \*a\*" in text and "``x`` or ``y``" in text
 
 
+@pytest.mark.slow
+@pytest.mark.docs
 def test_api_reference_lists_every_public_name():
+    pytest.importorskip(
+        "sphinx",
+        reason="needs the docs extra (pip install -e '.[docs]'): the API pages are generated with Sphinx's "
+        "ModuleAnalyzer; CI runs this test in its docs step (pytest -m docs)",
+    )
     pages = lfstudy_docs.api_pages()
     text = "\n".join(pages.values())
     found = lfstudy_docs.stage_packages()
@@ -111,6 +119,37 @@ def test_api_reference_lists_every_public_name():
         assert "**Thesis (Lynch 2011):**" in pages[f"{module}.rst"]
     assert all(f"   {m}" in pages["index.rst"] for m in found)
     assert text.count(".. autoclass:: PlenopticCamera") == 1  # re-exported twice, documented once
+
+
+def _documented_objects(module: str, documented: set[int]) -> list[tuple[str, object]]:
+    """The objects whose docstrings an API page shows, as :func:`lfstudy_docs.api_page` picks them:
+    each public name not documented on an earlier page, and a class's public members."""
+    mod = importlib.import_module(module)
+    out = []
+    for name in lfstudy_docs.public_names(module):
+        obj = getattr(mod, name)
+        if not (inspect.isclass(obj) or inspect.isroutine(obj)) or id(obj) in documented:
+            continue
+        documented.add(id(obj))
+        out.append((name, obj))
+        if inspect.isclass(obj):
+            out += [(f"{name}.{m}", v) for m, v in vars(obj).items() if not m.startswith("_") and inspect.isroutine(v)]
+    return out
+
+
+def test_footnotes_are_unique_on_each_api_page():
+    """Numbered References (``.. [1]``) of two docstrings on one API page would be duplicate targets,
+    an error in the -W docs build: the second such docstring must number on from the first."""
+    documented: set[int] = set()
+    clashes = []
+    for module in lfstudy_docs.api_modules():
+        seen: dict[str, str] = {}
+        for name, obj in _documented_objects(module, documented):
+            for label in set(re.findall(r"(?m)^\s*\.\. \[([^\]]+)\]", inspect.getdoc(obj) or "")):
+                if label in seen:
+                    clashes.append(f"{module}: [{label}] in {seen[label]} and {name}")
+                seen.setdefault(label, name)
+    assert not clashes, clashes
 
 
 def test_generated_references_are_parsed_as_restructuredtext():
@@ -145,8 +184,27 @@ _HTML_LINK = re.compile(r"""(?:href|src)\s*=\s*["']([^"']+)["']""")
 _RST_LINK = re.compile(r"`[^`<]*<([^>`]+)>`__?")
 _MD_REF_DEF = re.compile(r"(?m)^\s*\[[^\]]+\]:\s*(\S+)")
 
-#: Files the docs build itself puts beside the pages (the tutorial's report).
-_BUILT = {"tutorial-report.html"}
+#: Where the executed pages put files to be published beside them (conf.py's ``html_extra_path``).
+_SITE = "_build/tutorial_site"
+
+
+def _built_files() -> set[str]:
+    """Files the docs build itself puts beside the pages: what the executed pages copy into
+    ``_SITE`` (``site / "name"``), e.g. the tutorial's study report and its recording's report."""
+    names: set[str] = set()
+    for page in sorted(DOCS.rglob("*.md")):
+        text = page.read_text()
+        if "_build" not in page.relative_to(DOCS).parts and _SITE in text:
+            names |= set(re.findall(r'\bsite\s*/\s*"([^"/]+)"', text))
+    return names
+
+
+_BUILT = _built_files()
+
+
+def test_built_files_are_known():
+    assert '"_build" / "tutorial_site"' in (DOCS / "conf.py").read_text()  # published as html_extra_path
+    assert {"tutorial-report.html", "tutorial-recording-report.html"} <= _BUILT, _BUILT
 
 
 def _doc_files():

@@ -15,6 +15,8 @@ from lfstudy.study.table import combine_cases
 
 NOTEBOOK = Path(__file__).resolve().parents[1] / "examples" / "explore_results.ipynb"
 
+pytestmark = pytest.mark.slow
+
 
 def _scalars(rms: float) -> xr.Dataset:
     return xr.Dataset(

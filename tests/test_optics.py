@@ -145,15 +145,29 @@ def test_bad_camera(change, match):
         PlenopticCamera(**kw)
 
 
+def _covered(cx: np.ndarray, cy: np.ndarray, x: float, y: float, pitch: float, rotation: float) -> bool:
+    """Whether the point (x, y) lies in the square cell (side ``pitch``, rotated) of one of the centres."""
+    c, s = math.cos(rotation), math.sin(rotation)
+    dx, dy = x - cx, y - cy
+    return bool(np.any((np.abs(c * dx + s * dy) <= pitch / 2) & (np.abs(-s * dx + c * dy) <= pitch / 2)))
+
+
 def test_rotated_grid_covers_sensor():
+    """Every pixel, up to the sensor's corners, lies in the cell of one of the lenslet centres."""
     cam = PlenopticCamera(300, 200, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_rotation=0.02, lenslet_offset_x=0.03)
-    _cx, _cy = cam.lenslet_centers()
-    # Every sensor corner lies inside the rotated grid's outline.
-    c, s = math.cos(-0.02), math.sin(-0.02)
-    for x in (-cam.sensor_width / 2, cam.sensor_width / 2):
-        for y in (-cam.sensor_height / 2, cam.sensor_height / 2):
-            gx, gy = c * (x - 0.03) - s * y, s * (x - 0.03) + c * y
-            assert abs(gx) <= cam.n_lenslets_x * 0.125 / 2 and abs(gy) <= cam.n_lenslets_y * 0.125 / 2
+    cx, cy = cam.lenslet_centers()
+    assert cx.shape == cy.shape == (cam.n_lenslets_y, cam.n_lenslets_x)
+    # the centres form the rotated grid: neighbours one pitch apart along the rotated axes
+    assert np.allclose(np.diff(cx, axis=1), 0.125 * math.cos(0.02))
+    assert np.allclose(np.diff(cy, axis=1), 0.125 * math.sin(0.02))
+    half_w, half_h = cam.sensor_width / 2, cam.sensor_height / 2
+    corners = [(x, y) for x in (-half_w, half_w) for y in (-half_h, half_h)]
+    edges = [(x, y) for x in np.linspace(-half_w, half_w, 41) for y in (-half_h, half_h)]
+    edges += [(x, y) for y in np.linspace(-half_h, half_h, 41) for x in (-half_w, half_w)]
+    uncovered = [(x, y) for x, y in corners + edges if not _covered(cx, cy, x, y, 0.125, 0.02)]
+    assert not uncovered, f"sensor points outside every lenslet cell: {uncovered[:4]}"
+    # the check catches a grid one column short
+    assert not all(_covered(cx[:, :-1], cy[:, :-1], x, y, 0.125, 0.02) for x, y in corners)
 
 
 def test_lenslet_counts_on_a_square_sensor_follow_each_axis():

@@ -28,10 +28,13 @@ PROFILE = ROOT / "profiles" / "slurm"
 IN_CI = os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
 TIMEOUT = 900  # s for the SLURM run (measured: see the test's docstring)
 
-pytestmark = pytest.mark.skipif(
-    shutil.which("sbatch") is None and not IN_CI,
-    reason="no SLURM here (sbatch not on PATH); `sudo bash scripts/local-slurm.sh` starts a local one",
-)
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        shutil.which("sbatch") is None and not IN_CI,
+        reason="no SLURM here (sbatch not on PATH); `sudo bash scripts/local-slurm.sh` starts a local one",
+    ),
+]
 
 
 def _slurm(*args: str) -> str:

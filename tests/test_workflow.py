@@ -20,6 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"
 SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 
+pytestmark = pytest.mark.slow  # Snakemake runs: the tiny study alone takes minutes on 2 cores
+
 
 def _snakemake(
     workdir: Path, *extra: str, timeout: float = 600, config: Path | None = TINY
@@ -38,16 +40,41 @@ def _snakemake(
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
 
 
+def _parse_dry_run(text: str) -> dict[str, int]:
+    """Rule -> job count of a dry run's job table (``all`` left out); ``{}`` only where Snakemake
+    says there is nothing to do. Anything else fails: a changed dry-run format must not read as
+    "no jobs" (and so pass every "nothing reruns" check)."""
+    counts: dict[str, int] = {}
+    total = None
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) == 2 and parts[1].isdigit():
+            if parts[0] == "total":
+                total = int(parts[1])
+            elif parts[0] != "job":
+                counts[parts[0]] = int(parts[1])
+    if total is None:
+        assert not counts and "Nothing to be done" in text, f"dry run not understood:\n{text[-3000:]}"
+        return {}
+    assert counts and sum(counts.values()) == total, f"job table does not add up to its total:\n{text[-3000:]}"
+    counts.pop("all", None)
+    return counts
+
+
 def _planned_jobs(workdir: Path, config: Path = TINY) -> dict[str, int]:
     """Rule -> job count of a dry run (empty when there is nothing to do)."""
     r = _snakemake(workdir, "-n", "--quiet", "rules", config=config)
     assert r.returncode == 0, r.stderr
-    jobs: dict[str, int] = {}
-    for line in (r.stdout + r.stderr).splitlines():
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job", "all"):
-            jobs[parts[0]] = int(parts[1])
-    return jobs
+    return _parse_dry_run(r.stdout + r.stderr)
+
+
+def test_dry_run_parser_refuses_what_it_does_not_understand():
+    table = "Job stats:\njob      count\n-----  -----\npiv        2\nerrors     2\nall        1\ntotal      5\n"
+    assert _parse_dry_run(table) == {"piv": 2, "errors": 2}
+    assert _parse_dry_run("Building DAG of jobs...\nNothing to be done (all requested files are present).") == {}
+    for text in ("", "Building DAG of jobs...\n", "piv 2\nall 1\n", table.replace("total      5", "total      6")):
+        with pytest.raises(AssertionError):
+            _parse_dry_run(text)
 
 
 @pytest.fixture(scope="module")

@@ -829,12 +829,13 @@ def widim(
         A level ends when the corrector RMS changes by less than ``tol`` voxels
         between passes or falls below ``tol`` (App. D uses 0.1 px).
     nmt_eps, nmt_threshold : float
-        Normalised median test noise level and threshold (0.1 and 2, sec. 6.1.3).
+        Noise level ε and threshold of the normalised median test [1]_ (0.1 and 2,
+        sec. 6.1.3).
     predictor_filter : float
         σ, in vector spacings, of a Gaussian filter applied to the validated
-        field before it deforms the next pass (Schrijer & Scarano 2008): stops
-        the passes from amplifying noise near the vector spacing. 0 = off
-        (the thesis' WIDIM).
+        field before it deforms the next pass (predictor filtering, Schrijer &
+        Scarano [2]_): stops the passes from amplifying noise near the vector
+        spacing. 0 = off (the thesis' WIDIM).
     chunk_windows : int, optional
         Windows correlated per batch; bounds memory (and the slab of a dask input
         read at once). Default: about 2**25 correlation-plane voxels per batch.
@@ -856,6 +857,31 @@ def widim(
     ValueError
         On mismatched shapes, non-finite voxels, windows larger than the domain
         or out-of-range parameters.
+
+    References
+    ----------
+    .. [1] J. Westerweel, F. Scarano, "Universal outlier detection for PIV
+           data", Experiments in Fluids 39 (6) pp 1096--1100 (2005),
+           doi:10.1007/s00348-005-0016-6
+    .. [2] F. F. J. Schrijer, F. Scarano, "Effect of predictor-corrector
+           filtering on the stability and spatial resolution of iterative PIV
+           interrogation", Experiments in Fluids 45 (5) pp 927--941 (2008),
+           doi:10.1007/s00348-008-0511-7
+
+    Examples
+    --------
+    Two 64 x 64 frames of the same particles, the second displaced by 1.5 px
+    along y and -0.75 px along x (array-axis order):
+
+    >>> from lfstudy.piv import particle_pair, widim
+    >>> a, b = particle_pair((64, 64), (1.5, -0.75), density=0.02, seed=1)
+    >>> res = widim(a, b, window=16)
+    >>> dict(res.sizes)
+    {'y': 7, 'x': 7, 'pass': 4}
+    >>> round(float(res.v.median()), 1), round(float(res.u.median()), 2)
+    (1.5, -0.75)
+    >>> float(res.valid.mean())
+    1.0
     """
     ia = _as_input(a, "a")
     ib = _as_input(b, "b")

@@ -14,7 +14,7 @@ grid's planes by the very code that made the stack
 (:func:`lfstudy.lightfield.focal_stack`), so the model and the data share
 every approximation.
 
-Richardson–Lucy (Richardson 1972; Lucy 1974) then iterates
+Richardson–Lucy (Richardson 1972; Lucy 1974; references in :func:`richardson_lucy`) then iterates
 
     E ← E · Hᵀ(S / H·E) / Hᵀ·1,
 
@@ -98,6 +98,9 @@ def richardson_lucy(
 ) -> tuple[np.ndarray, list[float]]:
     """Richardson–Lucy deconvolution with a depth-dependent, laterally shift-invariant PSF.
 
+    The iteration of Richardson [1]_ and Lucy [2]_, E ← E · Hᵀ(S / H·E) / Hᵀ·1,
+    with H the blur of the focal stack (see the module docstring).
+
     Parameters
     ----------
     stack : xarray.DataArray
@@ -118,6 +121,15 @@ def richardson_lucy(
     volume : ndarray (nz, ny, nx)
     residual : list of float
         ‖H·E − S‖ / ‖S‖ before each update.
+
+    References
+    ----------
+    .. [1] W. H. Richardson, "Bayesian-based iterative method of image
+           restoration", Journal of the Optical Society of America 62 (1)
+           pp 55--59 (1972), doi:10.1364/JOSA.62.000055
+    .. [2] L. B. Lucy, "An iterative technique for the rectification of observed
+           distributions", The Astronomical Journal 79 (6) pp 745--754 (1974),
+           doi:10.1086/111605
     """
     s = np.maximum(np.asarray(stack.values, dtype=np.float64), 0.0)
     nz, ny, nx = s.shape

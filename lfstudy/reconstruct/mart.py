@@ -1,6 +1,7 @@
 """MART: multiplicative algebraic reconstruction with plenoptic weights (beyond thesis sec. 5.6).
 
-The thesis names MART as the way past thresholding (sec. 5.6); later plenoptic
+The thesis names MART (Elsinga et al. 2006, the algorithm of tomographic PIV) as
+the way past thresholding (sec. 5.6); later plenoptic
 PIV (Fahringer & Thurow) did it with weights from the plenoptic camera's own
 ray geometry. Here the weights are the beams of
 :class:`~lfstudy.reconstruct.projector.PlenopticProjector`: every
@@ -27,10 +28,12 @@ within one lenslet's depth of focus apart, draws particles to it. A light
 Gaussian filter between iterations (``smoothing``, Discetti et al. 2013's SFIT)
 keeps particles as blobs of about one resolution cell.
 
-Initialisation: ``mlos`` (multiplicative line of sight, Atkinson & Soria: the
+Initialisation: ``mlos`` (the multiplicative first guess of Worth & Nickels
+2008, called multiplicative line of sight by Atkinson & Soria 2009: the
 weighted geometric mean, over every view, of the ray intensities normalised by
 their projection of a uniform volume; a voxel crossed by dark rays starts
-dark), ``stack`` (the focal stack on the grid), or ``uniform``.
+dark), ``stack`` (the focal stack on the grid), or ``uniform``. Full references
+in :func:`mart`.
 """
 
 from __future__ import annotations
@@ -84,6 +87,9 @@ def mart(
 ) -> xr.DataArray:
     """Reconstruct a volume on ``grid`` from a registered light field by MART.
 
+    MART [1]_ over ordered subsets of views, with plenoptic weights and a
+    multiplicative first guess [2]_, [3]_ (see the module docstring).
+
     Parameters
     ----------
     lightfield : xarray.DataArray
@@ -97,7 +103,8 @@ def mart(
     subsets : int
         Ordered subsets of views per iteration (1 = SMART).
     init : {"mlos", "stack", "uniform"}
-        Initial volume (see the module docstring); ``stack`` needs ``stack``.
+        Initial volume: ``mlos`` the multiplicative first guess [2]_ (MLOS [3]_),
+        ``stack`` the focal stack (needs ``stack``), ``uniform`` ones.
     stack : xarray.DataArray, optional
         Focal stack on ``grid`` (for ``init="stack"``).
     noise_floor : float
@@ -130,6 +137,18 @@ def mart(
         settings, ``residual`` per iteration (exact with ``track_residual``,
         else the residual met during the iteration), ``seconds_per_iteration``,
         ``init_seconds``, ``rays_used``, ``weight_table_bytes``.
+
+    References
+    ----------
+    .. [1] G. E. Elsinga, F. Scarano, B. Wieneke, B. W. van Oudheusden,
+           "Tomographic particle image velocimetry", Experiments in Fluids 41 (6)
+           pp 933--947 (2006), doi:10.1007/s00348-006-0212-z
+    .. [2] N. A. Worth, T. B. Nickels, "Acceleration of Tomo-PIV by estimating
+           the initial volume intensity distribution", Experiments in Fluids 45
+           pp 847--856 (2008), doi:10.1007/s00348-008-0504-6
+    .. [3] C. Atkinson, J. Soria, "An efficient simultaneous reconstruction
+           technique for tomographic particle image velocimetry", Experiments in
+           Fluids 47 pp 553--568 (2009), doi:10.1007/s00348-009-0728-0
     """
     if init not in _INITS:
         raise ReconstructionError(f"reconstruct.mart.init = {init!r}: allowed values are {', '.join(_INITS)}")
