@@ -79,7 +79,7 @@ def test_total_is_the_collected_solid_angle_fraction(pt):
 
 
 def _mc_mean(cam, field, n, seeds, **kw):
-    imgs = [rt.render(cam, field, n, s, **kw) for s in seeds]
+    imgs = [rt.render(cam, field, n, s, **kw, method="montecarlo") for s in seeds]
     return np.mean([i.values for i in imgs], axis=0), imgs
 
 
@@ -239,7 +239,7 @@ def test_continuous_through_focus():
 def test_layout_attrs_and_accounting_like_render():
     field = seed_particles(CAM, count=30, z_span=4.0, intensity=(0.5, 2.0), seed=4)
     img = ex.render_exact(CAM, field, 3000)
-    mc = rt.render(CAM, field, 3000, 5)
+    mc = rt.render(CAM, field, 3000, 5, method="montecarlo")
     assert img.name == "intensity" and img.dims == ("row", "col") and img.shape == mc.shape
     np.testing.assert_array_equal(img["x"].values, mc["x"].values)
     np.testing.assert_array_equal(img["y"].values, mc["y"].values)

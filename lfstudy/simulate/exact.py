@@ -92,10 +92,31 @@ from numba import njit, prange
 from tqdm.auto import tqdm
 
 from lfstudy.optics import PlenopticCamera
-from lfstudy.simulate.raytrace import (
+from lfstudy.simulate._render_common import (
+    _G_COS,
+    _G_FL,
+    _G_FM,
+    _G_HH,
+    _G_HW,
+    _G_NCOL,
+    _G_NLX,
+    _G_NLY,
+    _G_NROW,
+    _G_OX,
+    _G_OY,
+    _G_PL,
+    _G_PP,
+    _G_R,
+    _G_SI,
+    _G_SIN,
+    _G_SL,
+    _G_SM,
+    _G_SO,
     DEFAULT_CHUNKS,
     RaytraceError,
+    _blurs,
     _check_rays,
+    _geometry,
     _particle_arrays,
     _sensor_coords,
     ray_counts,
@@ -498,11 +519,6 @@ _S_KAP, _S_SM, _S_SL, _S_PP, _S_KSL, _S_AK, _S_S, _S_RHO = range(8)
 _S_SIZE = 8
 
 _LOW, _BLO, _MID, _BHI, _HIGH = 0, 1, 2, 3, 4
-
-# Geometry vector layout of the particle kernel.
-_G_SO, _G_SI, _G_FM, _G_FL, _G_R, _G_PL, _G_PP, _G_HW, _G_HH = range(9)
-_G_OX, _G_OY, _G_COS, _G_SIN, _G_NLX, _G_NLY, _G_SM, _G_SL, _G_NROW, _G_NCOL = range(9, 19)
-_G_SIZE = 19
 
 # Kernel statistics (one row per chunk).
 _ST_W, _ST_IN, _ST_ALL, _ST_SPILL, _ST_REFUSED, _ST_LENS, _ST_INTERIOR, _ST_NODES, _ST_BAND, _ST_BIG = range(10)
@@ -1584,33 +1600,6 @@ def _render_kernel(
 
 
 # ------------------------------------------------------------------ wrappers
-def _blurs(camera: PlenopticCamera, diffraction: bool, sigmas: tuple[float, float] | None) -> tuple[float, float]:
-    """(σm, σl) in mm: ``sigmas`` if given (validated), else the camera's diffraction blurs or none."""
-    if sigmas is None:
-        return (camera.sigma_lenslet_plane, camera.sigma_sensor_plane) if diffraction else (0.0, 0.0)
-    try:
-        sm, sl = (float(v) for v in sigmas)
-    except (TypeError, ValueError):
-        raise RaytraceError(f"sigmas = {sigmas!r}: must be two numbers (σm, σl) in mm") from None
-    if not (math.isfinite(sm) and math.isfinite(sl) and sm >= 0.0 and sl >= 0.0):
-        raise RaytraceError(f"sigmas = {sigmas!r}: allowed range is finite and >= 0 mm")
-    return sm, sl
-
-
-def _geometry(camera: PlenopticCamera, sm: float, sl: float) -> np.ndarray:
-    g = np.zeros(_G_SIZE)
-    g[_G_SO], g[_G_SI], g[_G_FM] = camera.so, camera.si, camera.main_focal_length
-    g[_G_FL], g[_G_R] = camera.lenslet_focal_length, camera.aperture_diameter / 2.0
-    g[_G_PL], g[_G_PP] = camera.lenslet_pitch, camera.pixel_pitch
-    g[_G_HW], g[_G_HH] = camera.sensor_width / 2.0, camera.sensor_height / 2.0
-    g[_G_OX], g[_G_OY] = camera.lenslet_offset_x, camera.lenslet_offset_y
-    g[_G_COS], g[_G_SIN] = math.cos(camera.lenslet_rotation), math.sin(camera.lenslet_rotation)
-    g[_G_NLX], g[_G_NLY] = camera.n_lenslets_x, camera.n_lenslets_y
-    g[_G_SM], g[_G_SL] = sm, sl
-    g[_G_NROW], g[_G_NCOL] = camera.n_pixels_y, camera.n_pixels_x
-    return g
-
-
 def _weights(
     camera: PlenopticCamera,
     particles: xr.Dataset,
