@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import doctest
 import math
 
 import numba
@@ -377,3 +378,13 @@ def test_memory_estimate_is_about_one_image():
     est = ex.exact_memory_estimate(cam, field)
     image = 8 * cam.n_pixels_x * cam.n_pixels_y
     assert image < est < 1.3 * image
+
+
+def test_render_examples_run_as_a_doctest():
+    """The Examples of ``render`` (the package's face, default method exact) run and print what they say."""
+    tests = doctest.DocTestFinder().find(rt.render, "render", globs={})
+    assert sum(len(t.examples) for t in tests) >= 5
+    runner = doctest.DocTestRunner(optionflags=doctest.NORMALIZE_WHITESPACE)
+    for t in tests:
+        runner.run(t)
+    assert runner.failures == 0, f"{runner.failures} of {runner.tries} examples of render failed (output above)"

@@ -69,6 +69,72 @@ Lenslet grids rotated against the sensor break the separability. In focus
 (``M_k`` constant, which includes the calibration pinhole image) they are
 handled exactly; out of focus they are refused (use the Monte-Carlo tracer).
 
+Data layout
+-----------
+The numba kernels address small flat float64 arrays by named index constants; this table
+is their one description (the camera's geometry vector ``_G_*`` is described in
+:mod:`lfstudy.simulate._render_common`, which the Monte-Carlo tracer reads too). Lengths
+in sensor mm unless noted; "lenslet units" are lenslet-plane mm in the grid frame.
+
+Axis descriptor ``ax``/``ay`` (``_A_*``, one row per lenslet column / row: for an
+unrotated grid every lenslet of a column shares its x-descriptor, every lenslet of a row
+its y-descriptor):
+
+==========  ==  ============================================================  =============
+name        #   meaning                                                       units
+==========  ==  ============================================================  =============
+_A_C        0   centre of the aperture image (disc) on the sensor             mm
+_A_G0       1   spot centre on the lenslet plane                              lenslet units
+_A_E1       2   lenslet's lower edge                                          lenslet units
+_A_E2       3   lenslet's upper edge                                          lenslet units
+_A_A1       4   lower edge active (cuts the spot's reach): 1, else 0          flag
+_A_A2       5   upper edge active                                             flag
+_A_LO       6   lower edge of the lenslet window seen on the sensor (−inf)    mm
+_A_HI       7   upper edge of that window (+inf if inactive)                  mm
+_A_B        8   half-width of the σs-bands about LO and HI (K_S·σs)           mm
+_A_MRG      9   the two bands overlap and are merged into one: 1, else 0      flag
+_A_ELO      10  lenslet edge (E1 or E2) that maps to LO                       lenslet units
+_A_EHI      11  lenslet edge that maps to HI                                  lenslet units
+_A_SLO      12  sign of κ (−1: the window's image is flipped)                 1
+_A_E0       13  first pixel-cell edge of the patch                            mm
+_A_N        14  number of pixel cells in the patch (0: nothing reached)       count
+_A_T0       15  sensor cell index of the patch's first cell                   count
+==========  ==  ============================================================  =============
+
+Shared scalars ``sc`` of one particle's lenslet images (``_S_*``):
+
+==========  ==  ============================================================  =============
+_S_KAP      0   κ = (1 + si·c1)/(fl·c1): lenslet-plane shift per sensor mm    1
+_S_SM       1   σm, lenslet-plane blur                                        mm
+_S_SL       2   σl, sensor-plane blur                                         mm
+_S_PP       3   pixel pitch                                                   mm
+_S_KSL      4   K·σl, the support of a blurred pixel edge                     mm
+_S_AK       5   abs(κ)                                                        1
+_S_S        6   S = sqrt(σm² + κ²σl²)                                         mm
+_S_RHO      7   ρ, radius of the aperture image behind a lenslet              mm
+==========  ==  ============================================================  =============
+
+Kernel counters ``stats[chunk]`` (``_ST_*``): 0 ``_ST_W`` expected intensity traced,
+1 ``_ST_IN`` recorded on the sensor, 2 ``_ST_ALL`` on the lenslet array, 3 ``_ST_SPILL``
+outside the chunk's rows (a bug if not 0), 4 ``_ST_REFUSED`` lenslet images refused
+(rotated grid out of focus), 5 ``_ST_LENS`` lenslet images, 6 ``_ST_INTERIOR`` interior
+(separable) ones, 7 ``_ST_NODES`` arc nodes, 8 ``_ST_BAND`` nodes inside a band,
+9 ``_ST_BIG`` patches larger than the scratch (a bug if not 0).
+
+Zones of a coordinate along one axis (``_zone``): 0 ``_LOW`` below the blurred window,
+1 ``_BLO`` in the lower (or merged) band, 2 ``_MID`` the flat middle, 3 ``_BHI`` the upper
+band, 4 ``_HIGH`` above.
+
+Patch scratch (:func:`_workspace`, per chunk): ``direct``, ``carry_x``, ``carry_y``
+(pixel cells y × x of the patch; the carries hold the cells wholly below a node, summed
+once per patch); ``pcs`` and ``brk`` (rows: angle, cos, sin of the arc pieces and of their
+panel breaks); ``wk`` (per cell: row 0 the node's U_k, row 1 the secondary edges' Φ, row 2
+U_p(v) of a cut, rows 3–5 the band antiderivative carried along a piece: value, abscissa,
+valid); ``nodv[batch, row, node]`` (rows: primary coordinate, secondary coordinate,
+weight, and the two cell indices of the vectorised pass; batches 0 = x-antiderivative,
+1 = with the y-window, 2 = y-antiderivative, 3 = near a corner), ``ncnt[batch]`` nodes
+queued, ``vb`` (rows: argument, Φ, φ of the vectorised batch).
+
 Determinism and memory
 ----------------------
 Particles are sorted by the sensor row of their image and cut into a fixed
@@ -505,24 +571,17 @@ def _window(u, e1, e2, a1, a2, sm):  # pragma: no cover - jitted
 
 
 # ------------------------------------------------------------- one blurred axis
-# Axis descriptor (one float64 row per axis), in sensor mm unless noted. For an
-# unrotated grid every lenslet of a column shares its x-descriptor and every
-# lenslet of a row its y-descriptor.
-_A_C, _A_G0, _A_E1, _A_E2, _A_A1, _A_A2 = range(6)  # disc centre; spot centre, edges (lenslet units); active
-_A_LO, _A_HI, _A_B, _A_MRG = range(6, 10)  # sensor-frame window edges (±inf if inactive), band half-width, merged
-_A_ELO, _A_EHI, _A_SLO = range(10, 13)  # lenslet edges giving LO and HI; sign of κ
-_A_E0, _A_N, _A_T0 = range(13, 16)  # first cell edge of the patch, number of cells, index of the first cell
+# The flat-array layouts: see "Data layout" in the module docstring (the one description).
+_A_C, _A_G0, _A_E1, _A_E2, _A_A1, _A_A2 = range(6)
+_A_LO, _A_HI, _A_B, _A_MRG = range(6, 10)
+_A_ELO, _A_EHI, _A_SLO = range(10, 13)
+_A_E0, _A_N, _A_T0 = range(13, 16)
 _A_SIZE = 16
-
-# Shared scalars: κ, σm, σl, pixel pitch, cut-off K·σl, |κ|, S = sqrt(σm² + κ²σl²), disc radius ρ
 _S_KAP, _S_SM, _S_SL, _S_PP, _S_KSL, _S_AK, _S_S, _S_RHO = range(8)
 _S_SIZE = 8
-
-_LOW, _BLO, _MID, _BHI, _HIGH = 0, 1, 2, 3, 4
-
-# Kernel statistics (one row per chunk).
 _ST_W, _ST_IN, _ST_ALL, _ST_SPILL, _ST_REFUSED, _ST_LENS, _ST_INTERIOR, _ST_NODES, _ST_BAND, _ST_BIG = range(10)
 _ST_SIZE = 10
+_LOW, _BLO, _MID, _BHI, _HIGH = range(5)
 
 
 @njit(inline="always", cache=True)
