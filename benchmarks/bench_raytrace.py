@@ -93,7 +93,7 @@ def main() -> None:
     )
     print(f"estimated render memory {rt.memory_estimate(cam, n) / 1e9:.2f} GB")
     t = time.perf_counter()
-    rt.render(cam, field.isel(particle=slice(0, 4)), 10, 0)  # JIT (or cache load), excluded below
+    rt.render(cam, field.isel(particle=slice(0, 4)), 10, 0, method="montecarlo")  # JIT (or cache load), excluded below
     print(f"warm-up on a tiny case (compile or cache load, excluded): {time.perf_counter() - t:.2f} s")
     print(f"peak RSS after warm-up: {peak_gb():.2f} GB")
 
@@ -101,7 +101,7 @@ def main() -> None:
     for nt in args.threads:
         numba.set_num_threads(min(nt, numba.config.NUMBA_NUM_THREADS))
         t, c = time.perf_counter(), time.process_time()
-        img = rt.render(cam, field, args.rays, 3)
+        img = rt.render(cam, field, args.rays, 3, method="montecarlo")
         dt, dc = time.perf_counter() - t, time.process_time() - c
         rays = img.attrs["rays_traced"]
         # CPU seconds / threads is the wall time the run would take on idle cores
@@ -120,7 +120,7 @@ def main() -> None:
     small = field.isel(particle=slice(0, args.numpy_particles))
     numba.set_num_threads(min(max(args.threads), numba.config.NUMBA_NUM_THREADS))
     t, c = time.perf_counter(), time.process_time()
-    img = rt.render(cam, small, args.rays, 3)
+    img = rt.render(cam, small, args.rays, 3, method="montecarlo")
     t_nb, c_nb = time.perf_counter() - t, time.process_time() - c
     t, c = time.perf_counter(), time.process_time()
     ref_np = numpy_render(cam, small, args.rays, 3)

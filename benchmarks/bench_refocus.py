@@ -67,7 +67,9 @@ def main() -> None:
 
     # --- calibration from a ray-traced pinhole image ----------------------------
     t0 = time.perf_counter()
-    pin = render_pinhole(cam, fnumber=args.pinhole_fnumber, count=args.pinhole_count, rays_per_point=100, seed=1)
+    pin = render_pinhole(
+        cam, fnumber=args.pinhole_fnumber, count=args.pinhole_count, rays_per_point=100, seed=1, method="montecarlo"
+    )
     t_pin = time.perf_counter() - t0
     print(
         f"pinhole image: ray-traced in {t_pin:.2f} s (f/{args.pinhole_fnumber:g}, {args.pinhole_count} points x "

@@ -68,7 +68,7 @@ def _warm(threads: int) -> None:
     cam = _camera(64, 48)
     field = seed_particles(cam, count=8, z_span=4.0, seed=0)
     ex.render_exact(cam, field, 100)
-    rt.render(cam, field, 100, 0)
+    rt.render(cam, field, 100, 0, method="montecarlo")
 
 
 # ------------------------------------------------------------------ (a) agreement
@@ -92,7 +92,7 @@ def agreement(args: argparse.Namespace) -> None:
         exact = ex.render_exact(cam, field, n, match_ray_counts=True).values
         te = time.perf_counter() - t0
         t0 = time.perf_counter()
-        mc = rt.render(cam, field, n, 1).values
+        mc = rt.render(cam, field, n, 1, method="montecarlo").values
         tm = time.perf_counter() - t0
         r = float(np.linalg.norm(mc - exact) / np.linalg.norm(exact))
         expected = float(math.sqrt(exact.sum()) / np.linalg.norm(exact))
@@ -123,7 +123,7 @@ def _child(kind: str, ppp: float, fraction: float, threads: int, rays: int, q: m
     if kind == "exact":
         img = ex.render_exact(cam, field, rays)
     elif kind == "montecarlo":
-        img = rt.render(cam, field, rays, 1)
+        img = rt.render(cam, field, rays, 1, method="montecarlo")
     else:  # baseline: imports, compiled kernels and the particle field only
         img = None
     dt = time.perf_counter() - t0

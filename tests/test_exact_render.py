@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import doctest
 import math
 
 import numba
@@ -79,7 +80,7 @@ def test_total_is_the_collected_solid_angle_fraction(pt):
 
 
 def _mc_mean(cam, field, n, seeds, **kw):
-    imgs = [rt.render(cam, field, n, s, **kw) for s in seeds]
+    imgs = [rt.render(cam, field, n, s, **kw, method="montecarlo") for s in seeds]
     return np.mean([i.values for i in imgs], axis=0), imgs
 
 
@@ -239,7 +240,7 @@ def test_continuous_through_focus():
 def test_layout_attrs_and_accounting_like_render():
     field = seed_particles(CAM, count=30, z_span=4.0, intensity=(0.5, 2.0), seed=4)
     img = ex.render_exact(CAM, field, 3000)
-    mc = rt.render(CAM, field, 3000, 5)
+    mc = rt.render(CAM, field, 3000, 5, method="montecarlo")
     assert img.name == "intensity" and img.dims == ("row", "col") and img.shape == mc.shape
     np.testing.assert_array_equal(img["x"].values, mc["x"].values)
     np.testing.assert_array_equal(img["y"].values, mc["y"].values)
@@ -377,3 +378,13 @@ def test_memory_estimate_is_about_one_image():
     est = ex.exact_memory_estimate(cam, field)
     image = 8 * cam.n_pixels_x * cam.n_pixels_y
     assert image < est < 1.3 * image
+
+
+def test_render_examples_run_as_a_doctest():
+    """The Examples of ``render`` (the package's face, default method exact) run and print what they say."""
+    tests = doctest.DocTestFinder().find(rt.render, "render", globs={})
+    assert sum(len(t.examples) for t in tests) >= 5
+    runner = doctest.DocTestRunner(optionflags=doctest.NORMALIZE_WHITESPACE)
+    for t in tests:
+        runner.run(t)
+    assert runner.failures == 0, f"{runner.failures} of {runner.tries} examples of render failed (output above)"

@@ -55,13 +55,13 @@ def recording(tmp_path_factory) -> dict:
         counts = rng.poisson(expected * gain) + pattern + rng.normal(0.0, 2.0, expected.shape)
         return np.clip(np.rint(counts), 0, FULL_12).astype(np.uint16)
 
-    pin = render_pinhole(cam, fnumber=16, count=20000, rays_per_point=30, seed=11).values
+    pin = render_pinhole(cam, fnumber=16, count=20000, rays_per_point=30, seed=11, method="montecarlo").values
     pin12 = record(pin, 3000.0 / pin.max())
     tifffile.imwrite(d / "pinhole.tif", pin12, extratags=_tags(FULL_12))
     clean = []
     for k in range(3):
         moved = displace(field, flow_from_config({"kind": "uniform", "displacement": [SHIFT_MM * k, 0, 0]}), 1.0, 1)
-        clean.append(render(cam, moved, 1500, 100 + k).values)
+        clean.append(render(cam, moved, 1500, 100 + k, method="montecarlo").values)
     # the brightest particle images clip at full scale, as in a real recording
     gain = 7000.0 / max(float(c.max()) for c in clean)
     frames = [record(c, gain) for c in clean]
@@ -180,7 +180,7 @@ def test_recording_matches_the_simulated_path(recording, series):
 
     cfg = load_config(TINY)
     real = PlenopticCamera.from_config(recording["camera"])
-    pin = render_pinhole(real, fnumber=16, count=20000, rays_per_point=30, seed=11)
+    pin = render_pinhole(real, fnumber=16, count=20000, rays_per_point=30, seed=11, method="montecarlo")
     centers = find_lenslet_centers(pin, PlenopticCamera.from_config(cfg))
     vols = [render_volume(img, centers, cfg)[2].compute() for img in recording["clean"][:2]]
     sim = case_piv(cfg, *vols)
@@ -286,8 +286,10 @@ def test_white_image_calibration(recording):
 
     nominal = PlenopticCamera.from_config(recording["base"])
     real = PlenopticCamera.from_config(recording["camera"])
-    white = render_pinhole(real, fnumber=real.main_fnumber, count=40000, rays_per_point=30, seed=1)
-    pin = find_lenslet_centers(render_pinhole(real, fnumber=16, count=20000, rays_per_point=30, seed=2), nominal)
+    white = render_pinhole(real, fnumber=real.main_fnumber, count=40000, rays_per_point=30, seed=1, method="montecarlo")
+    pin = find_lenslet_centers(
+        render_pinhole(real, fnumber=16, count=20000, rays_per_point=30, seed=2, method="montecarlo"), nominal
+    )
     cen = calibrate_recording(white, nominal, "white")
     ok = cen["valid"].values & pin["valid"].values
     assert ok.mean() > 0.9
@@ -337,7 +339,7 @@ def test_a_recorded_traverse_calibrates_depth(recording, tmp_path):
     d = recording["dir"]
 
     def write(name: str, field, seed: int) -> str:
-        img = render(cam, field, 1500, seed).values
+        img = render(cam, field, 1500, seed, method="montecarlo").values
         tifffile.imwrite(d / name, np.rint(img * (3000.0 / img.max())).astype(np.uint16), extratags=_tags(FULL_12))
         return name
 

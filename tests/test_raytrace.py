@@ -40,7 +40,7 @@ def _centroid(img):
 def test_in_focus_on_axis_lights_one_lenslet():
     """Fig. 4.17: all signal of an in-focus on-axis particle lies under the central lenslet."""
     assert CAM.n_lenslets_x % 2 == 1 and CAM.n_lenslets_y % 2 == 1
-    img = rt.render(CAM, _field((0.0, 0.0, 0.0)), 20_000, 1)
+    img = rt.render(CAM, _field((0.0, 0.0, 0.0)), 20_000, 1, method="montecarlo")
     mask = _lenslet_block(CAM, img, CAM.n_lenslets_y // 2, CAM.n_lenslets_x // 2, margin=CAM.pixel_pitch)
     total = img.values.sum()
     assert total > 0
@@ -52,9 +52,9 @@ def test_in_focus_on_axis_lights_one_lenslet():
 
 def test_defocus_spreads_over_lenslets_and_sign_matters():
     """Fig. 4.18: at dz = ±1 mm the image covers several lenslets, with different patterns."""
-    a = rt.render(CAM, _field((0.0, 0.0, 1.0)), 20_000, 2, diffraction=False).values
-    b = rt.render(CAM, _field((0.0, 0.0, -1.0)), 20_000, 2, diffraction=False).values
-    centre = _lenslet_block(CAM, rt.render(CAM, _field((0, 0, 0)), 10, 0), 3, 4)
+    a = rt.render(CAM, _field((0.0, 0.0, 1.0)), 20_000, 2, diffraction=False, method="montecarlo").values
+    b = rt.render(CAM, _field((0.0, 0.0, -1.0)), 20_000, 2, diffraction=False, method="montecarlo").values
+    centre = _lenslet_block(CAM, rt.render(CAM, _field((0, 0, 0)), 10, 0, method="montecarlo"), 3, 4)
     for img in (a, b):
         assert img[centre].sum() / img.sum() < 0.6
     an, bn = a / a.sum(), b / b.sum()
@@ -64,7 +64,7 @@ def test_defocus_spreads_over_lenslets_and_sign_matters():
 
 def test_recorded_signal_equals_traced_less_lost():
     field = seed_particles(CAM, count=30, z_span=4.0, intensity=(0.5, 2.0), seed=4)
-    img = rt.render(CAM, field, 3000, 5)
+    img = rt.render(CAM, field, 3000, 5, method="montecarlo")
     a = img.attrs
     assert a["rays_traced"] == a["rays_recorded"] + a["rays_dropped_outside_sensor"] + a["rays_dropped_lenslet_array"]
     assert "rays_dropped_aperture" not in a  # aperture sampling is rejection-free: nothing to count
@@ -89,9 +89,9 @@ def test_solid_angle_reference_and_off_axis():
 def test_centroid_moves_inverted(axis):
     """A defocused particle's image moves opposite to it (M < 0), by about si/(so + z)."""
     z, shift = 1.0, 0.2
-    p0 = _centroid(rt.render(CAM, _field((0.0, 0.0, z)), 20_000, 3))
+    p0 = _centroid(rt.render(CAM, _field((0.0, 0.0, z)), 20_000, 3, method="montecarlo"))
     pt = (shift, 0.0, z) if axis == "x" else (0.0, shift, z)
-    p1 = _centroid(rt.render(CAM, _field(pt), 20_000, 3))
+    p1 = _centroid(rt.render(CAM, _field(pt), 20_000, 3, method="montecarlo"))
     k = 0 if axis == "x" else 1
     expected = -shift * CAM.si / (CAM.so + z) * (CAM.si + CAM.lenslet_focal_length) / CAM.si
     assert (p1[k] - p0[k]) == pytest.approx(expected, rel=0.05)
@@ -103,22 +103,22 @@ def test_bit_identical_across_threads_and_seeds_differ():
     old = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
-        one = rt.render(CAM, field, 2000, 11).values
+        one = rt.render(CAM, field, 2000, 11, method="montecarlo").values
         numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-        two = rt.render(CAM, field, 2000, 11).values
+        two = rt.render(CAM, field, 2000, 11, method="montecarlo").values
     finally:
         numba.set_num_threads(old)
     assert np.array_equal(one, two)
-    other = rt.render(CAM, field, 2000, 12).values
+    other = rt.render(CAM, field, 2000, 12, method="montecarlo").values
     assert not np.array_equal(one, other)
     assert other.sum() == pytest.approx(one.sum(), rel=0.02)
 
 
 def test_progress_bar_reports_rays_and_leaves_image_unchanged(capsys):
     field = seed_particles(CAM, count=40, z_span=3.0, seed=9)
-    quiet = rt.render(CAM, field, 2000, 11)
+    quiet = rt.render(CAM, field, 2000, 11, method="montecarlo")
     capsys.readouterr()
-    shown = rt.render(CAM, field, 2000, 11, progress=True)
+    shown = rt.render(CAM, field, 2000, 11, progress=True, method="montecarlo")
     err = capsys.readouterr().err
     assert "ray tracing" in err and "100%" in err
     assert np.array_equal(quiet.values, shown.values)
@@ -136,7 +136,7 @@ def test_diffraction_sigmas_at_the_right_planes():
     cam = PlenopticCamera(150, 110, 0.0074, 0.125, 0.25, 50.0, -1.0, fnumber=16.0)
     assert cam.sigma_lenslet_plane > 10 * cam.sigma_sensor_plane
     y_img = -(cam.lenslet_pitch / 2 - 0.010)  # 10 um inside the lower edge of the central lenslet
-    img = rt.render(cam, _field((0.0, -y_img, 0.0)), 40_000, 6)
+    img = rt.render(cam, _field((0.0, -y_img, 0.0)), 40_000, 6, method="montecarlo")
     w = img.values
     own = _lenslet_block(cam, img, 3, 4)
     below = _lenslet_block(cam, img, 4, 4)
@@ -148,12 +148,12 @@ def test_diffraction_sigmas_at_the_right_planes():
     mx = (ws.sum(0) * x).sum() / ws.sum()
     sx = math.sqrt((ws.sum(0) * (x - mx) ** 2).sum() / ws.sum())
     assert sx / cam.pixel_pitch < 0.6
-    no_diff = rt.render(cam, _field((0.0, -y_img, 0.0)), 40_000, 6, diffraction=False).values
+    no_diff = rt.render(cam, _field((0.0, -y_img, 0.0)), 40_000, 6, diffraction=False, method="montecarlo").values
     assert no_diff[below].sum() == 0
 
 
 def test_pinhole_image_spots_at_lenslet_images():
-    img = rt.render_pinhole(CAM, count=4000, rays_per_point=50, seed=1)
+    img = rt.render_pinhole(CAM, count=4000, rays_per_point=50, seed=1, method="montecarlo")
     assert img.attrs["camera_main_fnumber"] == 16.0 and img.attrs["pinhole_fnumber"] == 16.0
     w = img.values
     # Each lenslet images the (small, f/16) aperture at c (si + fl) / si: central spot's centroid there.
@@ -167,7 +167,7 @@ def test_pinhole_image_spots_at_lenslet_images():
 
 
 def test_output_layout_and_attrs():
-    img = rt.render(CAM, _field((0.1, 0.0, 0.5)), 500, 0)
+    img = rt.render(CAM, _field((0.1, 0.0, 0.5)), 500, 0, method="montecarlo")
     assert img.name == "intensity" and img.dims == ("row", "col")
     assert img.shape == (CAM.n_pixels_y, CAM.n_pixels_x)
     x, y = CAM.pixel_centers()
@@ -190,14 +190,16 @@ def test_output_layout_and_attrs():
 
 def test_noise_and_bit_depth():
     field = _field((0.0, 0.0, 0.0), intensity=2.0)
-    clean = rt.render(CAM, field, 5000, 3)
-    noisy = rt.render(CAM, field, 5000, 3, shot_noise=True, read_noise=1.0)
+    clean = rt.render(CAM, field, 5000, 3, method="montecarlo")
+    noisy = rt.render(CAM, field, 5000, 3, shot_noise=True, read_noise=1.0, method="montecarlo")
     assert not np.array_equal(clean.values, noisy.values)
-    assert np.array_equal(noisy.values, rt.render(CAM, field, 5000, 3, shot_noise=True, read_noise=1.0).values)
-    q = rt.render(CAM, field, 5000, 3, bit_depth=8, full_well=float(clean.max()) / 2)
+    assert np.array_equal(
+        noisy.values, rt.render(CAM, field, 5000, 3, shot_noise=True, read_noise=1.0, method="montecarlo").values
+    )
+    q = rt.render(CAM, field, 5000, 3, bit_depth=8, full_well=float(clean.max()) / 2, method="montecarlo")
     assert q.dtype == np.uint8 and q.max() == 255
     assert q.attrs["saturated_pixels"] == int((clean.values * 255 / (float(clean.max()) / 2) > 255.5).sum()) > 0
-    q12 = rt.render(CAM, field, 5000, 3, bit_depth=12)
+    q12 = rt.render(CAM, field, 5000, 3, bit_depth=12, method="montecarlo")
     assert q12.dtype == np.uint16 and q12.max() == 4095 and q12.attrs["saturated_pixels"] == 0
 
 
@@ -217,7 +219,13 @@ def test_noise_and_bit_depth():
     ],
 )
 def test_bad_input(kwargs, match):
-    args = {"camera": CAM, "particles": _field((0.0, 0.0, 0.0)), "rays_per_particle": 10, "seed": 0}
+    args = {
+        "camera": CAM,
+        "particles": _field((0.0, 0.0, 0.0)),
+        "rays_per_particle": 10,
+        "seed": 0,
+        "method": "montecarlo",
+    }
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         rt.render(**args)

@@ -44,7 +44,7 @@ POINTS = [(0.33, -0.27, 0.1), (-0.52, 0.41, 1.7), (0.61, 0.48, -2.3), (-0.38, -0
 def frame():
     cen = find_lenslet_centers(synthetic_pinhole(CAM, amplitude=3000, seed=1), CAM)
     field = make_field(*[np.array(v) for v in zip(*POINTS)], np.ones(len(POINTS)))
-    lf = register(render(CAM, field, 60_000, 7), cen, CAM)
+    lf = register(render(CAM, field, 60_000, 7, method="montecarlo"), cen, CAM)
     grid = make_grid(CAM, CAM.focal_planes())
     stack = focal_stack(lf, CAM, CAM.planes_at(grid.z), x=grid.x, y=grid.y).compute()
     return ReconstructionInputs(stack=stack, lightfield=lf, centers=cen, camera=CAM, grid=grid)

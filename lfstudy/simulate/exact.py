@@ -69,6 +69,72 @@ Lenslet grids rotated against the sensor break the separability. In focus
 (``M_k`` constant, which includes the calibration pinhole image) they are
 handled exactly; out of focus they are refused (use the Monte-Carlo tracer).
 
+Data layout
+-----------
+The numba kernels address small flat float64 arrays by named index constants; this table
+is their one description (the camera's geometry vector ``_G_*`` is described in
+:mod:`lfstudy.simulate._render_common`, which the Monte-Carlo tracer reads too). Lengths
+in sensor mm unless noted; "lenslet units" are lenslet-plane mm in the grid frame.
+
+Axis descriptor ``ax``/``ay`` (``_A_*``, one row per lenslet column / row: for an
+unrotated grid every lenslet of a column shares its x-descriptor, every lenslet of a row
+its y-descriptor):
+
+==========  ==  ============================================================  =============
+name        #   meaning                                                       units
+==========  ==  ============================================================  =============
+_A_C        0   centre of the aperture image (disc) on the sensor             mm
+_A_G0       1   spot centre on the lenslet plane                              lenslet units
+_A_E1       2   lenslet's lower edge                                          lenslet units
+_A_E2       3   lenslet's upper edge                                          lenslet units
+_A_A1       4   lower edge active (cuts the spot's reach): 1, else 0          flag
+_A_A2       5   upper edge active                                             flag
+_A_LO       6   lower edge of the lenslet window seen on the sensor (−inf)    mm
+_A_HI       7   upper edge of that window (+inf if inactive)                  mm
+_A_B        8   half-width of the σs-bands about LO and HI (K_S·σs)           mm
+_A_MRG      9   the two bands overlap and are merged into one: 1, else 0      flag
+_A_ELO      10  lenslet edge (E1 or E2) that maps to LO                       lenslet units
+_A_EHI      11  lenslet edge that maps to HI                                  lenslet units
+_A_SLO      12  sign of κ (−1: the window's image is flipped)                 1
+_A_E0       13  first pixel-cell edge of the patch                            mm
+_A_N        14  number of pixel cells in the patch (0: nothing reached)       count
+_A_T0       15  sensor cell index of the patch's first cell                   count
+==========  ==  ============================================================  =============
+
+Shared scalars ``sc`` of one particle's lenslet images (``_S_*``):
+
+==========  ==  ============================================================  =============
+_S_KAP      0   κ = (1 + si·c1)/(fl·c1): lenslet-plane shift per sensor mm    1
+_S_SM       1   σm, lenslet-plane blur                                        mm
+_S_SL       2   σl, sensor-plane blur                                         mm
+_S_PP       3   pixel pitch                                                   mm
+_S_KSL      4   K·σl, the support of a blurred pixel edge                     mm
+_S_AK       5   abs(κ)                                                        1
+_S_S        6   S = sqrt(σm² + κ²σl²)                                         mm
+_S_RHO      7   ρ, radius of the aperture image behind a lenslet              mm
+==========  ==  ============================================================  =============
+
+Kernel counters ``stats[chunk]`` (``_ST_*``): 0 ``_ST_W`` expected intensity traced,
+1 ``_ST_IN`` recorded on the sensor, 2 ``_ST_ALL`` on the lenslet array, 3 ``_ST_SPILL``
+outside the chunk's rows (a bug if not 0), 4 ``_ST_REFUSED`` lenslet images refused
+(rotated grid out of focus), 5 ``_ST_LENS`` lenslet images, 6 ``_ST_INTERIOR`` interior
+(separable) ones, 7 ``_ST_NODES`` arc nodes, 8 ``_ST_BAND`` nodes inside a band,
+9 ``_ST_BIG`` patches larger than the scratch (a bug if not 0).
+
+Zones of a coordinate along one axis (``_zone``): 0 ``_LOW`` below the blurred window,
+1 ``_BLO`` in the lower (or merged) band, 2 ``_MID`` the flat middle, 3 ``_BHI`` the upper
+band, 4 ``_HIGH`` above.
+
+Patch scratch (:func:`_workspace`, per chunk): ``direct``, ``carry_x``, ``carry_y``
+(pixel cells y × x of the patch; the carries hold the cells wholly below a node, summed
+once per patch); ``pcs`` and ``brk`` (rows: angle, cos, sin of the arc pieces and of their
+panel breaks); ``wk`` (per cell: row 0 the node's U_k, row 1 the secondary edges' Φ, row 2
+U_p(v) of a cut, rows 3–5 the band antiderivative carried along a piece: value, abscissa,
+valid); ``nodv[batch, row, node]`` (rows: primary coordinate, secondary coordinate,
+weight, and the two cell indices of the vectorised pass; batches 0 = x-antiderivative,
+1 = with the y-window, 2 = y-antiderivative, 3 = near a corner), ``ncnt[batch]`` nodes
+queued, ``vb`` (rows: argument, Φ, φ of the vectorised batch).
+
 Determinism and memory
 ----------------------
 Particles are sorted by the sensor row of their image and cut into a fixed
@@ -92,10 +158,31 @@ from numba import njit, prange
 from tqdm.auto import tqdm
 
 from lfstudy.optics import PlenopticCamera
-from lfstudy.simulate.raytrace import (
+from lfstudy.simulate._render_common import (
+    _G_COS,
+    _G_FL,
+    _G_FM,
+    _G_HH,
+    _G_HW,
+    _G_NCOL,
+    _G_NLX,
+    _G_NLY,
+    _G_NROW,
+    _G_OX,
+    _G_OY,
+    _G_PL,
+    _G_PP,
+    _G_R,
+    _G_SI,
+    _G_SIN,
+    _G_SL,
+    _G_SM,
+    _G_SO,
     DEFAULT_CHUNKS,
     RaytraceError,
+    _blurs,
     _check_rays,
+    _geometry,
     _particle_arrays,
     _sensor_coords,
     ray_counts,
@@ -484,29 +571,17 @@ def _window(u, e1, e2, a1, a2, sm):  # pragma: no cover - jitted
 
 
 # ------------------------------------------------------------- one blurred axis
-# Axis descriptor (one float64 row per axis), in sensor mm unless noted. For an
-# unrotated grid every lenslet of a column shares its x-descriptor and every
-# lenslet of a row its y-descriptor.
-_A_C, _A_G0, _A_E1, _A_E2, _A_A1, _A_A2 = range(6)  # disc centre; spot centre, edges (lenslet units); active
-_A_LO, _A_HI, _A_B, _A_MRG = range(6, 10)  # sensor-frame window edges (±inf if inactive), band half-width, merged
-_A_ELO, _A_EHI, _A_SLO = range(10, 13)  # lenslet edges giving LO and HI; sign of κ
-_A_E0, _A_N, _A_T0 = range(13, 16)  # first cell edge of the patch, number of cells, index of the first cell
+# The flat-array layouts: see "Data layout" in the module docstring (the one description).
+_A_C, _A_G0, _A_E1, _A_E2, _A_A1, _A_A2 = range(6)
+_A_LO, _A_HI, _A_B, _A_MRG = range(6, 10)
+_A_ELO, _A_EHI, _A_SLO = range(10, 13)
+_A_E0, _A_N, _A_T0 = range(13, 16)
 _A_SIZE = 16
-
-# Shared scalars: κ, σm, σl, pixel pitch, cut-off K·σl, |κ|, S = sqrt(σm² + κ²σl²), disc radius ρ
 _S_KAP, _S_SM, _S_SL, _S_PP, _S_KSL, _S_AK, _S_S, _S_RHO = range(8)
 _S_SIZE = 8
-
-_LOW, _BLO, _MID, _BHI, _HIGH = 0, 1, 2, 3, 4
-
-# Geometry vector layout of the particle kernel.
-_G_SO, _G_SI, _G_FM, _G_FL, _G_R, _G_PL, _G_PP, _G_HW, _G_HH = range(9)
-_G_OX, _G_OY, _G_COS, _G_SIN, _G_NLX, _G_NLY, _G_SM, _G_SL, _G_NROW, _G_NCOL = range(9, 19)
-_G_SIZE = 19
-
-# Kernel statistics (one row per chunk).
 _ST_W, _ST_IN, _ST_ALL, _ST_SPILL, _ST_REFUSED, _ST_LENS, _ST_INTERIOR, _ST_NODES, _ST_BAND, _ST_BIG = range(10)
 _ST_SIZE = 10
+_LOW, _BLO, _MID, _BHI, _HIGH = range(5)
 
 
 @njit(inline="always", cache=True)
@@ -1001,11 +1076,11 @@ def _cs_small(d):  # pragma: no cover - jitted
 
 
 @_helper
-def _flush(
-    bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, wk, cnt
-):  # pragma: no cover
+def _flush(bt, ax, ay, sc, tabs, work, cnt):  # pragma: no cover - jitted
     """Process batch bt of arc nodes: 0 = x-antiderivative, 1 = the same with the y-window,
     2 = y-antiderivative (x inside a band, y in the flat middle)."""
+    lamx, fullx, lamy, fully = tabs
+    direct, carry_x, carry_y, _, _, wk, nodv, ncnt, vb = work
     n = ncnt[bt]
     if n == 0:
         return
@@ -1023,9 +1098,7 @@ def _flush(
 
 
 @_helper
-def _arc(
-    ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, pcs, ia, brk, wk, nodv, ncnt, vb, cnt
-):  # pragma: no cover
+def _arc(ax, ay, sc, tabs, work, ia, cnt):  # pragma: no cover - jitted
     """Gauss–Legendre nodes of arc piece ia (pcs[:, ia] to pcs[:, ia + 1]: angle, cos, sin),
     monotone in x and y and in one zone pair.
 
@@ -1036,6 +1109,8 @@ def _arc(
     except near a corner of the blurred square, done at once (numeric, monotone order).
     Cosines and sines come from the crossing geometry and rotations, not from libm.
     """
+    _, _, lamy, fully = tabs
+    direct, _, carry_y, pcs, brk, wk, nodv, ncnt, _ = work
     rho = sc[_S_RHO]
     cx = ax[_A_C]
     cy = ay[_A_C]
@@ -1140,7 +1215,7 @@ def _arc(
                     _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, ncnt[bt], zy, True, wk, cnt)
                     ncnt[bt] = 0
                 else:
-                    _flush(bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, wk, cnt)
+                    _flush(bt, ax, ay, sc, tabs, work, cnt)
             nn = ncnt[bt]
             for q in range(ng):
                 cd, sd = _cs_small(h * _GL_X[ng, q])  # angle-sum rule about the sub-panel centre
@@ -1167,30 +1242,16 @@ def _arc(
 
 
 @_helper
-def _boundary(
-    ax,
-    ay,
-    sc,
-    lamx,
-    fullx,
-    lamy,
-    fully,
-    angx,
-    nangx,
-    angy,
-    nangy,
-    direct,
-    carry_x,
-    carry_y,
-    pcs,
-    brk,
-    wk,
-    nodv,
-    ncnt,
-    vb,
-    cnt,
-):  # pragma: no cover
-    """The patch of a lenslet whose blurred square meets the rim of the aperture image (Green's theorem)."""
+def _boundary(ax, ay, sc, tabs, angx, nangx, angy, nangy, work, cnt):  # pragma: no cover - jitted
+    """The patch of a lenslet whose blurred square meets the rim of the aperture image (Green's theorem).
+
+    ``tabs``: the Λ(lo) and full tables of the lenslet's column and row (lamx, fullx, lamy,
+    fully); ``angx``/``angy``: the first ``nangx``/``nangy`` circle crossings of the column's
+    and row's zone boundaries; ``work``: the patch scratch of :func:`_workspace`. The patch
+    accumulates into ``work[0]`` (direct).
+    """
+    lamx, fullx, lamy, fully = tabs
+    direct, carry_x, carry_y, pcs, _, wk, _, _, _ = work
     rho = sc[_S_RHO]
     cx = ax[_A_C]
     cy = ay[_A_C]
@@ -1220,11 +1281,9 @@ def _boundary(
     nb += 1
     for i in range(nb - 1):
         if pcs[0, i + 1] > pcs[0, i]:
-            _arc(
-                ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, pcs, i, brk, wk, nodv, ncnt, vb, cnt,
-            )  # fmt: skip
+            _arc(ax, ay, sc, tabs, work, i, cnt)
     for bt in range(3):
-        _flush(bt, ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, carry_y, nodv, ncnt, vb, wk, cnt)
+        _flush(bt, ax, ay, sc, tabs, work, cnt)
     # Vertical cuts between the flat middle (x-antiderivative) and the bands (y-antiderivative).
     if ax[_A_MRG] == 0.0:
         for v, sign in ((ax[_A_LO] + bx, -1.0), (ax[_A_HI] - bx, 1.0)):
@@ -1350,8 +1409,10 @@ def _store(ax, lam, full, ang, axs, lams, fulls, angs, slot):  # pragma: no cove
 
 
 @njit(inline="always", cache=True)
-def _load(ax, lam, full, ang, axs, lams, fulls, angs, slot):  # pragma: no cover - jitted
+def _load(cur, store, slot):  # pragma: no cover - jitted
     """Copy a stored column's (row's) descriptor and tables into the working arrays."""
+    ax, lam, full, ang = cur
+    axs, lams, fulls, angs, _, _ = store
     for q in range(_A_SIZE):
         ax[q] = axs[slot, q]
     for k in range(int(ax[_A_N])):
@@ -1360,6 +1421,198 @@ def _load(ax, lam, full, ang, axs, lams, fulls, angs, slot):  # pragma: no cover
     for r in range(3):
         for q in range(8):
             ang[r, q] = angs[slot, r, q]
+
+
+# ------------------------------------------------------------ the particle kernel, step by step
+@njit(inline="always", cache=True)
+def _particle(geo, x, y, z, sc):  # pragma: no cover - jitted
+    """Step 1, per particle: its ray geometry, and the shared scalars ``sc`` of its lenslet images.
+
+    The ray to aperture point a has the slope a·c1 + t0 (eqs 4.2–4.3) and meets the lenslet
+    plane at a·lsc + si·t0. Returns the spot centre in the grid frame (g0x, g0y; eqs
+    4.10–4.11), the chief-ray slope (t0x, t0y), the spot radius rs on the lenslet plane, its
+    reach rs + Kσm, whether it is in focus, and the half-width of the σs-bands.
+    """
+    so, si, fm, fl, rad = geo[_G_SO], geo[_G_SI], geo[_G_FM], geo[_G_FL], geo[_G_R]
+    ox, oy, cr, sr = geo[_G_OX], geo[_G_OY], geo[_G_COS], geo[_G_SIN]
+    sm, sl, pl = geo[_G_SM], geo[_G_SL], geo[_G_PL]
+    inv_d = 1.0 / (so + z)
+    c1 = inv_d - 1.0 / fm
+    t0x = -x * inv_d
+    t0y = -y * inv_d
+    lsc = 1.0 + si * c1
+    rs = rad * abs(lsc)  # radius of the aperture's image on the lenslet plane
+    kap = lsc / (fl * c1)  # lenslet-plane shift per sensor shift
+    lx = si * t0x - ox
+    ly = si * t0y - oy
+    g0x = cr * lx + sr * ly  # spot centre in the grid frame (eqs 4.10–4.11)
+    g0y = -sr * lx + cr * ly
+    focus = rs <= _EPS_FOCUS * (sm if sm > 0.0 else pl)  # also catches rounding of an exact focus
+    sc[_S_KAP] = kap
+    sc[_S_SM] = sm
+    sc[_S_SL] = sl
+    sc[_S_PP] = geo[_G_PP]
+    sc[_S_KSL] = _K * sl
+    sc[_S_AK] = abs(kap)
+    sc[_S_S] = math.sqrt(sm * sm + kap * kap * sl * sl)
+    sc[_S_RHO] = rad * fl * abs(c1)  # radius of the aperture's image on the sensor (per lenslet)
+    bh = _KS * sm / abs(kap) if (not focus and kap != 0.0) else 0.0
+    return g0x, g0y, t0x, t0y, rs, rs + _K * sm, focus, bh
+
+
+@njit(inline="always", cache=True)
+def _lenslet_span(geo, g0, reach, is_x):  # pragma: no cover - jitted
+    """Step 2: the first and last lenslet column (``is_x``) or row the spot can reach (eqs 4.10–4.11)."""
+    pl = geo[_G_PL]
+    if is_x:
+        c0 = 0.5 * (geo[_G_NLX] - 1.0)
+        return max(0, math.floor((g0 - reach) / pl + c0 + 0.5)), min(
+            int(geo[_G_NLX]) - 1, math.floor((g0 + reach) / pl + c0 + 0.5)
+        )
+    c0 = 0.5 * (geo[_G_NLY] - 1.0)
+    return max(0, math.floor(c0 - (g0 + reach) / pl + 0.5)), min(
+        int(geo[_G_NLY]) - 1, math.floor(c0 - (g0 - reach) / pl + 0.5)
+    )
+
+
+@njit(inline="always", cache=True)
+def _axis_pass(geo, sc, is_x, lo, hi, g0, t0, focus, reach, bh, rotated, cur, store, tmp, cnt):  # pragma: no cover
+    """Step 3, per lenslet column (``is_x``) or row ``lo..hi``: its window factor (in focus: the
+    share of the spot it takes; else 0 if the spot misses it) and, for an unrotated grid, its
+    axis descriptor, tables and circle crossings, kept in ``store`` for the lenslets that share it."""
+    ax, lam, full, ang = cur
+    axs, lams, fulls, angs, nang, fac = store
+    pl, fl, sm = geo[_G_PL], geo[_G_FL], geo[_G_SM]
+    if is_x:
+        c0, off, origin = 0.5 * (geo[_G_NLX] - 1.0), geo[_G_OX], -geo[_G_HW]
+    else:
+        c0, off, origin = 0.5 * (geo[_G_NLY] - 1.0), geo[_G_OY], -geo[_G_HH]
+    for ll in range(lo, hi + 1):
+        slot = ll - lo
+        if is_x:
+            e1 = (ll - c0 - 0.5) * pl
+            ctr = (ll - c0) * pl
+        else:
+            e1 = (c0 - ll - 0.5) * pl
+            ctr = (c0 - ll) * pl
+        e2 = e1 + pl
+        f = 1.0
+        a1 = a2 = False
+        if focus:  # the whole aperture lands on one lenslet-plane point
+            if sm > 0.0:
+                f = _window(g0, e1, e2, True, True, sm)
+            elif is_x:  # the divide-and-round of eqs 4.10–4.11: gx in [e1, e2), gy in (e1, e2]
+                f = 1.0 if e1 <= g0 < e2 else 0.0
+            else:
+                f = 1.0 if e1 < g0 <= e2 else 0.0
+        else:
+            a1 = abs(e1 - g0) < reach
+            a2 = abs(e2 - g0) < reach
+            if (not a1 and e1 > g0) or (not a2 and e2 < g0):
+                f = 0.0  # the spot misses this column/row
+        fac[slot] = f
+        if f == 0.0 or rotated:
+            continue
+        _setup_axis(ax, sc, ctr + off + fl * t0, g0, e1, e2, a1, a2, bh, origin)
+        if ax[_A_N] > lam.shape[0]:
+            cnt[_ST_BIG] += 1.0
+            fac[slot] = 0.0
+            continue
+        _axis_tables(ax, sc, lam, full, tmp)
+        nang[slot] = _axis_angles(ax, sc[_S_RHO], ang, is_x)
+        _store(ax, lam, full, ang, axs, lams, fulls, angs, slot)
+
+
+@njit(inline="always", cache=True)
+def _rotated_axes(geo, sc, li, lj, spot, curx, cury, tmp):  # pragma: no cover - jitted
+    """Step 4a, rotated grid in focus: lenslet (li, lj)'s window does not matter (M is a constant),
+    only the disc, centred on the rotated lenslet centre (+ fl·t0). False if a patch is too big."""
+    g0x, g0y, t0x, t0y = spot[0], spot[1], spot[2], spot[3]
+    ax, lamx, fullx, _ = curx
+    ay, lamy, fully, _ = cury
+    pl, fl, cr, sr = geo[_G_PL], geo[_G_FL], geo[_G_COS], geo[_G_SIN]
+    cx0, cy0 = 0.5 * (geo[_G_NLX] - 1.0), 0.5 * (geo[_G_NLY] - 1.0)
+    u1 = (lj - cx0 - 0.5) * pl
+    v1 = (cy0 - li - 0.5) * pl
+    gcx = (lj - cx0) * pl
+    gcy = (cy0 - li) * pl
+    _setup_axis(ax, sc, cr * gcx - sr * gcy + geo[_G_OX] + fl * t0x, g0x, u1, u1 + pl, False, False, 0.0, -geo[_G_HW])
+    _setup_axis(ay, sc, sr * gcx + cr * gcy + geo[_G_OY] + fl * t0y, g0y, v1, v1 + pl, False, False, 0.0, -geo[_G_HH])
+    if ax[_A_N] > lamx.shape[0] or ay[_A_N] > lamy.shape[0]:
+        return False
+    _axis_tables(ax, sc, lamx, fullx, tmp)
+    _axis_tables(ay, sc, lamy, fully, tmp)
+    return True
+
+
+@njit(inline="always", cache=True)
+def _lenslet_image(geo, sc, li, lj, spot, fac, curx, cury, nangx, nangy, work, b, r0, r1, cnt):  # pragma: no cover
+    """Step 4b, one lenslet's image (descriptors in ``curx``, ``cury``) added into the chunk's rows:
+    separable if the blurred square lies inside the aperture image, else by Green's theorem."""
+    g0x, g0y, rs, focus = spot[0], spot[1], spot[4], spot[6]
+    ax, lamx, fullx, angx = curx
+    ay, lamy, fully, angy = cury
+    direct = work[0]
+    if ax[_A_N] == 0.0 or ay[_A_N] == 0.0:
+        return
+    pl, sm = geo[_G_PL], geo[_G_SM]
+    u1 = (lj - 0.5 * (geo[_G_NLX] - 1.0) - 0.5) * pl
+    u2 = u1 + pl
+    v1 = (0.5 * (geo[_G_NLY] - 1.0) - li - 0.5) * pl
+    v2 = v1 + pl
+    interior = False
+    if not focus and ax[_A_A1] * ax[_A_A2] * ay[_A_A1] * ay[_A_A2] != 0.0:
+        ex = max(abs(u1 - _K * sm - g0x), abs(u2 + _K * sm - g0x))
+        ey = max(abs(v1 - _K * sm - g0y), abs(v2 + _K * sm - g0y))
+        interior = ex * ex + ey * ey <= rs * rs
+    if interior:
+        tot, ins, sp = _write_outer(fullx, ax, fully, ay, geo, b, r0, r1, fac)
+        cnt[_ST_INTERIOR] += 1.0
+    else:
+        _boundary(ax, ay, sc, (lamx, fullx, lamy, fully), angx, nangx, angy, nangy, work, cnt)
+        tot, ins, sp = _write_patch(direct, ax, ay, geo, b, r0, r1, fac)
+    cnt[_ST_ALL] += tot
+    cnt[_ST_IN] += ins
+    cnt[_ST_SPILL] += abs(sp)
+    cnt[_ST_LENS] += 1.0
+
+
+@njit(inline="always", cache=True)
+def _axis_store(nlmax, psz):  # pragma: no cover - jitted
+    """Per-particle descriptors and tables of every lenslet column (or row): (descriptors,
+    Λ(lo) tables, full tables, circle crossings, their count, window factors)."""
+    return (
+        np.zeros((nlmax, _A_SIZE)),
+        np.zeros((nlmax, psz)),
+        np.zeros((nlmax, psz)),
+        np.zeros((nlmax, 3, 8)),
+        np.zeros(nlmax, dtype=np.int64),
+        np.zeros(nlmax),
+    )
+
+
+@njit(inline="always", cache=True)
+def _axis_current(psz):  # pragma: no cover - jitted
+    """The current lenslet's descriptor and tables along one axis (copied in: no array views in the loops)."""
+    return np.zeros(_A_SIZE), np.zeros(psz), np.zeros(psz), np.zeros((3, 8))
+
+
+@njit(inline="always", cache=True)
+def _workspace(geo, psz):  # pragma: no cover - jitted
+    """The scratch of one lenslet's boundary patch (see the layout table in the module docstring)."""
+    pp, sl = geo[_G_PP], geo[_G_SL]
+    nw = 2 * (2 * math.ceil(_K * sl / pp) + 2) + 2 if pp > 0.0 else 2
+    return (
+        np.zeros((psz, psz)),  # direct
+        np.zeros((psz, psz)),  # carry_x
+        np.zeros((psz, psz)),  # carry_y
+        np.zeros((3, 24)),  # pcs
+        np.zeros((3, 2 * psz + 16)),  # brk
+        np.zeros((6, psz + 4)),  # wk
+        np.zeros((4, 5, 512)),  # nodv
+        np.zeros(4, dtype=np.int64),  # ncnt
+        np.zeros((3, nw * 512)),  # vb
+    )
 
 
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
@@ -1376,54 +1629,21 @@ def _render_kernel(
     ``_ST_*`` counters (intensity expected / on the sensor / on the lenslet array /
     outside the chunk's rows (must stay 0), lenslets refused (rotated grid out of
     focus), lenslet images, interior ones, arc nodes, band nodes, patches too big).
+
+    Per particle: its geometry (:func:`_particle`), the lenslets it reaches
+    (:func:`_lenslet_span`), the tables of their columns and rows (:func:`_axis_pass`),
+    then each lenslet's image (:func:`_lenslet_image`).
     """
-    so, si, fm, fl, rad = geo[_G_SO], geo[_G_SI], geo[_G_FM], geo[_G_FL], geo[_G_R]
-    pl, pp = geo[_G_PL], geo[_G_PP]
-    ox, oy, cr, sr = geo[_G_OX], geo[_G_OY], geo[_G_COS], geo[_G_SIN]
-    nlx, nly = geo[_G_NLX], geo[_G_NLY]
-    sm, sl = geo[_G_SM], geo[_G_SL]
-    hw, hh = geo[_G_HW], geo[_G_HH]
-    rotated = sr != 0.0 or cr != 1.0
-    cx0, cy0 = 0.5 * (nlx - 1.0), 0.5 * (nly - 1.0)
-    inv_fm = 1.0 / fm
+    rotated = geo[_G_SIN] != 0.0 or geo[_G_COS] != 1.0
     for c in prange(starts.shape[0]):
         sc = np.zeros(_S_SIZE)
-        # Per-particle descriptors and tables of every lenslet column (x) and row (y).
-        axs = np.zeros((nlmax, _A_SIZE))
-        ays = np.zeros((nlmax, _A_SIZE))
-        lamxs = np.zeros((nlmax, psz))
-        fullxs = np.zeros((nlmax, psz))
-        lamys = np.zeros((nlmax, psz))
-        fullys = np.zeros((nlmax, psz))
-        angxs = np.zeros((nlmax, 3, 8))
-        angys = np.zeros((nlmax, 3, 8))
-        nangx = np.zeros(nlmax, dtype=np.int64)
-        nangy = np.zeros(nlmax, dtype=np.int64)
-        facx = np.zeros(nlmax)
-        facy = np.zeros(nlmax)
-        direct = np.zeros((psz, psz))
-        carry_x = np.zeros((psz, psz))
-        carry_y = np.zeros((psz, psz))
-        pcs = np.zeros((3, 24))
-        brk = np.zeros((3, 2 * psz + 16))
-        # Per-cell scratch: rows 0, 1 (node values), 3–5 (carried band antiderivatives) for _nodes,
-        # row 2 for _cut's U_p(v).
-        wk = np.zeros((6, psz + 4))
-        nodv = np.zeros((4, 5, 512))
-        ncnt = np.zeros(4, dtype=np.int64)
-        nw = 2 * (2 * math.ceil(_K * sl / pp) + 2) + 2 if pp > 0.0 else 2
-        vb = np.zeros((3, nw * 512))
-        cnt = np.zeros(_ST_SIZE)
-        # The current lenslet's descriptors and tables (copied in: no array views in the loops).
-        ax = np.zeros(_A_SIZE)
-        ay = np.zeros(_A_SIZE)
-        lamx = np.zeros(psz)
-        fullx = np.zeros(psz)
-        lamy = np.zeros(psz)
-        fully = np.zeros(psz)
+        cols = _axis_store(nlmax, psz)
+        rows = _axis_store(nlmax, psz)
+        curx = _axis_current(psz)
+        cury = _axis_current(psz)
         tmp = np.zeros(psz)
-        angx = np.zeros((3, 8))
-        angy = np.zeros((3, 8))
+        work = _workspace(geo, psz)
+        cnt = np.zeros(_ST_SIZE)
         b = buf[boff[c, 0] : boff[c, 1]]  # the chunk's rows of the image
         r0 = brow0[c]
         r1 = brow1[c]
@@ -1433,184 +1653,56 @@ def _render_kernel(
             cnt[_ST_W] += w
             if w == 0.0:
                 continue
-            # The ray to aperture point a: slope a·c1 + t0 (eqs 4.2–4.3), lenslet plane a·lsc + si·t0.
-            inv_d = 1.0 / (so + pz[i])
-            c1 = inv_d - inv_fm
-            t0x = -px[i] * inv_d
-            t0y = -py[i] * inv_d
-            lsc = 1.0 + si * c1
-            rs = rad * abs(lsc)  # radius of the aperture's image on the lenslet plane
-            rho = rad * fl * abs(c1)  # radius of the aperture's image on the sensor (per lenslet)
-            kap = lsc / (fl * c1)  # lenslet-plane shift per sensor shift
-            lx = si * t0x - ox
-            ly = si * t0y - oy
-            g0x = cr * lx + sr * ly  # spot centre in the grid frame (eqs 4.10–4.11)
-            g0y = -sr * lx + cr * ly
-            focus = rs <= _EPS_FOCUS * (sm if sm > 0.0 else pl)  # also catches rounding of an exact focus
-            reach = rs + _K * sm
-            j0 = max(0, math.floor((g0x - reach) / pl + cx0 + 0.5))
-            j1 = min(int(nlx) - 1, math.floor((g0x + reach) / pl + cx0 + 0.5))
-            i0 = max(0, math.floor(cy0 - (g0y + reach) / pl + 0.5))
-            i1 = min(int(nly) - 1, math.floor(cy0 - (g0y - reach) / pl + 0.5))
+            spot = _particle(geo, px[i], py[i], pz[i], sc)
+            g0x, g0y, t0x, t0y, _, reach, focus, bh = spot
+            j0, j1 = _lenslet_span(geo, g0x, reach, True)
+            i0, i1 = _lenslet_span(geo, g0y, reach, False)
             if j1 < j0 or i1 < i0:
                 continue
             if j1 - j0 + 1 > nlmax or i1 - i0 + 1 > nlmax:
                 cnt[_ST_BIG] += 1.0
                 continue
-            sc[_S_KAP] = kap
-            sc[_S_SM] = sm
-            sc[_S_SL] = sl
-            sc[_S_PP] = pp
-            sc[_S_KSL] = _K * sl
-            sc[_S_AK] = abs(kap)
-            sc[_S_S] = math.sqrt(sm * sm + kap * kap * sl * sl)
-            sc[_S_RHO] = rho
-            bh = _KS * sm / abs(kap) if (not focus and kap != 0.0) else 0.0
-            fac0 = w / (math.pi * rho * rho)  # uniform over the aperture image
-            # Columns (x) and rows (y) of lenslets: window, activity, descriptor and tables.
-            for a in range(2):
-                lo_i = j0 if a == 0 else i0
-                hi_i = j1 if a == 0 else i1
-                g0 = g0x if a == 0 else g0y
-                for ll in range(lo_i, hi_i + 1):
-                    slot = ll - lo_i
-                    if a == 0:
-                        e1 = (ll - cx0 - 0.5) * pl
-                        ctr = (ll - cx0) * pl
-                    else:
-                        e1 = (cy0 - ll - 0.5) * pl
-                        ctr = (cy0 - ll) * pl
-                    e2 = e1 + pl
-                    f = 1.0
-                    a1 = a2 = False
-                    if focus:  # the whole aperture lands on one lenslet-plane point
-                        if sm > 0.0:
-                            f = _window(g0, e1, e2, True, True, sm)
-                        elif a == 0:  # the divide-and-round of eqs 4.10–4.11: gx in [e1, e2), gy in (e1, e2]
-                            f = 1.0 if e1 <= g0 < e2 else 0.0
-                        else:
-                            f = 1.0 if e1 < g0 <= e2 else 0.0
-                    else:
-                        a1 = abs(e1 - g0) < reach
-                        a2 = abs(e2 - g0) < reach
-                        if (not a1 and e1 > g0) or (not a2 and e2 < g0):
-                            f = 0.0  # the spot misses this column/row
-                    if a == 0:
-                        facx[slot] = f
-                    else:
-                        facy[slot] = f
-                    if f == 0.0 or rotated:
-                        continue
-                    if a == 0:
-                        _setup_axis(ax, sc, ctr + ox + fl * t0x, g0x, e1, e2, a1, a2, bh, -hw)
-                        if ax[_A_N] > psz:
-                            cnt[_ST_BIG] += 1.0
-                            facx[slot] = 0.0
-                            continue
-                        _axis_tables(ax, sc, lamx, fullx, tmp)
-                        nangx[slot] = _axis_angles(ax, rho, angx, True)
-                        _store(ax, lamx, fullx, angx, axs, lamxs, fullxs, angxs, slot)
-                    else:
-                        _setup_axis(ay, sc, ctr + oy + fl * t0y, g0y, e1, e2, a1, a2, bh, -hh)
-                        if ay[_A_N] > psz:
-                            cnt[_ST_BIG] += 1.0
-                            facy[slot] = 0.0
-                            continue
-                        _axis_tables(ay, sc, lamy, fully, tmp)
-                        nangy[slot] = _axis_angles(ay, rho, angy, False)
-                        _store(ay, lamy, fully, angy, ays, lamys, fullys, angys, slot)
+            fac0 = w / (math.pi * sc[_S_RHO] * sc[_S_RHO])  # uniform over the aperture image
+            _axis_pass(geo, sc, True, j0, j1, g0x, t0x, focus, reach, bh, rotated, curx, cols, tmp, cnt)
+            _axis_pass(geo, sc, False, i0, i1, g0y, t0y, focus, reach, bh, rotated, cury, rows, tmp, cnt)
+            facx = cols[5]
+            facy = rows[5]
+            pl = geo[_G_PL]
+            cx0, cy0 = 0.5 * (geo[_G_NLX] - 1.0), 0.5 * (geo[_G_NLY] - 1.0)
             for li in range(i0, i1 + 1):
                 sy = li - i0
                 if facy[sy] == 0.0:
                     continue
                 v1 = (cy0 - li - 0.5) * pl
-                v2 = v1 + pl
-                ddy = max(v1 - g0y, 0.0, g0y - v2)
+                ddy = max(v1 - g0y, 0.0, g0y - (v1 + pl))
                 if not rotated:
-                    _load(ay, lamy, fully, angy, ays, lamys, fullys, angys, sy)
+                    _load(cury, rows, sy)
                 for lj in range(j0, j1 + 1):
                     sx = lj - j0
                     if facx[sx] == 0.0:
                         continue
                     u1 = (lj - cx0 - 0.5) * pl
-                    u2 = u1 + pl
-                    ddx = max(u1 - g0x, 0.0, g0x - u2)
+                    ddx = max(u1 - g0x, 0.0, g0x - (u1 + pl))
                     if ddx * ddx + ddy * ddy > reach * reach:
                         continue
                     if rotated:
                         if not focus:
                             cnt[_ST_REFUSED] += 1.0
                             continue
-                        # In focus the lenslet's window does not matter (M is a constant): only
-                        # the disc, centred on the rotated lenslet centre (+ fl·t0).
-                        gcx = (lj - cx0) * pl
-                        gcy = (cy0 - li) * pl
-                        _setup_axis(ax, sc, cr * gcx - sr * gcy + ox + fl * t0x, g0x, u1, u2, False, False, 0.0, -hw)
-                        _setup_axis(ay, sc, sr * gcx + cr * gcy + oy + fl * t0y, g0y, v1, v2, False, False, 0.0, -hh)
-                        if ax[_A_N] > psz or ay[_A_N] > psz:
+                        if not _rotated_axes(geo, sc, li, lj, spot, curx, cury, tmp):
                             cnt[_ST_BIG] += 1.0
                             continue
-                        _axis_tables(ax, sc, lamx, fullx, tmp)
-                        _axis_tables(ay, sc, lamy, fully, tmp)
-                        nangx[0] = 0
-                        nangy[0] = 0
-                        sx = 0
-                        sy = 0
+                        nax = nay = 0
                     else:
-                        _load(ax, lamx, fullx, angx, axs, lamxs, fullxs, angxs, sx)
-                    if ax[_A_N] == 0.0 or ay[_A_N] == 0.0:
-                        continue
-                    fac = fac0 * facx[lj - j0] * facy[li - i0]
-                    interior = False
-                    if not focus and ax[_A_A1] * ax[_A_A2] * ay[_A_A1] * ay[_A_A2] != 0.0:
-                        ex = max(abs(u1 - _K * sm - g0x), abs(u2 + _K * sm - g0x))
-                        ey = max(abs(v1 - _K * sm - g0y), abs(v2 + _K * sm - g0y))
-                        interior = ex * ex + ey * ey <= rs * rs
-                    if interior:  # the blurred square lies inside the aperture image: separable
-                        tot, ins, sp = _write_outer(fullx, ax, fully, ay, geo, b, r0, r1, fac)
-                        cnt[_ST_INTERIOR] += 1.0
-                    else:
-                        _boundary(
-                            ax, ay, sc, lamx, fullx, lamy, fully, angx, nangx[sx], angy, nangy[sy],
-                            direct, carry_x, carry_y, pcs, brk, wk, nodv, ncnt, vb, cnt,
-                        )  # fmt: skip
-                        tot, ins, sp = _write_patch(direct, ax, ay, geo, b, r0, r1, fac)
-                    cnt[_ST_ALL] += tot
-                    cnt[_ST_IN] += ins
-                    cnt[_ST_SPILL] += abs(sp)
-                    cnt[_ST_LENS] += 1.0
+                        _load(curx, cols, sx)
+                        nax, nay = cols[4][sx], rows[4][sy]
+                    fac = fac0 * facx[sx] * facy[sy]
+                    _lenslet_image(geo, sc, li, lj, spot, fac, curx, cury, nax, nay, work, b, r0, r1, cnt)
         for q in range(_ST_SIZE):
             stats[c, q] += cnt[q]
 
 
 # ------------------------------------------------------------------ wrappers
-def _blurs(camera: PlenopticCamera, diffraction: bool, sigmas: tuple[float, float] | None) -> tuple[float, float]:
-    """(σm, σl) in mm: ``sigmas`` if given (validated), else the camera's diffraction blurs or none."""
-    if sigmas is None:
-        return (camera.sigma_lenslet_plane, camera.sigma_sensor_plane) if diffraction else (0.0, 0.0)
-    try:
-        sm, sl = (float(v) for v in sigmas)
-    except (TypeError, ValueError):
-        raise RaytraceError(f"sigmas = {sigmas!r}: must be two numbers (σm, σl) in mm") from None
-    if not (math.isfinite(sm) and math.isfinite(sl) and sm >= 0.0 and sl >= 0.0):
-        raise RaytraceError(f"sigmas = {sigmas!r}: allowed range is finite and >= 0 mm")
-    return sm, sl
-
-
-def _geometry(camera: PlenopticCamera, sm: float, sl: float) -> np.ndarray:
-    g = np.zeros(_G_SIZE)
-    g[_G_SO], g[_G_SI], g[_G_FM] = camera.so, camera.si, camera.main_focal_length
-    g[_G_FL], g[_G_R] = camera.lenslet_focal_length, camera.aperture_diameter / 2.0
-    g[_G_PL], g[_G_PP] = camera.lenslet_pitch, camera.pixel_pitch
-    g[_G_HW], g[_G_HH] = camera.sensor_width / 2.0, camera.sensor_height / 2.0
-    g[_G_OX], g[_G_OY] = camera.lenslet_offset_x, camera.lenslet_offset_y
-    g[_G_COS], g[_G_SIN] = math.cos(camera.lenslet_rotation), math.sin(camera.lenslet_rotation)
-    g[_G_NLX], g[_G_NLY] = camera.n_lenslets_x, camera.n_lenslets_y
-    g[_G_SM], g[_G_SL] = sm, sl
-    g[_G_NROW], g[_G_NCOL] = camera.n_pixels_y, camera.n_pixels_x
-    return g
-
-
 def _weights(
     camera: PlenopticCamera,
     particles: xr.Dataset,

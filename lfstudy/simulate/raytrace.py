@@ -61,6 +61,40 @@ from numba import njit, prange
 from tqdm.auto import tqdm
 
 from lfstudy.optics import PlenopticCamera
+from lfstudy.simulate._render_common import (
+    _G_COS,
+    _G_FL,
+    _G_FM,
+    _G_HH,
+    _G_HW,
+    _G_NCOL,
+    _G_NLX,
+    _G_NLY,
+    _G_NROW,
+    _G_OX,
+    _G_OY,
+    _G_PL,
+    _G_PP,
+    _G_R,
+    _G_SI,
+    _G_SIN,
+    _G_SL,
+    _G_SM,
+    _G_SO,
+    DEFAULT_CHUNKS,
+    RaytraceError,
+    _blurs,
+    _check_noise,
+    _check_rays,
+    _finish,
+    _geometry,
+    _particle_arrays,
+    _sensor_coords,
+    quantize,
+    ray_counts,
+    solid_angle,
+)
+from lfstudy.simulate.exact import render_exact, render_pinhole_exact
 
 __all__ = [
     "RaytraceError",
@@ -76,14 +110,7 @@ __all__ = [
     "write_image",
 ]
 
-#: Particle chunks (= image buffers) of the kernel. Fixed so that the image is
-#: the same whatever the thread count; more threads than chunks gain nothing.
-DEFAULT_CHUNKS = 8
 _PIECES = 16  # kernel calls per render (progress granularity; fixed, part of the summation order)
-
-
-class RaytraceError(ValueError):
-    """Bad simulator input (the message names the field and its allowed range)."""
 
 
 # ---------------------------------------------------------------- random numbers
@@ -179,19 +206,17 @@ def _normal_pair(bits_u, bits_v):
     return rad * cs, rad * sn
 
 
-# Geometry vector layout (one float64 array keeps the kernel signature stable).
-_G_SO, _G_SI, _G_FM, _G_FL, _G_R, _G_PL, _G_PP, _G_HW, _G_HH = range(9)
-_G_OX, _G_OY, _G_COS, _G_SIN, _G_NLX, _G_NLY, _G_SM, _G_SL = range(9, 17)
-_G_DIFF, _G_IMAGE, _G_HMAX, _G_NROW, _G_NCOL = range(17, 22)
-_G_SIZE = 22
 _MISSED_ARRAY, _OFF_SENSOR = -1.0, -2.0  # pixel codes of lost rays
 
 
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
 def _trace(
-    px, py, pz, pint, nrays, starts, ends, seed, g, buffers, stats, lost, hist, amax
+    px, py, pz, pint, nrays, starts, ends, seed, g, record, hmax, buffers, stats, lost, hist, amax
 ):  # pragma: no cover - jitted
     """Trace particles ``starts[k]:ends[k]`` of chunk k into buffer k; chunks in parallel.
+
+    ``g`` is the geometry vector of :mod:`lfstudy.simulate._render_common` (σm, σl = 0 without
+    diffraction); ``record``: deposit into the buffers; ``hmax``: the histograms' half range [rad].
 
     Everything accumulates, so a chunk traced in consecutive pieces (one call
     per piece, for progress) sums in the same order as in one piece.
@@ -211,10 +236,8 @@ def _trace(
     nlx, nly = g[_G_NLX], g[_G_NLY]
     # Without diffraction the normals are still drawn (the loop stays
     # branch-free) but scaled by zero.
-    sm = g[_G_SM] if g[_G_DIFF] != 0.0 else 0.0
-    sl = g[_G_SL] if g[_G_DIFF] != 0.0 else 0.0
-    record = g[_G_IMAGE] != 0.0
-    hmax = g[_G_HMAX]
+    sm = g[_G_SM]
+    sl = g[_G_SL]
     cx0, cy0 = 0.5 * (nlx - 1.0), 0.5 * (nly - 1.0)
     # Reciprocals hoisted out of the ray loop (fastmath stays off).
     inv_fm, inv_pl, inv_fl, inv_pp = 1.0 / fm, 1.0 / pl, 1.0 / fl, 1.0 / pp
@@ -328,106 +351,7 @@ def _trace(
         lost[k] += lost_k
 
 
-# ------------------------------------------------------------------ inputs
-def _check_rays(rays_per_particle: Any, name: str = "rays_per_particle") -> int:
-    if isinstance(rays_per_particle, bool) or not isinstance(rays_per_particle, (int, np.integer)):
-        raise RaytraceError(f"{name} = {rays_per_particle!r}: must be an integer >= 1")
-    if rays_per_particle < 1:
-        raise RaytraceError(f"{name} = {rays_per_particle!r}: must be an integer >= 1")
-    return int(rays_per_particle)
-
-
-def _particle_arrays(camera: PlenopticCamera, particles: xr.Dataset) -> tuple[np.ndarray, ...]:
-    """Validated contiguous float64 arrays x, y, z, intensity."""
-    try:
-        arrs = [
-            np.ascontiguousarray(np.asarray(particles[v].values, dtype=np.float64).ravel())
-            for v in ("x", "y", "z", "intensity")
-        ]
-    except KeyError as exc:
-        raise RaytraceError(f"particles: missing variable {exc.args[0]!r}; need x, y, z, intensity") from None
-    x, y, z, inten = arrs
-    if x.size == 0:
-        raise RaytraceError("particles: the particle set is empty; need at least 1 particle")
-    if not (x.size == y.size == z.size == inten.size):
-        raise RaytraceError("particles: x, y, z and intensity must have one length")
-    for name, a in (("x", x), ("y", y), ("z", z), ("intensity", inten)):
-        bad = ~np.isfinite(a)
-        if bad.any():
-            raise RaytraceError(f"particles.{name}: {int(bad.sum())} NaN/inf values; must be finite")
-    if np.any(inten < 0):
-        raise RaytraceError(f"particles.intensity: {int((inten < 0).sum())} negative values; allowed range is >= 0")
-    zmin = camera.main_focal_length - camera.so
-    if np.any(z <= zmin):
-        raise RaytraceError(
-            f"particles.z: {int((z <= zmin).sum())} particles at or inside the main-lens focal length "
-            f"(or behind the lens); allowed range is z > f - so = {zmin:.6g} mm"
-        )
-    return x, y, z, inten
-
-
-# ---------------------------------------------------------- solid angle
-def solid_angle(
-    camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, *, n_radial: int = 16, n_angular: int = 32
-) -> np.ndarray:
-    """Solid angle [sr] the main-lens aperture disc subtends from points (x, y, z).
-
-    Gauss–Legendre quadrature in the aperture radius and the (periodic,
-    spectrally accurate) trapezoid rule in azimuth of dΩ = d·dA / r³, with
-    d = so + z the axial distance; exact to ~1e-12 for the paraxial
-    geometries of interest.
-    """
-    x, y, z = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (x, y, z))
-    rad = camera.aperture_diameter / 2.0
-    t, w = np.polynomial.legendre.leggauss(n_radial)
-    r = 0.5 * rad * (t + 1.0)
-    wr = 0.5 * rad * w * r  # includes the Jacobian r dr
-    phi = np.arange(n_angular) * (2.0 * np.pi / n_angular)
-    ax = (r[:, None] * np.cos(phi)[None, :]).ravel()
-    ay = (r[:, None] * np.sin(phi)[None, :]).ravel()
-    wa = np.repeat(wr, n_angular) * (2.0 * np.pi / n_angular)
-    out = np.empty(x.shape)
-    step = 4096
-    for s in range(0, x.size, step):  # bounded temporaries for large fields
-        d = camera.so + z[s : s + step, None]
-        r2 = d * d + (ax - x[s : s + step, None]) ** 2 + (ay - y[s : s + step, None]) ** 2
-        out[s : s + step] = (d / (r2 * np.sqrt(r2))) @ wa
-    return out
-
-
-def ray_counts(
-    camera: PlenopticCamera, particles: xr.Dataset, rays_per_particle: int, *, solid_angle_correction: bool = True
-) -> np.ndarray:
-    """Rays traced for each particle: eq. 4.14 generalised to 2-D.
-
-    ``round(n · Ω_i / Ω_ref)``, Ω_ref being the aperture's solid angle from the
-    on-axis point of the object focal plane, 2π(1 − so/√(so² + R²)).
-    """
-    n = _check_rays(rays_per_particle)
-    x, y, z, _ = _particle_arrays(camera, particles)
-    if not solid_angle_correction:
-        return np.full(x.size, n, dtype=np.int64)
-    rad = camera.aperture_diameter / 2.0
-    ref = 2.0 * np.pi * (1.0 - camera.so / math.hypot(camera.so, rad))
-    return np.rint(n * solid_angle(camera, x, y, z) / ref).astype(np.int64)  # eq. 4.14
-
-
 # ---------------------------------------------------------------- kernel call
-def _geometry(camera: PlenopticCamera, diffraction: bool, record: bool, hmax: float = 1.0) -> np.ndarray:
-    g = np.zeros(_G_SIZE)
-    g[_G_SO], g[_G_SI], g[_G_FM] = camera.so, camera.si, camera.main_focal_length
-    g[_G_FL], g[_G_R] = camera.lenslet_focal_length, camera.aperture_diameter / 2.0
-    g[_G_PL], g[_G_PP] = camera.lenslet_pitch, camera.pixel_pitch
-    g[_G_HW], g[_G_HH] = camera.sensor_width / 2.0, camera.sensor_height / 2.0
-    g[_G_OX], g[_G_OY] = camera.lenslet_offset_x, camera.lenslet_offset_y
-    g[_G_COS], g[_G_SIN] = math.cos(camera.lenslet_rotation), math.sin(camera.lenslet_rotation)
-    g[_G_NLX], g[_G_NLY] = camera.n_lenslets_x, camera.n_lenslets_y
-    g[_G_SM], g[_G_SL] = camera.sigma_lenslet_plane, camera.sigma_sensor_plane
-    g[_G_DIFF], g[_G_IMAGE], g[_G_HMAX] = float(diffraction), float(record), hmax
-    g[_G_NROW], g[_G_NCOL] = camera.n_pixels_y, camera.n_pixels_x
-    return g
-
-
 def _chunk_bounds(n: int, n_chunks: int) -> np.ndarray:
     k = max(1, min(int(n_chunks), n))
     return np.linspace(0, n, k + 1).round().astype(np.int64)
@@ -457,7 +381,7 @@ def _run_kernel(
     lost = np.zeros(k, dtype=np.float64)
     hist = np.zeros((k, 2, nbins), dtype=np.int64)
     amax = np.zeros((k, 3), dtype=np.float64)
-    g = _geometry(camera, diffraction, record, hmax)
+    g = _geometry(camera, *_blurs(camera, diffraction))
     # Each chunk is traced in _PIECES consecutive pieces (a fixed count, so the
     # bytes never depend on the progress bar or the threads); one bar step per piece.
     cum = np.concatenate([[0], np.cumsum(nrays, dtype=np.int64)])
@@ -467,20 +391,15 @@ def _run_kernel(
         for p in range(_PIECES):
             starts = bounds[:-1] + (bounds[1:] - bounds[:-1]) * p // _PIECES
             ends = bounds[:-1] + (bounds[1:] - bounds[:-1]) * (p + 1) // _PIECES
-            _trace(x, y, z, inten, nrays, starts, ends, seed, g, buffers, stats, lost, hist, amax)
+            _trace(x, y, z, inten, nrays, starts, ends, seed, g, record, hmax, buffers, stats, lost, hist, amax)
             bar.update(int((cum[ends] - cum[starts]).sum()))
     return buffers, stats, lost, hist, amax
 
 
-def _sensor_coords(camera: PlenopticCamera) -> dict[str, Any]:
-    x, y = camera.pixel_centers()
-    return {
-        "x": ("col", x, {"units": "mm", "long_name": "sensor x (pixel centre)"}),
-        "y": ("row", y, {"units": "mm", "long_name": "sensor y (pixel centre, up)"}),
-    }
-
-
 # ------------------------------------------------------------------ public API
+METHODS = ("exact", "montecarlo")  #: rendering methods of :func:`render`; the first is the default
+
+
 def render(
     camera: PlenopticCamera,
     particles: xr.Dataset,
@@ -496,9 +415,15 @@ def render(
     n_chunks: int = DEFAULT_CHUNKS,
     max_image_bytes: float = 4e9,
     progress: bool = False,
-    method: str = "montecarlo",
+    method: str = METHODS[0],
 ) -> xr.DataArray:
-    """Ray-trace a raw plenoptic image of a particle field (sec. 4.3).
+    """Render the raw plenoptic image of a particle field (sec. 4.3), exactly or by ray tracing.
+
+    The one place that chooses the method: ``"exact"`` (the default, as in the
+    config schema's ``raytrace.method``) computes the expected image without
+    rays (:func:`lfstudy.simulate.exact.render_exact`); ``"montecarlo"`` traces
+    ``rays_per_particle`` random rays per particle (this module's kernel, the
+    thesis' tracer). Both then add the optional noise and integer export.
 
     Parameters
     ----------
@@ -508,10 +433,11 @@ def render(
         Particle field over ``particle`` with ``x``, ``y``, ``z`` (object frame,
         mm) and ``intensity`` (>= 0), as from :mod:`lfstudy.simulate.particles`.
     rays_per_particle : int
-        Rays per particle at the reference solid angle (eq. 4.14).
+        Rays per particle at the reference solid angle (eq. 4.14); the exact
+        image is the expectation of that many rays (it scales with it).
     seed : int
-        Seed of the counter-based ray streams; the same seed gives a
-        bit-identical image whatever the thread count.
+        Seed of the counter-based ray streams (Monte-Carlo) and of the noise;
+        the same seed gives a bit-identical image whatever the thread count.
     diffraction : bool
         Apply the Gaussian diffraction shifts at the lenslet and sensor planes.
     solid_angle_correction : bool
@@ -540,46 +466,78 @@ def render(
         Refuse (ValueError) if the estimated allocation exceeds this.
     progress : bool
         Show a tqdm bar of the rays traced (it does not change the result).
-    method : {"montecarlo", "exact"}
-        ``"montecarlo"``: trace ``rays_per_particle`` random rays per particle
-        (this function's kernel, the reference). ``"exact"``: the expected value
-        of that image, computed without rays by
-        :func:`lfstudy.simulate.exact.render_exact` (deterministic; ``seed``
-        only drives ``shot_noise`` / ``read_noise``).
+    method : {"exact", "montecarlo"}
+        ``"exact"``: the expected value of the Monte-Carlo image, computed
+        without rays (deterministic; ``seed`` only drives ``shot_noise`` /
+        ``read_noise``). ``"montecarlo"``: trace the rays (the reference).
 
     Returns
     -------
     xarray.DataArray
         ``intensity`` over (``row``, ``col``) with sensor coords ``x``/``y`` [mm]
         (row 0 at the top, y up), float64 (or unsigned integer with
-        ``bit_depth``); attrs hold the camera parameters, the seed and the ray
-        accounting (traced, recorded, dropped outside the lenslet array /
-        outside the sensor, and the intensity lost); with
-        ``method="exact"`` the expected intensities instead of ray counts.
+        ``bit_depth``); attrs hold the camera parameters, the seed and the
+        accounting of what was traced, recorded and lost (outside the lenslet
+        array / outside the sensor): ray counts for ``"montecarlo"``, expected
+        intensities for ``"exact"``.
+
+    Examples
+    --------
+    A 60 x 45 pixel sensor with the Table 4.3 optics (7.4 µm pixels, 125 µm
+    lenslets of 0.5 mm focal length, a 50 mm main lens at magnification −1)
+    and two particles, one on the object focal plane and one 1 mm behind it:
+
+    >>> from lfstudy.optics import PlenopticCamera
+    >>> from lfstudy.simulate import make_field, render
+    >>> camera = PlenopticCamera(60, 45, 0.0074, 0.125, 0.5, 50.0, -1.0)
+    >>> field = make_field([0.0, 0.03], [0.0, -0.02], [0.0, 1.0], [1.0, 1.0])
+    >>> image = render(camera, field, rays_per_particle=1000, seed=0)
+    >>> image.shape, image.attrs["method"]
+    ((45, 60), 'exact')
+    >>> round(float(image.sum()), 3)
+    1699.127
+    >>> traced = render(camera, field, 1000, seed=0, method="montecarlo")
+    >>> int(traced.attrs["rays_recorded"]), int(traced.sum())
+    (1730, 1730)
     """
-    if method not in ("montecarlo", "exact"):
-        raise RaytraceError(f"method = {method!r}: allowed values are 'montecarlo' and 'exact'")
+    if method not in METHODS:
+        raise RaytraceError(f"method = {method!r}: allowed values are {', '.join(map(repr, METHODS))}")
     n = _check_rays(rays_per_particle)
     seed64 = _seed_u64(seed)
     x, y, z, inten = _particle_arrays(camera, particles)
     _check_noise(read_noise, bit_depth)
     if not isinstance(n_chunks, (int, np.integer)) or n_chunks < 1:
         raise RaytraceError(f"n_chunks = {n_chunks!r}: must be an integer >= 1")
+    options = {
+        "diffraction": diffraction,
+        "solid_angle_correction": solid_angle_correction,
+        "n_chunks": n_chunks,
+        "max_image_bytes": max_image_bytes,
+        "progress": progress,
+    }
     if method == "exact":
-        from lfstudy.simulate.exact import render_exact
+        da = render_exact(camera, particles, n, **options)
+    else:
+        da = _render_montecarlo(camera, particles, (x, y, z, inten), n, seed64, **options)
+    da.attrs["seed"] = int(seed)
+    return _finish(da, int(seed), shot_noise, read_noise, full_well, bit_depth)
 
-        da = render_exact(
-            camera,
-            particles,
-            n,
-            diffraction=diffraction,
-            solid_angle_correction=solid_angle_correction,
-            n_chunks=n_chunks,
-            max_image_bytes=max_image_bytes,
-            progress=progress,
-        )
-        da.attrs["seed"] = int(seed)
-        return _finish(da, int(seed), shot_noise, read_noise, full_well, bit_depth)
+
+def _render_montecarlo(
+    camera: PlenopticCamera,
+    particles: xr.Dataset,
+    arrays: tuple[np.ndarray, ...],
+    n: int,
+    seed64: np.uint64,
+    *,
+    diffraction: bool,
+    solid_angle_correction: bool,
+    n_chunks: int,
+    max_image_bytes: float,
+    progress: bool,
+) -> xr.DataArray:
+    """The noise-free Monte-Carlo image of :func:`render` (inputs already checked)."""
+    x, y, z, inten = arrays
     need = memory_estimate(camera, x.size, n_chunks)
     if need > max_image_bytes:
         raise RaytraceError(
@@ -601,7 +559,7 @@ def render(
         "units": "1",
         "long_name": "simulated plenoptic raw image (sum of ray intensities)",
         **camera.to_attrs(),
-        "seed": int(seed),
+        "seed": int(seed64),
         "rays_per_particle": n,
         "n_particles": int(x.size),
         "solid_angle_correction": int(bool(solid_angle_correction)),
@@ -617,72 +575,7 @@ def render(
         "intensity_lost": float(lost.sum()),
         "y_direction": "up; row 0 is the top",
     }
-    da = xr.DataArray(image, dims=("row", "col"), coords=_sensor_coords(camera), name="intensity", attrs=attrs)
-    return _finish(da, int(seed), shot_noise, read_noise, full_well, bit_depth)
-
-
-def _check_noise(read_noise: Any, bit_depth: Any) -> None:
-    """The noise and export options of :func:`render`, checked before any work."""
-    if not (isinstance(read_noise, (int, float)) and math.isfinite(read_noise) and read_noise >= 0):
-        raise RaytraceError(f"read_noise = {read_noise!r}: must be a finite number >= 0")
-    if bit_depth is not None and (not isinstance(bit_depth, (int, np.integer)) or not 1 <= bit_depth <= 32):
-        raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
-
-
-def _finish(
-    da: xr.DataArray, seed: int, shot_noise: bool, read_noise: float, full_well: float | None, bit_depth: int | None
-) -> xr.DataArray:
-    """The optional noise and integer export of :func:`render` (either method).
-
-    The noise is :func:`lfstudy.simulate.sensor.apply_sensor` with one photo-electron
-    per unit of intensity (photons per particle = rays per particle, quantum
-    efficiency 1, no dark level or full well): Poisson shot noise, then Gaussian
-    read noise. Read noise can make a pixel negative; it stays negative here (an
-    unbiased float signal) and :func:`quantize` clips it to 0.
-    """
-    if shot_noise or read_noise > 0:
-        from lfstudy.simulate.sensor import apply_sensor
-
-        n = int(da.attrs["rays_per_particle"])
-        attrs = dict(da.attrs)
-        da = apply_sensor(
-            da, photons_per_particle=n, shot_noise=bool(shot_noise), read_noise=float(read_noise), seed=int(seed)
-        )
-        da.attrs.update(
-            units=attrs.get("units", "1"),
-            long_name=attrs.get("long_name", ""),
-            shot_noise=int(bool(shot_noise)),
-            read_noise=float(read_noise),
-        )
-    if bit_depth is not None:
-        da = quantize(da, int(bit_depth), full_well)
-    return da
-
-
-def quantize(image: xr.DataArray, bit_depth: int, full_well: float | None = None) -> xr.DataArray:
-    """Integer export: scale, round and clip to ``bit_depth`` bits.
-
-    Policy: the signal ``full_well`` (default: the image maximum, i.e. no
-    saturation) maps to 2**bit_depth − 1; values are rounded to the nearest
-    integer and clipped to [0, 2**bit_depth − 1]. Pixels clipped high are
-    counted in ``attrs['saturated_pixels']``; the scale factor is recorded.
-    """
-    if not isinstance(bit_depth, (int, np.integer)) or not 1 <= bit_depth <= 32:
-        raise RaytraceError(f"bit_depth = {bit_depth!r}: allowed range is 1..32")
-    top = float(2 ** int(bit_depth) - 1)
-    fw = float(image.max()) if full_well is None else float(full_well)
-    if not (math.isfinite(fw) and fw > 0):
-        if full_well is not None:
-            raise RaytraceError(f"full_well = {full_well!r}: must be a finite number > 0")
-        fw = 1.0  # an all-zero image
-    scaled = np.rint(image.values * (top / fw))
-    saturated = int((scaled > top).sum())
-    dtype = np.uint8 if bit_depth <= 8 else np.uint16 if bit_depth <= 16 else np.uint32
-    out = image.copy(data=np.clip(scaled, 0, top).astype(dtype))
-    out.attrs.update(
-        bit_depth=int(bit_depth), full_well=fw, counts_per_unit=top / fw, saturated_pixels=saturated, units="counts"
-    )
-    return out
+    return xr.DataArray(image, dims=("row", "col"), coords=_sensor_coords(camera), name="intensity", attrs=attrs)
 
 
 def render_pinhole(
@@ -692,6 +585,7 @@ def render_pinhole(
     count: int = 500_000,
     rays_per_point: int = 100,
     seed: int = 0,
+    method: str = METHODS[0],
     **kwargs: Any,
 ) -> xr.DataArray:
     """Calibration "pinhole" image (sec. 5.1).
@@ -701,18 +595,19 @@ def render_pinhole(
     images a small spot of the aperture at its projected centre. The camera's
     diffraction sigmas follow the new f-number automatically.
 
-    Extra keyword arguments go to :func:`render`. ``method="exact"`` computes
-    the expected image of the uniform field these points sample
+    ``method="exact"`` (the default, as for :func:`render`) computes the
+    expected image of the uniform field these points sample
     (:func:`lfstudy.simulate.exact.render_pinhole_exact`, no point or ray
-    noise); the noise options of :func:`render` apply to it as well.
+    noise); ``"montecarlo"`` traces ``rays_per_point`` rays from each of
+    ``count`` random points. Extra keyword arguments go to :func:`render`
+    (its noise options apply to both methods).
     """
     from lfstudy.simulate.particles import pinhole_field
 
+    if method not in METHODS:
+        raise RaytraceError(f"method = {method!r}: allowed values are {', '.join(map(repr, METHODS))}")
     _check_rays(rays_per_point, "rays_per_point")
-    if kwargs.get("method", "montecarlo") == "exact":
-        from lfstudy.simulate.exact import render_pinhole_exact
-
-        kwargs.pop("method")
+    if method == "exact":
         defaults = (("shot_noise", False), ("read_noise", 0.0), ("full_well", None), ("bit_depth", None))
         noise = [kwargs.pop(k, d) for k, d in defaults]
         _check_noise(noise[1], noise[3])
@@ -722,7 +617,7 @@ def render_pinhole(
         return _finish(da, int(seed), *noise)
     cam = camera.with_(fnumber=float(fnumber))
     field = pinhole_field(camera, count=count, seed=seed)
-    img = render(cam, field, rays_per_point, seed, **kwargs)
+    img = render(cam, field, rays_per_point, seed, method=method, **kwargs)
     img.attrs.update(
         long_name="simulated pinhole calibration image", pinhole_fnumber=float(fnumber), pinhole_count=int(count)
     )
