@@ -18,7 +18,7 @@ import pytest
 import lfstudy
 
 #: The face functions that must carry an Examples section (issue: one per pipeline face).
-REQUIRED = ("lfstudy.piv.widim", "lfstudy.reconstruct.reconstruct", "lfstudy.io.open_study")
+REQUIRED = ("lfstudy.simulate.render", "lfstudy.piv.widim", "lfstudy.reconstruct.reconstruct", "lfstudy.io.open_study")
 
 
 def _public_modules() -> list[str]:
