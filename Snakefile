@@ -360,8 +360,8 @@ if PROCESS:
         log: f"results/{PCFG['name']}.process.log"
         threads: HEAVY
         shell:
-            "python -m lfstudy.cli process {input.config:q} --out {output[0]:q} --threads {threads} --quiet"
-            " > {log:q} 2>&1"
+            "python -m lfstudy.cli process {input.config:q} --out {output[0]:q} --overwrite"
+            " --threads {threads} --quiet > {log:q} 2>&1"
 
 else:
 

@@ -8,7 +8,11 @@ of the same camera to |bias| < 0.1 voxel with > 80 % valid vectors; a recording 
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -374,3 +378,95 @@ def test_a_traverse_needs_one_image_per_shift(recording, cli_error, tmp_path):
     line = cli_error("process", str(cfg), "--out", str(out))
     assert "recording.depth_calibration.images: 2 images for 2 traverses" in line, line
     _no_output(out)
+
+
+# ------------------------------------------------------------------ --out never deletes what lfstudy did not write
+def _pair_config(rec: dict, name: str = "pair") -> Path:
+    return _config(rec, name, {"frames": {"pairs": [["frame_1.tif", "frame_2.tif"]]}})
+
+
+def test_out_refuses_data_lfstudy_did_not_write(recording, cli_error, tmp_path, monkeypatch):
+    """An existing directory or file at --out, the recording's folder, `.` and `..` are refused before any
+    processing (one line, exit 2), and everything in them is left as it was."""
+    cfg = _pair_config(recording)
+    user = tmp_path / "d"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine")
+    line = cli_error("process", str(cfg), "--out", str(user))
+    assert "exists and is no lfstudy output" in line and "never replaces data it did not write" in line, line
+    line = cli_error("process", str(cfg), "--out", str(user), "--overwrite")  # not even with --overwrite
+    assert "no lfstudy output" in line, line
+    assert (user / "notes.txt").read_text() == "mine" and sorted(p.name for p in user.iterdir()) == ["notes.txt"]
+    afile = tmp_path / "result.txt"
+    afile.write_text("mine")
+    line = cli_error("process", str(cfg), "--out", str(afile), "--overwrite")
+    assert "is an existing file" in line, line
+    assert afile.read_text() == "mine"
+    d = recording["dir"]
+    before = sorted(p.name for p in d.iterdir())
+    line = cli_error("process", str(cfg), "--out", str(d), "--overwrite")
+    assert "an input of this run" in line, line
+    monkeypatch.chdir(d)
+    line = cli_error("process", str(cfg), "--out", ".", "--overwrite")
+    assert "--out '.' holds" in line and "an input of this run" in line, line
+    line = cli_error("process", str(cfg), "--out", "..")
+    assert "--out '..' holds" in line and "an input of this run" in line, line
+    line = cli_error("process", str(cfg), "--out", "pinhole.tif/o")  # inside an input file
+    assert "lies inside" in line and "pinhole.tif" in line, line
+    assert sorted(p.name for p in d.iterdir()) == before
+    assert not list(tmp_path.glob(".*"))  # no temporary or lock left behind
+
+
+def test_out_that_cannot_be_written_fails_before_processing(recording, cli_error, tmp_path):
+    cfg = _pair_config(recording)
+    (tmp_path / "f").write_text("")
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "f" / "o"))
+    assert "cannot create" in line and "/f'" in line, line
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        line = cli_error("process", str(cfg), "--out", str(ro / "o"))
+        assert "not writable" in line, line
+
+
+def test_out_overwrites_only_its_own_output(recording, cli_error, tmp_path, capsys):
+    """A finished output carries the marker of `lfstudy process`; a rerun replaces it only with --overwrite,
+    and an output of another command is refused even then."""
+    cfg = _pair_config(recording)
+    out = tmp_path / "o"
+    assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
+    marker = json.loads((out / io.MARKER).read_text())
+    assert marker["command"] == "process" and str(cfg) in marker["inputs"]
+    (out / "metrics.csv").write_text("stale")
+    capsys.readouterr()
+    line = cli_error("process", str(cfg), "--out", str(out))
+    assert "holds an earlier output of lfstudy process; give --overwrite" in line, line
+    assert main(["process", str(cfg), "--out", str(out), "--quiet", "--overwrite"]) == 0
+    assert (out / "metrics.csv").read_text() != "stale" and (out / "piv.zarr").is_dir()
+    assert not list(tmp_path.glob(".*"))
+    marker["command"] = "piv"
+    (out / io.MARKER).write_text(json.dumps(marker))
+    capsys.readouterr()
+    line = cli_error("process", str(cfg), "--out", str(out), "--overwrite")
+    assert "is an output of lfstudy piv" in line, line
+
+
+def test_second_run_on_the_same_out_is_refused(recording, cli_error, tmp_path):
+    """Another process writing the same --out holds its lock: a second run is refused at once and leaves
+    the first one's temporary directory alone."""
+    out = tmp_path / "o"
+    holder = (
+        "import sys, time; from lfstudy import io\n"
+        "with io.output_dir(sys.argv[1], command='process') as tmp:\n"
+        "    (tmp / 'piv.zarr').mkdir(); print(tmp, flush=True); time.sleep(60)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", holder, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        tmp = Path(proc.stdout.readline().strip())
+        assert tmp.is_dir()
+        line = cli_error("process", str(_pair_config(recording)), "--out", str(out))
+        assert "is being written by another lfstudy run" in line, line
+        assert (tmp / "piv.zarr").is_dir()  # the live run's work is untouched
+    finally:
+        proc.kill()
+        proc.wait()
