@@ -136,3 +136,18 @@ def test_render_and_simulate_refuse_user_data(tmp_path, cli_error):
     line = cli_error("render", str(raw), "--centers", str(cen), "--config", str(cfg), "--out", str(user))
     assert "volume.zarr' exists and is no lfstudy output" in line, line
     assert sorted(p.name for p in user.iterdir()) == ["notes.txt", "volume.zarr"]
+
+
+def test_export_replaces_a_file_only_with_overwrite(frames, tmp_path, cli_error, capsys):
+    pa, pb = frames
+    store = tmp_path / "piv.zarr"
+    assert main(_piv(pa, pb, store)) == 0
+    target = tmp_path / "piv.vtr"
+    target.write_text("mine")
+    capsys.readouterr()
+    line = cli_error("export", str(store), "--out", str(target))
+    assert "exists; give --overwrite" in line and target.read_text() == "mine", line
+    line = cli_error("export", str(store), "--out", str(store / "x.vtr"), "--overwrite")
+    assert "lies inside the exported store" in line, line
+    assert main(["export", str(store), "--out", str(target), "--overwrite"]) == 0
+    assert target.read_bytes().startswith(b"<?xml")
