@@ -279,6 +279,13 @@ def test_snakemake_process_target(recording, tmp_path):
     assert "process_recording" in text and "results/rec" in text
     for name in ("pinhole.tif", "dark_2.tif", "frame_3.tif", "smk.yaml"):
         assert name in text, name
+    # the job declares the memory of every stage of the recording's config (lfstudy.study.resources)
+    from lfstudy.process import load_process_config
+    from lfstudy.study.resources import job_mem_mb
+
+    block = text[text.index("rule process_recording:") :]
+    mem = re.search(r"resources: .*\bmem_mb=(\d+)", block)
+    assert mem and int(mem.group(1)) == job_mem_mb(load_process_config(cfg), "process"), block[:2000]
 
 
 def test_white_image_calibration(recording):
