@@ -13,6 +13,7 @@ import os
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -477,3 +478,35 @@ def test_second_run_on_the_same_out_is_refused(recording, cli_error, tmp_path):
     finally:
         proc.kill()
         proc.wait()
+
+
+def _pitch_camera(rec: dict, scale: float) -> dict:
+    cam = yaml.safe_load(yaml.safe_dump(rec["base"]["camera"]))
+    cam["lenslet"]["pitch"] = round(cam["lenslet"]["pitch"] * scale, 5)
+    return cam
+
+
+def test_config_pitch_not_the_images(recording, cli_error, tmp_path):
+    """A configured lenslet pitch 33 % off the image's is named as such, not as a doubt about the image."""
+    cfg = _config(recording, "bad_pitch", {"frames": {"series": "frame_*.tif"}}, camera=_pitch_camera(recording, 1.33))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
+    pattern = r"lenslet pitch ([\d.]+) px in the config does not match the image's ([\d.]+) px \(\+(\d+) % off\)"
+    m = re.search(pattern, line)
+    assert m and "pinhole image?" not in line, line
+    assert float(m.group(2)) == pytest.approx(12.0, rel=0.01)  # 0.0888 mm of 0.0074 mm pixels
+    _no_output(tmp_path / "o")
+
+
+def test_config_pitch_a_few_percent_off_warns(recording):
+    """4 % off still finds a grid, but loses lenslets: a warning gives the fitted pitch."""
+    from lfstudy.lightfield.calibrate import PitchWarning
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.process import calibrate_recording
+
+    img = io.read_image(recording["dir"] / "pinhole.tif")
+    cam = PlenopticCamera.from_config({**recording["base"], "camera": _pitch_camera(recording, 1.04)})
+    with pytest.warns(PitchWarning, match=r"differs from the image's fitted 12\.0\d\d px \(\+4\.\d %\)"):
+        calibrate_recording(img, cam)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PitchWarning)  # the right pitch: no warning
+        calibrate_recording(img, PlenopticCamera.from_config(recording["base"]))

@@ -30,6 +30,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from lfstudy.compute import dask_scheduler, describe
+    from lfstudy.lightfield.calibrate import PitchWarning
     from lfstudy.process import SaturationWarning, load_process_config, process_recording
 
     cfg = load_process_config(args.config)
@@ -42,13 +43,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"dask: {describe(cfg['compute'])}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", SaturationWarning)
+        warnings.simplefilter("always", PitchWarning)
         # the scheduler is chosen here, at the edge; the pipeline is the same under either
         with dask_scheduler(cfg["compute"], threads=args.threads):
             process_recording(
                 cfg, out, overwrite=args.overwrite, inputs=[args.config], progress=not args.quiet, log=print
             )
     for w in caught:  # a recording's warnings as one line each, in the CLI's style; others as they were
-        if issubclass(w.category, SaturationWarning):
+        if issubclass(w.category, (SaturationWarning, PitchWarning)):
             print(f"lfstudy process: warning: {w.message}", file=sys.stderr)
         else:
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
