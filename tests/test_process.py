@@ -510,3 +510,18 @@ def test_config_pitch_a_few_percent_off_warns(recording):
     with warnings.catch_warnings():
         warnings.simplefilter("error", PitchWarning)  # the right pitch: no warning
         calibrate_recording(img, PlenopticCamera.from_config(recording["base"]))
+
+
+def test_a_nan_frame_names_its_file(recording, cli_error, tmp_path):
+    d = recording["dir"]
+    for name in ("pinhole", "frame_1", "frame_2"):
+        img = tifffile.imread(d / f"{name}.tif").astype(np.float32)
+        if name == "frame_2":
+            img[10, 20:23] = np.nan
+        tifffile.imwrite(d / f"float_{name}.tif", img)
+    pairs = {"pairs": [["float_frame_1.tif", "float_frame_2.tif"]]}
+    cfg = _config(recording, "nan", {"frames": pairs}, calibration="float_pinhole.tif")
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "recording.frames: 'float_frame_2.tif'" in line and "has 3 non-finite (NaN/inf) pixels" in line, line
+    assert str(d / "float_frame_2.tif") in line, line
+    _no_output(tmp_path / "o")
