@@ -525,3 +525,16 @@ def test_a_nan_frame_names_its_file(recording, cli_error, tmp_path):
     assert "recording.frames: 'float_frame_2.tif'" in line and "has 3 non-finite (NaN/inf) pixels" in line, line
     assert str(d / "float_frame_2.tif") in line, line
     _no_output(tmp_path / "o")
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_a_degenerate_pair_is_measured_quietly(recording, tmp_path, capsys):
+    """The same frame twice (zero displacement, no divergence to normalise): metrics without
+    numpy/matplotlib RuntimeWarnings on the console."""
+    cfg = _config(recording, "same", {"frames": {"pairs": [["frame_1.tif", "frame_1.tif"]]}})
+    out = tmp_path / "o"
+    assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "Warning" not in err, err
+    m = pd.read_csv(out / "metrics.csv")
+    assert m["valid_percent"].iloc[0] > 80 and abs(m["mean_u"].iloc[0]) < 1e-6
