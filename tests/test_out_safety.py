@@ -151,3 +151,15 @@ def test_export_replaces_a_file_only_with_overwrite(frames, tmp_path, cli_error,
     assert "lies inside the exported store" in line, line
     assert main(["export", str(store), "--out", str(target), "--overwrite"]) == 0
     assert target.read_bytes().startswith(b"<?xml")
+
+
+def test_simulate_quiet_and_its_out(tmp_path, cli_error, capsys):
+    """`simulate --quiet` prints no progress bar; its output is marked, and a rerun needs --overwrite."""
+    cfg = Path(__file__).parent / "data" / "tiny.yaml"
+    out = tmp_path / "sim"
+    assert main(["simulate", str(cfg), "--out", str(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "%" not in captured.err and "[#" not in captured.out + captured.err, captured.err
+    assert io.output_marker(out)["command"] == "simulate" and (out / "image_a.tif").is_file()
+    line = cli_error("simulate", str(cfg), "--out", str(out))
+    assert "give --overwrite" in line, line
