@@ -25,6 +25,7 @@ import sys
 from snakemake.exceptions import WorkflowError
 
 from lfstudy.study.config import stage_config, validate_config
+from lfstudy.study.resources import job_mem_mb, machine_memory
 from lfstudy.study.sweep import SHARED, STAGES, Sweep
 from lfstudy.workflow import logged
 
@@ -52,6 +53,13 @@ try:
 except WorkflowError:  # no --cores: 'snakemake --report', --lint; no job runs
     CORES = 1
 HEAVY = min(CORES, CFG["workflow"]["threads_per_job"] or CORES)
+# Heavy rules declare mem_mb (their case's estimate, see mem_mb below). The local scheduler weighs
+# them against a total only when one is given (--resources mem_mb=N); without one, the total is
+# 90 % of this machine's memory (as check_memory), so `--cores N` never runs more heavy jobs side
+# by side than the memory holds. A cluster executor (its jobs run elsewhere) is left as it is.
+if "mem_mb" not in workflow.global_resources and workflow.global_resources["_nodes"].value is None:
+    if machine_memory():
+        workflow.register_resource("mem_mb", int(0.9 * machine_memory() / 1e6))
 
 wildcard_constraints:
     sid=r"[^/~]+~[^/]+(/[^/~]+~[^/]+)*",
@@ -85,6 +93,14 @@ def stage_params(stage):
     def cfg(wildcards):
         return json.dumps(stage_config(CFG, _case(stage, wildcards), stage), sort_keys=True)
     return cfg
+
+
+def mem_mb(stage):
+    """resources.mem_mb of a heavy rule: its case's memory estimate (lfstudy.study.resources.job_mem_mb),
+    doubled on a retry. Local runs and SLURM then never start more jobs than the memory holds."""
+    def mb(wildcards, attempt):
+        return job_mem_mb(SWEEP.apply(_case(stage, wildcards)), stage, attempt)
+    return mb
 
 
 def at(name, of):
@@ -166,6 +182,7 @@ rule simulate:
     benchmark: f"{BENCH}/simulate/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("simulate")
+    resources: mem_mb=mem_mb("simulate")
     shell: STAGE + " simulate {wildcards.frame} {input[0]:q} {output.zarr:q} {output.tiff:q}"
 
 
@@ -177,6 +194,7 @@ rule pinhole:
     benchmark: f"{BENCH}/pinhole/{{cid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("pinhole")
+    resources: mem_mb=mem_mb("pinhole")
     shell: STAGE + " pinhole {output.zarr:q} {output.tiff:q}"
 
 
@@ -187,6 +205,7 @@ rule calibrate:
     benchmark: f"{BENCH}/calibrate/{{cid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("calibrate")
+    resources: mem_mb=mem_mb("calibrate")
     shell: STAGE + " calibrate {input[0]:q} {output[0]:q}"
 
 
@@ -199,6 +218,7 @@ rule register:
     benchmark: f"{BENCH}/register/{{sid}}_{{frame}}.tsv"
     threads: 1
     params: cfg=stage_params("register")
+    resources: mem_mb=mem_mb("register")
     shell: STAGE + " register {input.raw:q} {input.centers:q} {output[0]:q}"
 
 
@@ -209,6 +229,7 @@ rule refocus:
     benchmark: f"{BENCH}/refocus/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("refocus")
+    resources: mem_mb=mem_mb("refocus")
     shell: DASK_STAGE + " refocus {input[0]:q} {output[0]:q}"
 
 
@@ -222,6 +243,7 @@ rule reconstruct:
     benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("reconstruct")
+    resources: mem_mb=mem_mb("reconstruct")
     shell: DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
 
 
@@ -232,6 +254,7 @@ rule depthcal:
     benchmark: f"{BENCH}/depthcal/{{cid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("depthcal")
+    resources: mem_mb=mem_mb("depthcal")
     shell: DASK_STAGE + " depthcal {input[0]:q} {output[0]:q}"
 
 
@@ -253,6 +276,7 @@ rule piv:
     benchmark: f"{BENCH}/piv/{{sid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("piv")
+    resources: mem_mb=mem_mb("piv")
     shell: DASK_STAGE + " piv {input.a:q} {input.b:q} {output[0]:q} {input.depth:q}"
 
 
@@ -349,6 +373,10 @@ if PROCESS:
             f"recording {PROCESS!r}: its name {PCFG['name']!r} is the study's; rename one (both write {OUT})"
         )
 
+    def process_mem_mb(wildcards, attempt):
+        """resources.mem_mb of the recording's job: every stage of its config (job_mem_mb)."""
+        return job_mem_mb(PCFG, "process", attempt)
+
     rule process:
         input: POUT
 
@@ -359,9 +387,10 @@ if PROCESS:
         output: directory(POUT)
         log: f"results/{PCFG['name']}.process.log"
         threads: HEAVY
+        resources: mem_mb=process_mem_mb
         shell:
-            "python -m lfstudy.cli process {input.config:q} --out {output[0]:q} --threads {threads} --quiet"
-            " > {log:q} 2>&1"
+            "python -m lfstudy.cli process {input.config:q} --out {output[0]:q} --overwrite"
+            " --threads {threads} --quiet > {log:q} 2>&1"
 
 else:
 

@@ -43,8 +43,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args._run(args) or 0)
-    except (ConfigError, ValueError, FileNotFoundError) as exc:
-        # Bad input: one clear line, no traceback.
+    except (ConfigError, ValueError, OSError) as exc:
+        # Bad input, or a file the system refuses (permissions, a full disk): one clear line, no traceback.
         print(f"lfstudy {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -7,13 +7,17 @@ stores lazily (dask-backed).
 
 from __future__ import annotations
 
+import glob
 import json
 import os
+import re
 import shutil
+import socket
 import uuid
 import warnings
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager, suppress
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +27,12 @@ import xarray as xr
 __all__ = [
     "provenance",
     "atomic_path",
+    "clear_stale",
+    "output_dir",
+    "check_output",
+    "output_marker",
+    "OutputError",
+    "MARKER",
     "write_zarr",
     "open_zarr",
     "open_array",
@@ -50,26 +60,235 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling path; on success replace ``path`` with it.
 
     On any exception the temporary output is removed and ``path`` is left as
-    it was (absent, or the previous complete version).
+    it was (absent, or the previous complete version). Whatever is at ``path``
+    is replaced: this is for outputs the caller owns (a workflow's stores);
+    a command's ``--out`` goes through :func:`output_dir`, which refuses to
+    replace what lfstudy did not write.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # Leftovers of a writer that was killed (SIGKILL skips the cleanup below).
-    for stale in path.parent.glob(f".{path.name}.tmp-*"):
-        _remove(stale)
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    clear_stale(path)
+    tmp = _tmp_name(path)
     try:
         yield tmp
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
-            os.replace(path, old)
-            os.replace(tmp, path)
-            _remove(old)
-        else:
-            os.replace(tmp, path)
+        _replace(tmp, path)
     finally:
         if tmp.exists():
             _remove(tmp)
+
+
+def _tmp_name(path: Path) -> Path:
+    """``.NAME.tmp-HOST-PID-RANDOM``: the writer is named, so only a dead one's leftovers are cleared."""
+    host = re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname()) or "host"
+    return path.with_name(f".{path.name}.tmp-{host}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):  # another user's process (alive); a number no PID can be
+        return True
+    return True
+
+
+def clear_stale(path: str | Path) -> list[Path]:
+    """Remove the temporaries of ``path`` left by killed writers (SIGKILL skips their cleanup).
+
+    Only provably stale ones go: those of a process of this host that no longer
+    runs (and unnamed ones of older versions). A live writer's temporary, or one
+    of another host (a cluster's shared file system), is left alone.
+
+    Returns
+    -------
+    list of Path
+        The temporaries removed.
+    """
+    path = Path(path)
+    host = re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname()) or "host"
+    removed = []
+    for stale in path.parent.glob(f".{glob.escape(path.name)}.tmp-*"):
+        tail = stale.name[len(path.name) + 6 :]
+        parts = tail.rsplit("-", 2)
+        if len(parts) == 3 and parts[1].isdigit():
+            if parts[0] != host or _pid_alive(int(parts[1])):
+                continue
+        elif not re.fullmatch(r"[0-9a-f]{8}", tail):
+            continue  # not one of ours
+        _remove(stale)
+        removed.append(stale)
+    return removed
+
+
+def _replace(tmp: Path, path: Path) -> None:
+    if path.exists():
+        old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+        os.replace(path, old)
+        os.replace(tmp, path)
+        _remove(old)
+    else:
+        os.replace(tmp, path)
+
+
+#: The file every command's output carries: which command wrote it, when, from what.
+MARKER = ".lfstudy-output.json"
+
+
+class OutputError(ValueError):
+    """An output path a command will not write: it holds data lfstudy did not write (or an
+    earlier output, without ``overwrite``), inputs of the run, or its folder cannot be written."""
+
+
+def output_marker(path: str | Path) -> dict[str, Any] | None:
+    """The marker of an output written by :func:`output_dir` (a dict with ``command``), or None."""
+    try:
+        marker = json.loads((Path(path) / MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    return marker if isinstance(marker, dict) and isinstance(marker.get("command"), str) else None
+
+
+def check_output(path: str | Path, *, command: str, inputs: Iterable[str | Path] = (), overwrite: bool = False) -> Path:
+    """Check that a command may write its output directory ``path``; return it resolved.
+
+    A new path is fine, and so is an empty directory. An existing one is replaced
+    only when it carries the marker of an earlier output of the same ``command``
+    and ``overwrite`` is given: lfstudy never removes data it did not write. A
+    path that is, holds or lies inside an input of the run is refused always.
+    The folder that will hold the output is created and must be writable.
+
+    Raises
+    ------
+    OutputError
+        One line saying why, and what to do instead.
+    """
+    shown = str(path)
+    out = Path(path).expanduser().resolve()
+    if out.parent == out:
+        raise OutputError(f"--out {shown!r} is the root of the file system; name a new directory")
+    for inp in inputs:
+        r = Path(inp).expanduser().resolve()
+        if r == out or out in r.parents:
+            raise OutputError(f"--out {shown!r} holds {str(r)!r}, an input of this run; choose another --out")
+        if r in out.parents:
+            raise OutputError(f"--out {shown!r} lies inside {str(r)!r}, an input of this run; choose another --out")
+    if out.is_symlink() or out.exists():
+        if not out.is_dir():
+            raise OutputError(
+                f"--out {shown!r} is an existing file; lfstudy {command} writes a directory and replaces no file: "
+                "choose another --out"
+            )
+        if any(out.iterdir()):
+            marker = output_marker(out)
+            if marker is None or marker["command"] != command:
+                what = "no lfstudy output" if marker is None else f"an output of lfstudy {marker['command']}"
+                raise OutputError(
+                    f"--out {shown!r} exists and is {what} (no {MARKER} of lfstudy {command}); lfstudy never "
+                    "replaces data it did not write: choose a new --out, or move that directory away yourself"
+                )
+            if not overwrite:
+                raise OutputError(
+                    f"--out {shown!r} holds an earlier output of lfstudy {command}; give --overwrite to replace it, "
+                    "or choose a new --out"
+                )
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"--out {shown!r}: cannot create {str(out.parent)!r} ({exc.strerror})") from None
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise OutputError(f"--out {shown!r}: the folder {str(out.parent)!r} is not writable (permission denied)")
+    return out
+
+
+@contextmanager
+def _output_lock(out: Path, shown: str) -> Iterator[None]:
+    """Hold an exclusive lock on ``.NAME.lock`` beside ``out``; a second writer is refused at once."""
+    import fcntl
+
+    lock = out.with_name(f".{out.name}.lock")
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise OutputError(f"--out {shown!r}: cannot write to {str(out.parent)!r} ({exc.strerror})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise OutputError(
+                f"--out {shown!r} is being written by another lfstudy run (lock {str(lock)!r}); wait for it to "
+                "finish or choose another --out"
+            ) from None
+        try:
+            if os.fstat(fd).st_ino == os.stat(lock).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)  # the run that held it removed it meanwhile: lock the file now there
+    try:
+        yield
+    finally:
+        with suppress(OSError):
+            lock.unlink()  # while still held: a waiting run then locks a fresh file (checked above)
+        os.close(fd)
+
+
+@contextmanager
+def output_dir(
+    path: str | Path, *, command: str, inputs: Iterable[str | Path] = (), overwrite: bool = False
+) -> Iterator[Path]:
+    """A command's output directory, written safely: yield an empty temporary directory beside it,
+    on success mark it and move it into place.
+
+    The checks of :func:`check_output` run first, under an exclusive lock on the
+    output (a second run writing the same output is refused), and the temporary
+    directory is made before the caller's work, so an unwritable output fails
+    before any processing. On an exception nothing is left behind and ``path``
+    is as it was.
+
+    Parameters
+    ----------
+    path : path
+        The output directory (or zarr store).
+    command : str
+        The command writing it; recorded in its :data:`MARKER`.
+    inputs : paths
+        Files and stores the run reads: the output may not be, hold or lie inside one.
+    overwrite : bool
+        Replace an earlier output of the same command.
+
+    Raises
+    ------
+    OutputError
+        The output may not be written (one line: why, and what to do).
+    """
+    shown = str(path)
+    inputs = [str(p) for p in inputs]
+    out = check_output(path, command=command, inputs=inputs, overwrite=overwrite)
+    with _output_lock(out, shown):
+        check_output(path, command=command, inputs=inputs, overwrite=overwrite)  # as it is now, under the lock
+        clear_stale(out)
+        tmp = _tmp_name(out)
+        try:
+            tmp.mkdir()
+        except OSError as exc:
+            raise OutputError(f"--out {shown!r}: cannot write to {str(out.parent)!r} ({exc.strerror})") from None
+        try:
+            yield tmp
+            from lfstudy import __version__
+
+            marker = {
+                "command": command,
+                "lfstudy_version": __version__,
+                "created": datetime.now(UTC).isoformat(timespec="seconds"),
+                "inputs": inputs,
+            }
+            (tmp / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
+            _replace(tmp, out)
+        finally:
+            if tmp.exists():
+                _remove(tmp)
 
 
 def _remove(p: Path) -> None:

@@ -8,7 +8,12 @@ of the same camera to |bias| < 0.1 voxel with > 80 % valid vectors; a recording 
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import subprocess
+import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -275,6 +280,13 @@ def test_snakemake_process_target(recording, tmp_path):
     assert "process_recording" in text and "results/rec" in text
     for name in ("pinhole.tif", "dark_2.tif", "frame_3.tif", "smk.yaml"):
         assert name in text, name
+    # the job declares the memory of every stage of the recording's config (lfstudy.study.resources)
+    from lfstudy.process import load_process_config
+    from lfstudy.study.resources import job_mem_mb
+
+    block = text[text.index("rule process_recording:") :]
+    mem = re.search(r"resources: .*\bmem_mb=(\d+)", block)
+    assert mem and int(mem.group(1)) == job_mem_mb(load_process_config(cfg), "process"), block[:2000]
 
 
 def test_white_image_calibration(recording):
@@ -376,3 +388,155 @@ def test_a_traverse_needs_one_image_per_shift(recording, cli_error, tmp_path):
     line = cli_error("process", str(cfg), "--out", str(out))
     assert "recording.depth_calibration.images: 2 images for 2 traverses" in line, line
     _no_output(out)
+
+
+# ------------------------------------------------------------------ --out never deletes what lfstudy did not write
+def _pair_config(rec: dict, name: str = "pair") -> Path:
+    return _config(rec, name, {"frames": {"pairs": [["frame_1.tif", "frame_2.tif"]]}})
+
+
+def test_out_refuses_data_lfstudy_did_not_write(recording, cli_error, tmp_path, monkeypatch):
+    """An existing directory or file at --out, the recording's folder, `.` and `..` are refused before any
+    processing (one line, exit 2), and everything in them is left as it was."""
+    cfg = _pair_config(recording)
+    user = tmp_path / "d"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine")
+    line = cli_error("process", str(cfg), "--out", str(user))
+    assert "exists and is no lfstudy output" in line and "never replaces data it did not write" in line, line
+    line = cli_error("process", str(cfg), "--out", str(user), "--overwrite")  # not even with --overwrite
+    assert "no lfstudy output" in line, line
+    assert (user / "notes.txt").read_text() == "mine" and sorted(p.name for p in user.iterdir()) == ["notes.txt"]
+    afile = tmp_path / "result.txt"
+    afile.write_text("mine")
+    line = cli_error("process", str(cfg), "--out", str(afile), "--overwrite")
+    assert "is an existing file" in line, line
+    assert afile.read_text() == "mine"
+    d = recording["dir"]
+    before = sorted(p.name for p in d.iterdir())
+    line = cli_error("process", str(cfg), "--out", str(d), "--overwrite")
+    assert "an input of this run" in line, line
+    monkeypatch.chdir(d)
+    line = cli_error("process", str(cfg), "--out", ".", "--overwrite")
+    assert "--out '.' holds" in line and "an input of this run" in line, line
+    line = cli_error("process", str(cfg), "--out", "..")
+    assert "--out '..' holds" in line and "an input of this run" in line, line
+    line = cli_error("process", str(cfg), "--out", "pinhole.tif/o")  # inside an input file
+    assert "lies inside" in line and "pinhole.tif" in line, line
+    assert sorted(p.name for p in d.iterdir()) == before
+    assert not list(tmp_path.glob(".*"))  # no temporary or lock left behind
+
+
+def test_out_that_cannot_be_written_fails_before_processing(recording, cli_error, tmp_path):
+    cfg = _pair_config(recording)
+    (tmp_path / "f").write_text("")
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "f" / "o"))
+    assert "cannot create" in line and "/f'" in line, line
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o500)
+        line = cli_error("process", str(cfg), "--out", str(ro / "o"))
+        assert "not writable" in line, line
+
+
+def test_out_overwrites_only_its_own_output(recording, cli_error, tmp_path, capsys):
+    """A finished output carries the marker of `lfstudy process`; a rerun replaces it only with --overwrite,
+    and an output of another command is refused even then."""
+    cfg = _pair_config(recording)
+    out = tmp_path / "o"
+    assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
+    marker = json.loads((out / io.MARKER).read_text())
+    assert marker["command"] == "process" and str(cfg) in marker["inputs"]
+    (out / "metrics.csv").write_text("stale")
+    capsys.readouterr()
+    line = cli_error("process", str(cfg), "--out", str(out))
+    assert "holds an earlier output of lfstudy process; give --overwrite" in line, line
+    assert main(["process", str(cfg), "--out", str(out), "--quiet", "--overwrite"]) == 0
+    assert (out / "metrics.csv").read_text() != "stale" and (out / "piv.zarr").is_dir()
+    assert not list(tmp_path.glob(".*"))
+    marker["command"] = "piv"
+    (out / io.MARKER).write_text(json.dumps(marker))
+    capsys.readouterr()
+    line = cli_error("process", str(cfg), "--out", str(out), "--overwrite")
+    assert "is an output of lfstudy piv" in line, line
+
+
+def test_second_run_on_the_same_out_is_refused(recording, cli_error, tmp_path):
+    """Another process writing the same --out holds its lock: a second run is refused at once and leaves
+    the first one's temporary directory alone."""
+    out = tmp_path / "o"
+    holder = (
+        "import sys, time; from lfstudy import io\n"
+        "with io.output_dir(sys.argv[1], command='process') as tmp:\n"
+        "    (tmp / 'piv.zarr').mkdir(); print(tmp, flush=True); time.sleep(60)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", holder, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        tmp = Path(proc.stdout.readline().strip())
+        assert tmp.is_dir()
+        line = cli_error("process", str(_pair_config(recording)), "--out", str(out))
+        assert "is being written by another lfstudy run" in line, line
+        assert (tmp / "piv.zarr").is_dir()  # the live run's work is untouched
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def _pitch_camera(rec: dict, scale: float) -> dict:
+    cam = yaml.safe_load(yaml.safe_dump(rec["base"]["camera"]))
+    cam["lenslet"]["pitch"] = round(cam["lenslet"]["pitch"] * scale, 5)
+    return cam
+
+
+def test_config_pitch_not_the_images(recording, cli_error, tmp_path):
+    """A configured lenslet pitch 33 % off the image's is named as such, not as a doubt about the image."""
+    cfg = _config(recording, "bad_pitch", {"frames": {"series": "frame_*.tif"}}, camera=_pitch_camera(recording, 1.33))
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
+    pattern = r"lenslet pitch ([\d.]+) px in the config does not match the image's ([\d.]+) px \(\+(\d+) % off\)"
+    m = re.search(pattern, line)
+    assert m and "pinhole image?" not in line, line
+    assert float(m.group(2)) == pytest.approx(12.0, rel=0.01)  # 0.0888 mm of 0.0074 mm pixels
+    _no_output(tmp_path / "o")
+
+
+def test_config_pitch_a_few_percent_off_warns(recording):
+    """4 % off still finds a grid, but loses lenslets: a warning gives the fitted pitch."""
+    from lfstudy.lightfield.calibrate import PitchWarning
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.process import calibrate_recording
+
+    img = io.read_image(recording["dir"] / "pinhole.tif")
+    cam = PlenopticCamera.from_config({**recording["base"], "camera": _pitch_camera(recording, 1.04)})
+    with pytest.warns(PitchWarning, match=r"differs from the image's fitted 12\.0\d\d px \(\+4\.\d %\)"):
+        calibrate_recording(img, cam)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PitchWarning)  # the right pitch: no warning
+        calibrate_recording(img, PlenopticCamera.from_config(recording["base"]))
+
+
+def test_a_nan_frame_names_its_file(recording, cli_error, tmp_path):
+    d = recording["dir"]
+    for name in ("pinhole", "frame_1", "frame_2"):
+        img = tifffile.imread(d / f"{name}.tif").astype(np.float32)
+        if name == "frame_2":
+            img[10, 20:23] = np.nan
+        tifffile.imwrite(d / f"float_{name}.tif", img)
+    pairs = {"pairs": [["float_frame_1.tif", "float_frame_2.tif"]]}
+    cfg = _config(recording, "nan", {"frames": pairs}, calibration="float_pinhole.tif")
+    line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
+    assert "recording.frames: 'float_frame_2.tif'" in line and "has 3 non-finite (NaN/inf) pixels" in line, line
+    assert str(d / "float_frame_2.tif") in line, line
+    _no_output(tmp_path / "o")
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_a_degenerate_pair_is_measured_quietly(recording, tmp_path, capsys):
+    """The same frame twice (zero displacement, no divergence to normalise): metrics without
+    numpy/matplotlib RuntimeWarnings on the console."""
+    cfg = _config(recording, "same", {"frames": {"pairs": [["frame_1.tif", "frame_1.tif"]]}})
+    out = tmp_path / "o"
+    assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "Warning" not in err, err
+    m = pd.read_csv(out / "metrics.csv")
+    assert m["valid_percent"].iloc[0] > 80 and abs(m["mean_u"].iloc[0]) < 1e-6

@@ -344,3 +344,48 @@ def test_open_study_is_lazy_and_quiet(study_dir):
         assert any(node.name == "centers" for node in tree["calib"].subtree)
         for store in (out / cid / "piv.zarr", out / cid / "volume_a.zarr", out / "study.zarr"):
             xr.open_zarr(store).close()
+
+
+def test_heavy_rules_declare_their_memory(tmp_path):
+    """Every heavy rule declares its case's memory estimate as Snakemake's mem_mb (retries double it), so
+    neither `--cores N` nor SLURM runs more such jobs side by side than the memory holds. A fine grid puts
+    the PIV and reconstruction estimates above the floor."""
+    import re
+
+    import yaml
+
+    from lfstudy.config import validate_config
+    from lfstudy.study.resources import RULE_STAGES, job_mem_mb
+    from lfstudy.study.sweep import Sweep
+
+    raw = yaml.safe_load(TINY.read_text())
+    raw["grid"] = {"voxel_xy": 0.02, "voxel_z": 0.002}
+    path = tmp_path / "fine.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    sweep = Sweep(validate_config(raw))
+    expected = {rule: {job_mem_mb(sweep.apply(c), rule) for c in sweep.cases()} for rule in RULE_STAGES}
+    assert max(expected["piv"]) > 1500 and max(expected["reconstruct"]) > 1500
+    cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(tmp_path), "--configfile", str(path)]
+    r = subprocess.run([*cmd, "-n", "--cores", "2"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    seen = {}
+    for block in re.split(r"\n(?=rule \w+:)", r.stdout + r.stderr):
+        m = re.match(r"rule (\w+):", block)
+        if m and m.group(1) in RULE_STAGES:
+            mem = re.search(r"resources: .*\bmem_mb=(\d+)", block)
+            assert mem, block
+            seen.setdefault(m.group(1), set()).add(int(mem.group(1)))
+    assert set(seen) == set(RULE_STAGES) - {"process"}, seen
+    for rule, values in seen.items():
+        assert values <= expected[rule], (rule, values, expected[rule])
+
+
+def test_slurm_profile_leaves_the_estimate_to_the_heavy_rules():
+    """The profile's set-resources would override a rule's own mem_mb: it sets none for the heavy rules."""
+    import yaml
+
+    from lfstudy.study.resources import RULE_STAGES
+
+    profile = yaml.safe_load((ROOT / "profiles" / "slurm" / "config.yaml").read_text())
+    for rule, res in profile["set-resources"].items():
+        assert rule not in RULE_STAGES or "mem_mb" not in res, rule

@@ -13,7 +13,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="study config (YAML): checks the image size, narrows the pitch search")
     p.add_argument("--case", help="case id from `lfstudy cases` (default: the base config)")
     p.add_argument("--pixel-pitch", type=float, help="pixel pitch [mm] when no config is given")
-    p.add_argument("--out", required=True, help="output zarr store for the centres")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output zarr store for the centres: new, or an earlier output of `lfstudy calibrate` with "
+        "--overwrite (an existing path lfstudy did not write, or an input, is never replaced)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier output of `lfstudy calibrate` at --out")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,9 +40,11 @@ def run(args: argparse.Namespace) -> int:
         cam = PlenopticCamera.from_config(cfg)
         params = cfg
     image = io.read_image(args.pinhole)
-    centers = find_lenslet_centers(image, cam, pixel_pitch=args.pixel_pitch)
-    centers.attrs.update(io.provenance(params), source=str(args.pinhole))
-    io.write_zarr(centers, args.out)
+    inputs = [args.pinhole, *([args.config] if args.config else [])]
+    with io.output_dir(args.out, command="calibrate", inputs=inputs, overwrite=args.overwrite) as tmp:
+        centers = find_lenslet_centers(image, cam, pixel_pitch=args.pixel_pitch)
+        centers.attrs.update(io.provenance(params), source=str(args.pinhole))
+        io.write_zarr(centers, tmp)
     a = centers.attrs
     print(
         f"lenslet grid: {centers.sizes['lenslet_col']} x {centers.sizes['lenslet_row']} ({a['n_valid']} valid centres)"

@@ -13,7 +13,13 @@ HELP = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("store", help="zarr store written by the workflow: piv.zarr, volume_a.zarr, stack_a.zarr ...")
-    p.add_argument("--out", required=True, help="output file: .vtr (VTK, ParaView) or .tif (ImageJ/Fiji)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output file: .vtr (VTK, ParaView) or .tif (ImageJ/Fiji); an existing file is replaced only with "
+        "--overwrite, a directory or the exported store never",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing file at --out")
     p.add_argument("--format", choices=("vtk", "tiff"), help="default: from the extension of --out")
     p.add_argument(
         "--var",
@@ -31,8 +37,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from lfstudy.export import export_store
 
+    out, store = Path(args.out).resolve(), Path(args.store).resolve()
+    if out == store or store in out.parents:
+        raise ValueError(f"--out {args.out!r} lies inside the exported store {args.store!r}; choose another --out")
+    if out.is_dir():
+        raise ValueError(f"--out {args.out!r} is a directory; name the file to write")
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"--out {args.out!r} exists; give --overwrite to replace it, or choose another --out")
     out = export_store(args.store, args.out, fmt=args.format, variables=args.variables, resample_z=args.resample_z)
     print(f"wrote {out}")
     return 0

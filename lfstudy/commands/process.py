@@ -13,7 +13,13 @@ HELP = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="recording config (YAML; schema lfstudy/process_schema.yaml)")
-    p.add_argument("--out", help="output directory (default: results/<name> of the config)")
+    p.add_argument(
+        "--out",
+        help="output directory (default: results/<name> of the config); it must be new, or an earlier output "
+        "of `lfstudy process` (marked by its .lfstudy-output.json) with --overwrite; a directory holding "
+        "the recording or its config is never written. Checked before any processing",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier output of `lfstudy process` at --out")
     p.add_argument("--threads", type=int, help="threads of numba and dask (default: all cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -24,6 +30,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from lfstudy.compute import dask_scheduler, describe
+    from lfstudy.lightfield.calibrate import PitchWarning
     from lfstudy.process import SaturationWarning, load_process_config, process_recording
 
     cfg = load_process_config(args.config)
@@ -36,11 +43,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"dask: {describe(cfg['compute'])}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", SaturationWarning)
+        warnings.simplefilter("always", PitchWarning)
         # the scheduler is chosen here, at the edge; the pipeline is the same under either
         with dask_scheduler(cfg["compute"], threads=args.threads):
-            process_recording(cfg, out, progress=not args.quiet, log=print)
+            process_recording(
+                cfg, out, overwrite=args.overwrite, inputs=[args.config], progress=not args.quiet, log=print
+            )
     for w in caught:  # a recording's warnings as one line each, in the CLI's style; others as they were
-        if issubclass(w.category, SaturationWarning):
+        if issubclass(w.category, (SaturationWarning, PitchWarning)):
             print(f"lfstudy process: warning: {w.message}", file=sys.stderr)
         else:
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)

@@ -13,10 +13,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--centers", required=True, help="lenslet centres from `lfstudy calibrate` (zarr)")
     p.add_argument("--config", required=True, help="study config (YAML): camera, refocus, reconstruct")
     p.add_argument("--case", help="case id from `lfstudy cases` (default: the base config)")
-    p.add_argument("--out", required=True, help="output directory: lightfield.zarr, stack.zarr, volume.zarr")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="output directory, made if missing, receiving lightfield.zarr, stack.zarr, volume.zarr; an existing "
+        "store of those names is replaced only if it is an earlier output of `lfstudy render` and --overwrite is "
+        "given; nothing else in the directory is touched",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier output of `lfstudy render` at --out")
 
 
 def run(args: argparse.Namespace) -> int:
+    from contextlib import ExitStack
     from pathlib import Path
 
     from lfstudy import io
@@ -26,14 +34,23 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.case:
         cfg = case_config(cfg, args.case)
-    raw = io.read_image(args.raw)
-    centers = io.open_zarr(args.centers).load()
-    lf, stack, volume = render_volume(raw, centers, cfg)
-    prov = io.provenance(cfg, cfg.get("seed"))
     out = Path(args.out)
-    for obj, name in ((lf, "lightfield"), (stack, "stack"), (volume, "volume")):
-        obj.attrs.update(prov, source=str(args.raw))
-        io.write_zarr(obj, out / f"{name}.zarr")
+    names = ("lightfield", "stack", "volume")
+    inputs = [args.raw, args.centers, args.config]
+    with ExitStack() as outputs:  # every store checked, locked and begun before any work
+        tmps = [
+            outputs.enter_context(
+                io.output_dir(out / f"{n}.zarr", command="render", inputs=inputs, overwrite=args.overwrite)
+            )
+            for n in names
+        ]
+        raw = io.read_image(args.raw)
+        centers = io.open_zarr(args.centers).load()
+        lf, stack, volume = render_volume(raw, centers, cfg)
+        prov = io.provenance(cfg, cfg.get("seed"))
+        for obj, tmp in zip((lf, stack, volume), tmps):
+            obj.attrs.update(prov, source=str(args.raw))
+            io.write_zarr(obj, tmp)
     a = volume.attrs
     print(f"light field: {dict(lf.sizes)}")
     print(

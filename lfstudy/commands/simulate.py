@@ -14,7 +14,14 @@ HELP = (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="study config (YAML)")
     p.add_argument("--case", help="case id from `lfstudy cases` (default: the first case of the sweep)")
-    p.add_argument("--out", default="simulate", help="output directory (default: ./simulate)")
+    p.add_argument(
+        "--out",
+        default="simulate",
+        help="output directory (default: ./simulate): new, or an earlier output of `lfstudy simulate` with "
+        "--overwrite (an existing directory lfstudy did not write is never replaced)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier output of `lfstudy simulate` at --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -30,13 +37,13 @@ def run(args: argparse.Namespace) -> int:
     case_id = args.case or expand_cases(cfg)[0].case_id
     ccfg = case_config(cfg, case_id)
     t0 = time.perf_counter()
-    res = simulate_case(ccfg, progress=True)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    for name in ("particles_a", "particles_b"):
-        io.write_zarr(res[name], out / f"{name}.zarr")
-    for name in ("image_a", "image_b", "pinhole"):
-        write_image(res[name], out / name)
+    with io.output_dir(out, command="simulate", inputs=[args.config], overwrite=args.overwrite) as tmp:
+        res = simulate_case(ccfg, progress=not args.quiet)
+        for name in ("particles_a", "particles_b"):
+            io.write_zarr(res[name], tmp / f"{name}.zarr")
+        for name in ("image_a", "image_b", "pinhole"):
+            write_image(res[name], tmp / name)
     a = res["image_a"].attrs
     print(f"case {case_id}")
     n_part = res["particles_a"].sizes["particle"]

@@ -37,6 +37,7 @@ frame has its origin at the sensor centre, x right, y up (row 0 at the top).
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,6 +47,7 @@ import xarray as xr
 from lfstudy.optics import PlenopticCamera
 
 __all__ = [
+    "PitchWarning",
     "CalibrationError",
     "find_lenslet_centers",
     "expected_centers",
@@ -53,6 +55,14 @@ __all__ = [
     "synthetic_pinhole",
     "pixel_to_sensor",
 ]
+
+
+#: Relative difference of the configured and the fitted lenslet pitch above which calibration warns.
+PITCH_TOLERANCE = 0.02
+
+
+class PitchWarning(UserWarning):
+    """The lenslet pitch the config gives differs from the pitch fitted to the image."""
 
 
 class CalibrationError(ValueError):
@@ -162,6 +172,18 @@ def _detect_reciprocal(img: np.ndarray, pitch_hint: float | None) -> tuple[np.nd
     i = np.unravel_index(np.argmax(pb), pb.shape)
     peak = float(pb[i])
     if not (peak > 200.0 * max(floor, 1e-300)):
+        if pitch_hint is not None:  # a grid of another pitch? Say so rather than doubt the image
+            try:
+                k_found, _ = _detect_reciprocal(img, None)
+            except CalibrationError:
+                pass
+            else:
+                found = 1.0 / float(np.mean(np.hypot(k_found[:, 0], k_found[:, 1])))
+                raise CalibrationError(
+                    f"lenslet pitch {pitch_hint:.3f} px in the config does not match the image's {found:.3f} px "
+                    f"({100 * (pitch_hint / found - 1):+.0f} % off): check camera.lenslet.pitch, "
+                    "camera.sensor.pixel_pitch and the magnification"
+                )
         raise CalibrationError(
             "no lenslet grid detected: the image spectrum has no periodic peak "
             f"(peak/median power {peak / max(floor, 1e-300):.3g} < 200); is this a pinhole image?"
@@ -409,7 +431,17 @@ def find_lenslet_centers(
     lattice = _fit_lattice_to_spots(img, guess, window, min_amplitude)
     grid = _lenslet_grid(lattice, camera, img.shape)
     spots = _refine_spots(img, grid, lattice, n_iter, min_amplitude, estimator)
-    return _centers_dataset(img.shape, guess, lattice, grid, spots, pixel_pitch, camera)
+    out = _centers_dataset(img.shape, guess, lattice, grid, spots, pixel_pitch, camera)
+    if pitch_px is not None and abs(out.attrs["pitch_px"] / pitch_px - 1) > PITCH_TOLERANCE:
+        fitted = float(out.attrs["pitch_px"])
+        warnings.warn(
+            f"lenslet pitch {pitch_px:.3f} px in the config differs from the image's fitted {fitted:.3f} px "
+            f"({100 * (pitch_px / fitted - 1):+.1f} %): {int(out.attrs['n_valid'])} lenslets found, those the "
+            "config's grid misses are lost; correct camera.lenslet.pitch (or the pixel pitch, the magnification)",
+            PitchWarning,
+            stacklevel=2,
+        )
+    return out
 
 
 @dataclass

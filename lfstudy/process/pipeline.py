@@ -16,7 +16,8 @@ recorded frames instead of ray-traced ones:
 
 Everything is written into a temporary sibling of the output directory, renamed
 into place at the end: a recording that stops with an error leaves nothing
-half-written.
+half-written. An existing output directory is replaced only if an earlier run of
+``lfstudy process`` wrote it (its ``.lfstudy-output.json``) and ``overwrite`` is given.
 
 Output directory::
 
@@ -31,7 +32,7 @@ Output directory::
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,15 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.process.metrics import divergence, pair_metrics, peak_ratio
-from lfstudy.process.recording import Recording, frame_dir, mean_dark, open_recording, read_frame, warn_saturated
+from lfstudy.process.recording import (
+    Recording,
+    frame_dir,
+    mean_dark,
+    open_recording,
+    read_frame,
+    recording_files,
+    warn_saturated,
+)
 from lfstudy.study import case as cl
 
 __all__ = ["calibrate_recording", "process_recording", "open_result"]
@@ -104,6 +113,8 @@ def process_recording(
     cfg: Mapping[str, Any],
     out: str | Path,
     *,
+    overwrite: bool = False,
+    inputs: Iterable[str | Path] = (),
     progress: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> Path:
@@ -114,7 +125,14 @@ def process_recording(
     cfg : mapping
         A validated recording config (:func:`lfstudy.process.config.load_process_config`).
     out : path
-        Output directory; replaced atomically when everything is written.
+        Output directory, written by :func:`lfstudy.io.output_dir`: moved into place when
+        everything is written. An existing one is replaced only if it is an earlier output
+        of ``lfstudy process`` and ``overwrite`` is given; it may not be, hold or lie inside
+        an input (a recording file, ``inputs``).
+    overwrite : bool
+        Replace an earlier output of ``lfstudy process``.
+    inputs : paths
+        Further inputs to protect besides the recording's files (the config file).
     progress : bool
         Progress bars of the refocusing and the PIV passes.
     log : callable, optional
@@ -129,7 +147,9 @@ def process_recording(
     ------
     ValueError, FileNotFoundError
         A bad recording (:class:`~lfstudy.process.recording.RecordingError`), a
-        calibration image without a lenslet lattice, a bad config value; nothing is written.
+        calibration image without a lenslet lattice, a bad config value, an output
+        that may not be written (:class:`~lfstudy.io.OutputError`, before any work);
+        nothing is written.
     """
     say = log or (lambda _line: None)
     cam = cl.case_camera(cfg)
@@ -137,7 +157,8 @@ def process_recording(
     cl.case_grid(cfg, cam)  # a grid too big for the memory bound fails here, before any work
     out = Path(out)
     prov = io.provenance(cfg)
-    with io.atomic_path(out) as tmp:
+    protect = [*recording_files(cfg["recording"]), *inputs]
+    with io.output_dir(out, command="process", inputs=protect, overwrite=overwrite) as tmp:
         dark = mean_dark(rec)
         if dark is not None:
             dark_da = xr.DataArray(dark, dims=("row", "col"), name="intensity", attrs={"units": "counts", **prov})

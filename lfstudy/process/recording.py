@@ -416,9 +416,17 @@ def _read(frame: Frame, key: str) -> np.ndarray:
     import tifffile
 
     try:
-        return tifffile.imread(frame.path, key=frame.page)
+        data = tifffile.imread(frame.path, key=frame.page)
     except Exception as exc:
         raise RecordingError(f"{key}: {_unreadable(frame.path, exc)}") from None
+    if data.dtype.kind in "fc":
+        bad = int(np.count_nonzero(~np.isfinite(data)))
+        if bad:  # a NaN would spread through refocusing and PIV into silent NaN vectors
+            raise RecordingError(
+                f"{key}: {frame.label!r} ({str(frame.path)!r}) has {bad} non-finite (NaN/inf) pixels; "
+                "replace them (dead or masked pixels) with finite values"
+            )
+    return data
 
 
 def mean_dark(recording: Recording) -> np.ndarray | None:

@@ -271,6 +271,14 @@ def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *
     return fig
 
 
+def _quiver(ax: Any, x: Any, y: Any, u: Any, v: Any, **kw: Any) -> Any:
+    """``ax.quiver``, with a fixed scale when no arrow has a length (a pair of identical frames):
+    matplotlib's autoscale divides by the mean arrow length."""
+    if not np.any(np.nan_to_num(np.hypot(u, v))):
+        kw.setdefault("scale", 1.0)
+    return ax.quiver(x, y, u, v, **kw)
+
+
 @_plain_ticks
 def vector_slices(piv: xr.Dataset) -> Figure:
     """Quiver plots: u, v on the middle z slice; u, w on the middle y slice; and
@@ -291,7 +299,7 @@ def vector_slices(piv: xr.Dataset) -> Figure:
     uxy = u.isel(sl_xy).transpose("y", "x").values
     vxy = v.isel(sl_xy).transpose("y", "x").values
     ax = axes[0]
-    ax.quiver(x, y, uxy, vxy, angles="xy")
+    _quiver(ax, x, y, uxy, vxy, angles="xy")
     ax.set_title("x–y slice" + (f" at z = {float(piv['z'][kz]):+.2f} mm" if kz is not None else ""), fontsize=9)
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
@@ -299,7 +307,8 @@ def vector_slices(piv: xr.Dataset) -> Figure:
     ax = axes[1]
     if sl_xz is not None and "w" in piv:
         w = get("w").where(valid)
-        ax.quiver(
+        _quiver(
+            ax,
             x,
             piv["z"].values,
             u.isel(sl_xz).transpose("z", "x").values,
@@ -315,7 +324,7 @@ def vector_slices(piv: xr.Dataset) -> Figure:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         du, dv = uxy - np.nanmean(uxy), vxy - np.nanmean(vxy)
-    ax.quiver(x, y, du, dv, angles="xy", color="C3")
+    _quiver(ax, x, y, du, dv, angles="xy", color="C3")
     ax.set_title(f"x–y slice, mean subtracted ({unit})", fontsize=9)
     ax.set_xlabel("x [mm]")
     ax.set_aspect("equal")
@@ -547,7 +556,7 @@ def vector_error_slice(piv: xr.Dataset, err: xr.Dataset | None) -> Figure:
     u = get("u").where(valid).isel(sl).transpose("y", "x").values
     v = get("v").where(valid).isel(sl).transpose("y", "x").values
     x, y = piv["x"].values, piv["y"].values
-    ax1.quiver(x, y, u, v, angles="xy")
+    _quiver(ax1, x, y, u, v, angles="xy")
     where = f" at z = {float(piv['z'][sl['z']]):+.2f} mm" if sl else ""
     ax1.set_title(f"measured u, v{where}", fontsize=9)
     ax1.set_xlabel("x [mm]")

@@ -5,6 +5,9 @@ weight tables, correlation batches), rounded up; the interpreter and libraries a
 about 0.3 GB per process. :func:`check_memory` turns a case that cannot fit into one
 clear config error before anything runs, instead of an out-of-memory kill hours into
 a study.
+:func:`job_mem_mb` gives the same estimate to the workflow as each rule's Snakemake
+``mem_mb`` resource, so neither the local scheduler nor SLURM runs more of them side
+by side than the memory holds.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from typing import Any
 
 from lfstudy.config import ConfigError
 
-__all__ = ["machine_memory", "case_memory", "check_memory"]
+__all__ = ["machine_memory", "case_memory", "check_memory", "job_mem_mb", "RULE_STAGES"]
 
 _BASE = 0.3e9  # interpreter, numpy, xarray, numba: measured ~0.25 GB per stage process
 
@@ -110,3 +113,49 @@ def check_memory(ccfg: Mapping[str, Any], *, available: float | None = None, whe
             f"{most / 1e9:.3g} GB for {what}, more than this machine's {avail / 1e9:.3g} GB; use a smaller "
             "sensor, a coarser grid (grid.voxel_xy, grid.voxel_z) or a bigger machine"
         )
+
+
+#: The stages of :func:`case_memory` whose arrays a workflow rule holds (the largest one counts).
+#: A pinhole image is rendered like a raw image; calibration holds an image and its spectra like
+#: registration; refocusing builds what reconstruction starts from; the depth calibration
+#: reconstructs and correlates; ``process`` (`lfstudy process` on a recording) runs every stage.
+RULE_STAGES: dict[str, tuple[str, ...]] = {
+    "simulate": ("simulate",),
+    "pinhole": ("simulate",),
+    "calibrate": ("register",),
+    "register": ("register",),
+    "refocus": ("reconstruct",),
+    "reconstruct": ("reconstruct",),
+    "depthcal": ("reconstruct", "piv"),
+    "piv": ("piv",),
+    "process": ("simulate", "register", "reconstruct", "piv"),
+}
+
+#: What a Snakemake job holds besides its stage: under SLURM every job step runs its own Snakemake
+#: (0.4-0.45 GB measured, profiles/slurm/config.yaml), rounded up.
+JOB_EXTRA = 0.5e9
+#: The least a heavy job asks for [MB]: the profile's measured figure for demo-sized jobs.
+JOB_FLOOR_MB = 1500
+
+
+def job_mem_mb(ccfg: Mapping[str, Any], rule: str, attempt: int = 1) -> int:
+    """Memory [MB] a workflow rule declares as its Snakemake ``mem_mb`` resource.
+
+    The largest :func:`case_memory` stage the rule holds (:data:`RULE_STAGES`) plus
+    :data:`JOB_EXTRA`, at least :data:`JOB_FLOOR_MB`, times ``attempt`` (a job killed
+    for memory is retried with twice as much).
+
+    Parameters
+    ----------
+    ccfg : mapping
+        A case config (for ``process``: a recording config; it has no particles).
+    rule : str
+        A key of :data:`RULE_STAGES`.
+    attempt : int
+        Snakemake's attempt number (1, 2, ... with ``retries``).
+    """
+    if rule == "process":
+        ccfg = {**ccfg, "particles": {"count": 1, "ppp": 1e-9}}
+    need = case_memory(ccfg)
+    most = max(need[s] for s in RULE_STAGES[rule])
+    return max(1, int(attempt)) * max(JOB_FLOOR_MB, math.ceil((most + JOB_EXTRA) / 1e6))
