@@ -354,7 +354,7 @@ def test_heavy_rules_declare_their_memory(tmp_path):
 
     import yaml
 
-    from lfstudy.config import validate_config
+    from lfstudy.study.config import validate_config
     from lfstudy.study.resources import RULE_STAGES, job_mem_mb
     from lfstudy.study.sweep import Sweep
 
