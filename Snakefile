@@ -285,12 +285,15 @@ rule errors:
         piv=at("piv.zarr", "errors"),
         volume=at("volume_a.zarr", "errors"),
         particles=at("particles_a.zarr", "errors"),
+        # the oracle (the case's PIV on the true volumes of both frames) runs here: seconds
+        particles_b=at("particles_b.zarr", "errors"),
     output: directory(f"{OUT}/{{sid}}/errors.zarr")
     log: f"{LOG}/errors/{{sid}}.log"
     benchmark: f"{BENCH}/errors/{{sid}}.tsv"
     threads: 1
     params: cfg=stage_params("errors")
-    shell: STAGE + " errors {input.piv:q} {input.volume:q} {input.particles:q} {output[0]:q}"
+    shell:
+        STAGE + " errors {input.piv:q} {input.volume:q} {input.particles:q} {output[0]:q} {input.particles_b:q}"
 
 
 rule study:

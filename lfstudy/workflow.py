@@ -186,24 +186,37 @@ def run_piv(
 
 
 def run_errors(
-    ccfg: Mapping[str, Any], piv: str | Path, volume: str | Path, particles: str | Path, out: str | Path
+    ccfg: Mapping[str, Any],
+    piv: str | Path,
+    volume: str | Path,
+    particles: str | Path,
+    out: str | Path,
+    particles_b: str | Path | None = None,
 ) -> None:
     """Errors of one case against the known flow, its field of view, Q and depth gain
-    (:func:`lfstudy.study.metrics.case_metrics`)."""
+    (:func:`lfstudy.study.metrics.case_metrics`); given the second frame's particles
+    (``particles_b``), also the oracle (:func:`lfstudy.study.case.oracle_piv`: the case's PIV
+    on the true volumes) and the error budget."""
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study.metrics import case_metrics
 
     spec = ccfg["flow"]
     cam = cl.case_camera(ccfg)
+    parts = io.open_zarr(particles).load()
+    oracle = None
+    if particles_b:  # '' or None: no oracle
+        oracle = cl.oracle_piv(ccfg, parts, io.open_zarr(particles_b).load(), progress=True)
+        print(f"oracle (PIV on the true volumes): {oracle.attrs['oracle_seconds']:.2f} s", flush=True)
     err = case_metrics(
         io.open_zarr(piv).load(),
         flow_from_config(spec),
         cam,
         io.open_array(volume),
-        io.open_zarr(particles).load(),
+        parts,
         sigma_mm=cl.truth_sigma(cam),
         dt=spec.get("dt", 1.0),
         n_steps=spec.get("n_steps", 100),
+        oracle=oracle,
     )
     err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
     io.write_zarr(err, out)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from lfstudy.study.metrics import (
 from lfstudy.study.sweep import Case
 from lfstudy.study.table import combine_cases, from_csv, stage_times, to_csv
 
+ROOT = Path(__file__).resolve().parents[1]
 VOX = 0.125  # mm, the thesis' lenslet pitch at M = -1
 
 
@@ -318,6 +320,19 @@ def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
     )
     del piv.attrs["depth_gain_total"]
     assert np.isnan(float(case_metrics(piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2)["depth_gain"]))
+    # with the oracle (here exact, the case 0.1 voxel off in w): its metrics, the budget and its vectors
+    case_piv = synthetic_piv(4.5, 0.0, 0.1).assign_attrs(final_window=[16, 32, 32])
+    oracle = synthetic_piv(4.5, 0.0, 0.0).assign_attrs(oracle_seconds=1.5)
+    out = case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle)
+    zero = pytest.approx(0, abs=1e-12)
+    assert float(out["oracle_rms_total_mm"]) == zero and float(out["oracle_mean_x_mm"]) == pytest.approx(0.5625)
+    assert float(out["recon_added_rms_total_mm"]) == pytest.approx(0.1 * VOX)  # all of the case's error
+    assert float(out["recon_added_rms_z_mm"]) == pytest.approx(0.1 * VOX) and float(out["recon_added_rms_x_mm"]) == zero
+    assert float(out["crosstalk_z"]) == pytest.approx(0.1 / 4.5) and float(out["oracle_crosstalk_z"]) == zero
+    assert float(out["time_oracle"]) == 1.5 and float(out["oracle_valid_percent"]) == 100.0
+    assert out["oracle_w_mm"].dims == ("z", "y", "x") and bool(out["oracle_valid"].all())
+    with pytest.raises(ValueError, match="oracle's PIV grid differs"):
+        case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle.isel(x=[0]))
     # every scalar is a row of the table and carries its attrs; every row but the derived ones is computed
     scalars = [n for n, v in out.data_vars.items() if v.ndim == 0]
     for n in scalars:
@@ -331,3 +346,73 @@ def test_from_csv_gets_units_back_from_the_table(tmp_path):
     study = combine_cases([(_case(-1.0, "matched", 0.125, 0.001, "uniform_x"), _scalars(0.07, 0.8))])
     back = from_csv(to_csv(study, tmp_path / "s.csv"))
     assert back["rms_x"].attrs["units"] == "voxel" and back["Q"].attrs["long_name"] == "reconstruction quality Q"
+
+
+# ------------------------------------------------------------ the oracle and the error budget
+def test_crosstalk_is_spurious_w_per_unit_lateral_shift():
+    """A uniform 4.5-voxel x shift read with w = +0.9 voxel: 0.2 of the lateral shift leaks into w;
+    NaN for a non-uniform flow and for no lateral shift."""
+    from lfstudy.study.metrics import crosstalk_z
+
+    err = case_errors(synthetic_piv(4.5, 0.0, 0.9), UniformFlow((0.5625, 0.0, 0.0)))
+    assert float(err["crosstalk_z"]) == pytest.approx(0.2)
+    assert err["crosstalk_z"].attrs["units"] == "1"
+    # diagonal shift, and a true w that is not spurious: (0.9 − 0.5) / |(3, 4)|
+    err = case_errors(synthetic_piv(3.0, 4.0, 0.9), UniformFlow((3 * VOX, 4 * VOX, 0.5 * VOX)))
+    assert float(err["crosstalk_z"]) == pytest.approx(0.4 / 5.0)
+    # only valid vectors count
+    valid = np.ones((4, 5, 6), bool)
+    valid[0] = False
+    w = np.zeros((4, 5, 6))
+    w[0] = 100.0  # outliers, invalid
+    err = case_errors(synthetic_piv(4.5, 0.0, w, valid=valid), UniformFlow((0.5625, 0.0, 0.0)))
+    assert float(err["crosstalk_z"]) == pytest.approx(0.0, abs=1e-12)
+    assert math.isnan(float(case_errors(synthetic_piv(0.0, 0.0, 2.0), UniformFlow((0.0, 0.0, 0.25)))["crosstalk_z"]))
+    hill = case_errors(synthetic_piv(0.1, 0.0, 0.3), HillVortex(radius=0.5, u0=0.1))
+    assert math.isnan(float(hill["crosstalk_z"]))
+    assert math.isnan(crosstalk_z({"z": np.ones(3)}, {"x": 1.0, "y": 0.0, "z": 0.0}, np.zeros(3, bool)))
+
+
+def test_error_budget_splits_in_quadrature():
+    from lfstudy.study.metric_table import METRICS
+    from lfstudy.study.metrics import error_budget, quadrature_excess
+
+    assert quadrature_excess(0.05, 0.03) == pytest.approx(0.04)
+    assert quadrature_excess(0.03, 0.05) == 0.0  # the case beats the oracle: nothing added
+    assert math.isnan(quadrature_excess(math.nan, 0.01)) and math.isnan(quadrature_excess(0.01, math.nan))
+    case = {"rms_total_mm": 0.067, "rms_x_mm": 0.02, "rms_y_mm": 0.01, "rms_z_mm": 0.063}
+    oracle = {"oracle_rms_total_mm": 0.007, "oracle_rms_x_mm": 0.004, "oracle_rms_y_mm": 0.002,
+              "oracle_rms_z_mm": 0.005}  # fmt: skip
+    out = error_budget(case, oracle)
+    # one value per recon_added_ row of the table
+    assert set(out) == {m.name for m in METRICS if m.name.startswith("recon_added_")}
+    assert out["recon_added_rms_total_mm"] == pytest.approx(math.sqrt(0.067**2 - 0.007**2))
+    assert out["recon_added_rms_z_mm"] ** 2 + 0.005**2 == pytest.approx(0.063**2)
+
+
+def test_oracle_recovers_a_uniform_shift():
+    """PIV on the true volumes of the tiny study's case (a 0.1 mm x shift, 1.13 voxels) reads the shift
+    to a few µm, every vector valid, no spurious w; on the case's own reconstruction grid."""
+    from lfstudy.config import case_config, expand_cases, load_config
+    from lfstudy.simulate.flows import flow_from_config
+    from lfstudy.study import case as cl
+    from lfstudy.study.metrics import oracle_metrics
+
+    cfg = load_config(ROOT / "tests" / "data" / "tiny.yaml")
+    ccfg = case_config(cfg, expand_cases(cfg)[0])
+    a = cl.case_particles(ccfg)
+    b = cl.case_displaced(ccfg, a)
+    va, _ = cl.oracle_volumes(ccfg, a, b)
+    grid = cl.case_grid(ccfg)
+    assert va.shape == grid.shape and np.array_equal(va["x"].values, grid.x) and va.dtype == np.float32
+    assert va.attrs["voxel_size"] == grid.attrs()["voxel_size"] and float(va.sum()) > 0
+    res = cl.oracle_piv(ccfg, a, b)
+    assert res.attrs["oracle_seconds"] >= res.attrs["piv_seconds"] > 0
+    m = oracle_metrics(res, flow_from_config(ccfg["flow"]))
+    assert m["oracle_valid_percent"] == 100.0
+    assert m["oracle_mean_x_mm"] == pytest.approx(0.1, abs=0.003)
+    assert abs(m["oracle_mean_y_mm"]) < 0.001 and abs(m["oracle_mean_z_mm"]) < 0.003
+    assert m["oracle_rms_total_mm"] < 0.005 and abs(m["oracle_crosstalk_z"]) < 0.03
+    # the same particles twice: no displacement at all
+    still = oracle_metrics(cl.oracle_piv(ccfg, a, a), flow_from_config({"kind": "uniform", "displacement": [0, 0, 0]}))
+    assert still["oracle_rms_total_mm"] < 1e-3

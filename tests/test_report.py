@@ -231,7 +231,7 @@ def test_the_metric_table_drives_every_place(monkeypatch, tmp_path):
 
     from lfstudy.study import metric_table as mt
     from lfstudy.study import report as rp
-    from lfstudy.study.designs import design_table, recommend
+    from lfstudy.study.designs import budget_table, design_table, recommend
     from lfstudy.study.metrics import with_metrics
 
     fake = mt.Metric(
@@ -239,7 +239,7 @@ def test_the_metric_table_drives_every_place(monkeypatch, tmp_path):
         "mm",
         "wobble of the vectors",
         lower_is_better=False,
-        shown={"summary", "headline", "panel", "criterion", "pareto", "front"},
+        shown={"summary", "headline", "panel", "criterion", "pareto", "front", "budget"},
         group="error",
     )
     hidden = mt.Metric("hum", "1", "hum of the camera", None, (), "count")
@@ -260,6 +260,8 @@ def test_the_metric_table_drives_every_place(monkeypatch, tmp_path):
     assert ("wobble_mm", "max") in mt.objectives()
     table, _ = recommend(study)
     assert "wobble_mm" in design_table(study) and table["pareto"].sum() == 2  # wobble trades against error
+    budget = {"oracle_rms_total_mm": [0.005, 0.005], "recon_added_rms_total_mm": [0.008, 0.019]}
+    assert "wobble_mm" in budget_table(_study_with({**base, "wobble_mm": [0.3, 0.5], **budget}))
     out = write_report(study, {}, load_config(ROOT / "config" / "demo.yaml"), tmp_path / "r.html", progress=False)
     text = out.read_text()
     legend = text[text.index('id="legend"') :]
@@ -335,3 +337,31 @@ def test_wide_tables_fit_their_box(study_dirs, tmp_path):
     assert re.search(r"\.scroll\{[^}]*overflow-x:auto", text)
     head = text[i : text.index("</thead>", i)]
     assert "locking_<wbr>excess_<wbr>z" in head and "<td" not in head
+
+
+def test_the_recommendation_says_what_limits_the_error(tmp_path):
+    """The oracle (the case's PIV on the true volumes) against the error the reconstruction adds: the
+    recommendation names the larger, the report's budget table shows both per design."""
+    from lfstudy.study.designs import budget_table, error_limit, recommend
+
+    base = {"rms_total_mm": [0.067, 0.09], "spacing_mm_x": [0.7, 0.7], "spacing_mm_z": [0.7, 0.7]}
+    base["valid_percent"] = [99.0, 98.0]
+    recon = _study_with({**base, "oracle_rms_total_mm": [0.007, 0.01], "recon_added_rms_total_mm": [0.0666, 0.089]})
+    windows = _study_with({**base, "oracle_rms_total_mm": [0.06, 0.08], "recon_added_rms_total_mm": [0.03, 0.04]})
+    s_recon = recommend(recon)[1]["uniform_x"]
+    s_windows = recommend(windows)[1]["uniform_x"]
+    assert "mostly the reconstruction's" in s_recon and "0.007 mm" in s_recon and "0.0666 mm" in s_recon
+    assert "mostly the PIV windows'" in s_windows and "0.06 mm" in s_windows
+    # no oracle in the study: no claim either way, no budget table
+    plain = recommend(_study_with(base))[1]["uniform_x"]
+    assert "mostly" not in plain and budget_table(_study_with(base)).empty
+    assert error_limit(0.01, 0.02) == "reconstruction" and error_limit(0.02, 0.01) == "windows"
+    assert error_limit(float("nan"), 0.01) == ""
+    bt = budget_table(recon)
+    assert list(bt["limited_by"]) == ["the reconstruction"] * 2
+    assert {"oracle_rms_total_mm", "recon_added_rms_total_mm", "rms_total_mm"} <= set(bt.columns)
+    out = write_report(recon, {}, load_config(ROOT / "config" / "demo.yaml"), tmp_path / "r.html", progress=False)
+    answer = out.read_text()
+    answer = answer[answer.index('id="answer"') : answer.index('id="overview"')]
+    assert "Error budget" in answer and "recon_<wbr>added_<wbr>rms_<wbr>total_<wbr>mm" in answer
+    assert "<td>the reconstruction</td>" in answer

@@ -99,7 +99,18 @@ def test_study_runs_end_to_end(study_dir):
         assert float(sel["rms_x"]) < 0.2 and abs(float(sel["bias_y"])) < 0.1
         assert float(sel["valid_percent"]) > 80.0
         assert float(sel["Q"]) > 0.4
+        # the oracle (the case's PIV on the true volumes) reads the shift to a few µm; the
+        # reconstruction's share is the rest of the case's error, in quadrature
+        assert float(sel["oracle_mean_x_mm"]) == pytest.approx(0.1, abs=0.003)
+        assert float(sel["oracle_valid_percent"]) > 95.0 and float(sel["time_oracle"]) > 0
+        case, oracle = float(sel["rms_total_mm"]), float(sel["oracle_rms_total_mm"])
+        assert float(sel["recon_added_rms_total_mm"]) == pytest.approx(np.sqrt(max(case**2 - oracle**2, 0.0)))
+        assert np.isfinite(float(sel["crosstalk_z"]))
     assert (out / "study.csv").read_text().count("\n") == 1 + len(expand_cases(cfg))
+    header = (out / "study.csv").read_text().splitlines()[0].split(",")
+    assert {"oracle_rms_total_mm", "oracle_rms_z_mm", "recon_added_rms_total_mm", "crosstalk_z"} <= set(header)
+    err = io.open_zarr(out / expand_cases(cfg)[0].case_id / "errors.zarr")
+    assert err["oracle_w_mm"].dims == err["w_err_mm"].dims and "oracle_mean_z_mm" in err
     # The report is self-contained: figures embedded, nothing fetched from the network.
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 5

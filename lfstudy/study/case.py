@@ -41,6 +41,8 @@ __all__ = [
     "case_stack",
     "case_volume",
     "case_piv",
+    "oracle_volumes",
+    "oracle_piv",
     "case_depth_calibration",
     "render_volume",
 ]
@@ -303,6 +305,53 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
         progress=progress,
     )
     res.attrs["piv_seconds"] = time.perf_counter() - t0
+    return res
+
+
+def oracle_volumes(
+    ccfg: Mapping[str, Any], particles_a: xr.Dataset, particles_b: xr.Dataset
+) -> tuple[xr.DataArray, xr.DataArray]:
+    """The true particle volumes of both frames on the case's reconstruction grid.
+
+    Each particle is the Gaussian Q uses (:func:`truth_sigma`), integrated over the voxels of the
+    grid (:func:`lfstudy.study.metrics.render_truth`): what a perfect reconstruction would hand to
+    the PIV. DataArrays like a reconstructed volume (float32, the grid's coords and attrs).
+    """
+    from lfstudy.study.metrics import render_truth
+
+    cam = case_camera(ccfg)
+    grid = case_grid(ccfg, cam)
+    sigma = truth_sigma(cam)
+    coords = {"z": grid.z, "y": grid.y, "x": grid.x}
+
+    def volume(p: xr.Dataset) -> xr.DataArray:
+        data = render_truth(coords, p, sigma_mm=sigma).astype(np.float32)
+        return grid.volume(data, method="truth", truth_sigma_mm=list(sigma))
+
+    return volume(particles_a), volume(particles_b)
+
+
+def oracle_piv(
+    ccfg: Mapping[str, Any], particles_a: xr.Dataset, particles_b: xr.Dataset, *, progress: bool = False
+) -> xr.Dataset:
+    """The oracle of a case: its PIV (``piv`` section, :func:`case_piv`) on the true volumes of both
+    frames (:func:`oracle_volumes`).
+
+    The same grid and windows as the case, the best any reconstruction could hand to the PIV: its
+    error is what the design's grid and PIV windows can resolve, and the case's error beyond it is
+    the reconstruction's (:func:`lfstudy.study.metrics.error_budget`). No depth calibration applies:
+    the volumes are true. The attrs carry ``oracle_seconds`` (rendering and PIV, wall time).
+    """
+    import time
+
+    t0 = time.perf_counter()
+    a, b = oracle_volumes(ccfg, particles_a, particles_b)
+    res = case_piv(ccfg, a, b, progress=progress)
+    res.attrs.update(
+        oracle="the case's PIV on the true particle volumes (each particle a Gaussian of truth_sigma_mm)",
+        truth_sigma_mm=a.attrs["truth_sigma_mm"],
+        oracle_seconds=time.perf_counter() - t0,
+    )
     return res
 
 

@@ -12,7 +12,10 @@ seeding and processing settings); designs are compared flow by flow.
 - :func:`pareto_front`: the non-dominated rows for given objectives.
 - :func:`recommend`: per flow, the Pareto set over the metric table's ``pareto``
   metrics (total error, in-plane and depth resolution) and one sentence naming
-  the recommended design and what it trades away.
+  the recommended design, what it trades away and what limits its error.
+- :func:`error_limit`, :func:`budget_table`: per design, the oracle's error (the
+  case's PIV on the true particle volumes: what the grid and the PIV windows can
+  resolve) beside the error the reconstruction adds, and which of the two limits it.
 - :func:`influence`: which swept settings move a metric most.
 """
 
@@ -28,7 +31,13 @@ import xarray as xr
 
 from lfstudy.study import metric_table as mt
 
-__all__ = ["design_table", "pareto_front", "recommend", "influence", "design_label"]
+__all__ = ["design_table", "pareto_front", "recommend", "influence", "design_label", "error_limit", "budget_table"]
+
+#: The error budget's two parts (rows of the metric table): the oracle's total error, the reconstruction's share.
+ORACLE_TOTAL = "oracle_rms_total_mm"
+ADDED_TOTAL = "recon_added_rms_total_mm"
+#: Labels of what limits a design's error (:func:`error_limit`).
+LIMITS = {"reconstruction": "the reconstruction", "windows": "the PIV windows"}
 
 
 def design_label(row: Mapping[str, object], dims: Sequence[str]) -> str:
@@ -46,9 +55,9 @@ def design_label(row: Mapping[str, object], dims: Sequence[str]) -> str:
 
 def design_table(study: xr.Dataset) -> pd.DataFrame:
     """One row per computed case: the swept values, ``design`` (label), ``case_id`` and the
-    physical figures of merit that the study holds (the metric table's ``front``, ``resolution``
-    and ``pareto`` metrics)."""
-    cols = [c for c in mt.names("front", "resolution", "pareto") if c in study]
+    physical figures of merit that the study holds (the metric table's ``front``, ``resolution``,
+    ``pareto`` and ``budget`` metrics)."""
+    cols = [c for c in mt.names("front", "resolution", "pareto", "budget") if c in study]
     extra = [v for v in ("computed", "case_id") if v in study]
     if not cols:
         return pd.DataFrame()
@@ -82,6 +91,29 @@ def pareto_front(df: pd.DataFrame, objectives: Sequence[tuple[str, str]] | None 
         dominated = np.any(np.all(others <= vals[i], axis=1) & np.any(others < vals[i], axis=1))
         front[i] = not dominated
     return front
+
+
+def error_limit(oracle_mm: float, added_mm: float) -> str:
+    """What limits a design's error: ``"reconstruction"`` where the error the reconstruction adds
+    exceeds the oracle's (the PIV windows on the true volumes), ``"windows"`` where it does not, ``""``
+    where either is unknown (a study without the oracle)."""
+    o, a = float(oracle_mm), float(added_mm)
+    if not (math.isfinite(o) and math.isfinite(a)):
+        return ""
+    return "reconstruction" if a > o else "windows"
+
+
+def budget_table(study: xr.Dataset) -> pd.DataFrame:
+    """Per computed case: the design, its flow, the metric table's ``budget`` metrics (the case's error
+    beside the oracle's and the reconstruction's share) and ``limited_by`` (:func:`error_limit`).
+    Empty when the study holds no oracle."""
+    df = design_table(study)
+    if df.empty or ORACLE_TOTAL not in df or ADDED_TOTAL not in df:
+        return pd.DataFrame()
+    cols = [c for c in ("design", "flow", *mt.names("budget")) if c in df]
+    out = df[cols].copy()
+    out["limited_by"] = [LIMITS.get(error_limit(o, a), "") for o, a in zip(df[ORACLE_TOTAL], df[ADDED_TOTAL])]
+    return out
 
 
 def recommend(
@@ -152,9 +184,29 @@ def _sentence(pick: pd.Series, cand: pd.DataFrame, flow: str, min_valid: float, 
         s += " It is also the finest-resolving design on the front: nothing is traded away."
     else:
         s += " It dominates every other design."
+    s += _budget_sentence(pick)
     if none_valid:
         s += f" No design on the front reaches {min_valid:g} % valid vectors: treat this study's answer with care."
     return s
+
+
+def _budget_sentence(pick: pd.Series) -> str:
+    """Which part of the recommended design's error budget dominates (nothing without the oracle)."""
+    oracle, added = pick.get(ORACLE_TOTAL, math.nan), pick.get(ADDED_TOTAL, math.nan)
+    limit = error_limit(oracle, added)
+    if limit == "reconstruction":
+        return (
+            f" Its error is mostly the reconstruction's: on the true particle volumes the same grid and PIV windows "
+            f"give {_fmt(oracle, 'mm')}, the reconstruction adds {_fmt(added, 'mm')} (in quadrature), so a better "
+            "reconstruction would lower it."
+        )
+    if limit == "windows":
+        return (
+            f" Its error is mostly the PIV windows': on the true particle volumes the same grid and windows give "
+            f"{_fmt(oracle, 'mm')}, the reconstruction adds only {_fmt(added, 'mm')} (in quadrature), so a better "
+            "reconstruction would gain little: the windows and the grid set the error."
+        )
+    return ""
 
 
 def influence(study: xr.Dataset, var: str) -> list[tuple[str, float]]:

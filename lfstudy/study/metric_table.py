@@ -9,7 +9,13 @@ design comparison it appears in. Everything else reads this table at call time:
 - the leading columns of the study table (place ``summary``);
 - the report's case tables, panels and overview map (``headline``, ``panel``, ``overview``);
 - the best-design rows (``criterion``), the Pareto objectives (``pareto``) and the report's
-  Pareto-front and resolution tables (``front``, ``resolution``).
+  Pareto-front, resolution and error-budget tables (``front``, ``resolution``, ``budget``).
+
+Two name prefixes carry a meaning of their own: ``oracle_<stat>`` is the statistic ``<stat>`` of
+:func:`~lfstudy.study.metrics.case_errors` on the *oracle* (the case's PIV run on the true particle
+volumes, :func:`lfstudy.study.case.oracle_piv`), and ``recon_added_<stat>`` is the share of the
+case's ``<stat>`` the oracle does not explain, sqrt(max(case² − oracle², 0))
+(:func:`lfstudy.study.metrics.error_budget`). A row with either prefix needs no code of its own.
 
 Adding a metric is one :class:`Metric` row plus the code that computes its value
 (``docs/howto/add-metric.md``). Like xclim's indicators, units and long names are declared once
@@ -36,6 +42,8 @@ PLACES: dict[str, str] = {
     "pareto": "an objective of the Pareto front the recommendation is chosen from",
     "front": "a column of the report's Pareto-front table (and of the design table)",
     "resolution": "a column of the report's resolution and field-of-view table (and of the design table)",
+    "budget": "a column of the report's error-budget table: per design, what the PIV windows give on the true "
+    "particles (the oracle) beside what the reconstruction adds (and of the design table)",
 }
 
 
@@ -121,12 +129,38 @@ def _per_axis(
     shown: dict[str, Iterable[str]] | None = None,
     **kw: Any,
 ) -> tuple[Metric, ...]:
-    """One metric per axis: ``name`` and ``long_name`` hold ``{ax}``; ``shown`` maps an axis to its places."""
+    """One metric per axis: ``name``, ``long_name`` and ``description`` hold ``{ax}``; ``shown`` maps an axis to
+    its places."""
     shown = shown or {}
+    desc = kw.pop("description", "")
     return tuple(
-        Metric(name.format(ax=a), units, long_name.format(ax=a), shown=frozenset(shown.get(a, ())), **kw) for a in axes
+        Metric(
+            name.format(ax=a),
+            units,
+            long_name.format(ax=a),
+            shown=frozenset(shown.get(a, ())),
+            description=desc.format(ax=a),
+            **kw,
+        )
+        for a in axes
     )
 
+
+_ORACLE = (
+    "of the oracle: the case's PIV (same grid, windows and passes) run on the true particle volumes of both "
+    "frames, each particle the Gaussian Q uses (truth_sigma_mm); the best any reconstruction could hand to the "
+    "PIV. No depth calibration applies to it (its volumes are true, w is read as is)"
+)
+_ADDED = (
+    "error the reconstruction adds to what the PIV windows give on the true volumes: "
+    "sqrt(max({case}² − {oracle}², 0)), assuming the two add in quadrature (independent errors); 0 where the "
+    "case does as well as the oracle"
+)
+_CROSSTALK = (
+    "uniform flows: mean spurious z displacement per unit of imposed lateral displacement, "
+    "(mean measured w − true w) / |(true u, true v)| over valid vectors (after the depth calibration where "
+    "it is enabled); NaN for a non-uniform flow or no lateral shift"
+)
 
 _LOCKING = (
     "fraction of measured displacements within 0.25 voxel of an integer minus that expected for Gaussian errors "
@@ -144,7 +178,7 @@ METRICS: tuple[Metric, ...] = (
     ),
     Metric(
         "rms_total_mm", "mm", "total RMS error (all components)", True,
-        {"summary", "headline", "panel", "overview", "criterion", "pareto", "front"}, "error",
+        {"summary", "headline", "panel", "overview", "criterion", "pareto", "front", "budget"}, "error",
         criterion="lowest total RMS error",
     ),
     Metric(
@@ -156,7 +190,7 @@ METRICS: tuple[Metric, ...] = (
     Metric("rms_x_mm", "mm", "RMS error x", True, {"summary"}, "error"),
     Metric(
         "valid_percent", "percent", "valid vectors", False,
-        {"summary", "headline", "panel", "criterion", "front"}, "quality", criterion="most valid vectors",
+        {"summary", "headline", "panel", "criterion", "front", "budget"}, "quality", criterion="most valid vectors",
     ),
     Metric(
         "Q", "1", "reconstruction quality Q", False, {"summary", "headline", "panel", "criterion", "front"},
@@ -164,6 +198,23 @@ METRICS: tuple[Metric, ...] = (
         description="normalised correlation of the reconstructed volume with the true particles as Gaussians of "
         "half the camera's resolution cell on the same grid (Elsinga et al. 2006; truth_sigma_mm in errors.zarr)",
     ),
+    # the error budget: what the PIV windows give on the true volumes, what the reconstruction adds
+    Metric(
+        "oracle_rms_total_mm", "mm", "oracle total RMS error (PIV on the true volumes)", True, {"budget"}, "error",
+        description="total RMS error " + _ORACLE,
+    ),
+    Metric(
+        "recon_added_rms_total_mm", "mm", "total RMS error added by the reconstruction", True, {"budget"}, "error",
+        description="total RMS " + _ADDED.format(case="rms_total_mm", oracle="oracle_rms_total_mm"),
+    ),
+    Metric("crosstalk_z", "1", "spurious w per unit lateral shift", None, {"headline", "budget"}, "error",
+           description=_CROSSTALK),
+    Metric(
+        "oracle_crosstalk_z", "1", "oracle spurious w per unit lateral shift", None, {"budget"}, "error",
+        description="crosstalk_z " + _ORACLE,
+    ),
+    Metric("oracle_valid_percent", "percent", "oracle valid vectors", False, {"budget"}, "quality",
+           description="valid vectors " + _ORACLE),
     # resolution in mm
     Metric(
         "spacing_mm_x", "mm", "vector spacing along x", True,
@@ -211,9 +262,19 @@ METRICS: tuple[Metric, ...] = (
     *_per_axis("mean_{ax}_mm", "mm", "mean measured {ax} displacement", group="displacement"),
     *_per_axis("true_{ax}", "voxel", "mean true {ax} displacement", group="displacement"),
     *_per_axis("true_{ax}_mm", "mm", "mean true {ax} displacement", group="displacement"),
+    *_per_axis("oracle_rms_{ax}_mm", "mm", "oracle RMS error {ax}", lower_is_better=True, group="error",
+               description="RMS error " + _ORACLE),
+    *_per_axis("oracle_mean_{ax}_mm", "mm", "oracle mean measured {ax} displacement", group="displacement",
+               description="mean measured displacement " + _ORACLE),
+    *_per_axis("recon_added_rms_{ax}_mm", "mm", "RMS error {ax} added by the reconstruction", lower_is_better=True,
+               group="error", description="RMS " + _ADDED.format(case="rms_{ax}_mm", oracle="oracle_rms_{ax}_mm")),
     Metric("true_mag_mm", "mm", "mean magnitude of the true displacement", None, (), "displacement"),
     Metric("n_vectors", "1", "number of PIV vectors", None, (), "count"),
     Metric("n_valid", "1", "number of valid vectors", None, (), "count"),
+    Metric(
+        "time_oracle", "s", "oracle run time", True, (), "cost",
+        description="rendering the true volumes of both frames and their PIV, inside the errors stage (time_errors)",
+    ),
 )  # fmt: skip
 
 

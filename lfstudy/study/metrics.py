@@ -9,6 +9,10 @@ stage times are in :mod:`lfstudy.study.table`):
   measured displacement, peak locking) as in sec. 7.1–7.4;
 - :func:`reconstruction_quality`: the reconstruction quality factor Q of
   Elsinga et al. (2006) against :func:`render_truth`;
+- :func:`oracle_metrics` and :func:`error_budget`: the same statistics of the
+  *oracle* (the case's PIV on the true particle volumes,
+  :func:`lfstudy.study.case.oracle_piv`) and the error the reconstruction adds
+  to it, in quadrature;
 - :func:`case_metrics`: all of a case's metrics (the above, the field of view and
   the depth gain), what the workflow's errors stage writes.
 
@@ -31,6 +35,7 @@ import xarray as xr
 from scipy.special import ndtr
 
 from lfstudy.simulate.flows import Flow, true_displacement
+from lfstudy.study import metric_table
 from lfstudy.study.metric_table import metric_attrs
 
 __all__ = [
@@ -43,6 +48,10 @@ __all__ = [
     "render_truth",
     "field_of_view",
     "depth_gain",
+    "crosstalk_z",
+    "oracle_metrics",
+    "quadrature_excess",
+    "error_budget",
     "with_metrics",
     "case_metrics",
 ]
@@ -257,6 +266,8 @@ def case_errors(
           RMS error in mm over it): comparable across designs;
         - ``window_mm_<ax>``, ``spacing_mm_<ax>`` (final window and vector
           spacing in mm) and ``depth_mm`` (depth spanned by valid vectors);
+        - ``crosstalk_z`` (:func:`crosstalk_z`): spurious w per unit of lateral
+          shift of a uniform flow, NaN for any other;
         - ``n_vectors``, ``n_valid``, ``valid_percent``.
 
         With no valid vector every statistic is NaN and ``valid_percent`` is 0
@@ -338,6 +349,7 @@ def case_errors(
     out["true_mag_mm"] = _scalar(true_mag)
     out["rel_error"] = _scalar(rt_mm / true_mag if n_valid and true_mag > 0 else math.nan)
     _resolution(out, piv, dims, steps, fin)
+    out["crosstalk_z"] = _scalar(crosstalk_z(meas_mm, true_mm, fin) if "z" in axes else math.nan)
     out["n_vectors"] = _scalar(n_vec)
     out["n_valid"] = _scalar(n_valid)
     out["valid_percent"] = _scalar(100.0 * n_valid / n_vec if n_vec else 0.0)
@@ -351,6 +363,40 @@ def case_errors(
         sign_convention="object frame, +z away from the camera; error = measured - true",
     )
     return out
+
+
+def crosstalk_z(measured_mm: Mapping[str, np.ndarray], true_mm: Mapping[str, Any], mask: np.ndarray) -> float:
+    """Spurious z displacement per unit of imposed lateral displacement, for a uniform flow.
+
+    ``(mean(w_meas) − w_true) / |(u_true, v_true)|`` over the vectors of ``mask``: the w a design
+    reads for a purely lateral shift, as a fraction of it (a plenoptic camera sees depth through
+    the parallax of its sub-apertures, so a lateral shift can leak into w).
+
+    Parameters
+    ----------
+    measured_mm, true_mm : mapping ``x, y, z`` -> array [mm]
+        Measured and true displacement at the window centres (the truth broadcastable to them).
+    mask : ndarray of bool
+        Vectors to average (valid, finite).
+
+    Returns
+    -------
+    float
+        NaN when no vector is selected, when the true displacement differs between the selected
+        vectors (not a uniform flow) or when its lateral part is zero.
+    """
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        return math.nan
+    t = {a: np.broadcast_to(np.asarray(true_mm[a], float), mask.shape)[mask] for a in ("x", "y", "z")}
+    # uniform: one true displacement at every window (to the rounding of the RK4 path)
+    scale = max(1.0, *(float(np.abs(v).max()) for v in t.values()))
+    if any(float(np.ptp(v)) > 1e-9 * scale for v in t.values()):
+        return math.nan
+    lateral = math.hypot(float(t["x"][0]), float(t["y"][0]))
+    if lateral == 0.0:
+        return math.nan
+    return (float(np.asarray(measured_mm["z"], float)[mask].mean()) - float(t["z"][0])) / lateral
 
 
 def _resolution(out: xr.Dataset, piv: xr.Dataset, dims: tuple[str, ...], steps: dict, fin: np.ndarray) -> None:
@@ -509,6 +555,68 @@ def depth_gain(piv: xr.Dataset) -> float:
     return float(piv.attrs.get("depth_gain_total", math.nan))
 
 
+#: Name prefixes of the oracle's statistics and of the reconstruction's share (rows of the metric table).
+ORACLE_PREFIX = "oracle_"
+ADDED_PREFIX = "recon_added_"
+
+
+def oracle_metrics(oracle: xr.Dataset, flow: Flow, *, dt: float = 1.0, n_steps: int = 100) -> dict[str, float]:
+    """The oracle's metrics: :func:`case_errors` of the PIV result on the true volumes.
+
+    Every row of the metric table named ``oracle_<stat>`` takes the statistic ``<stat>`` of
+    ``case_errors(oracle, flow)``: an oracle metric is one table row.
+
+    Parameters
+    ----------
+    oracle : xarray.Dataset
+        The case's PIV run on the true particle volumes (:func:`lfstudy.study.case.oracle_piv`).
+    flow : Flow
+        The imposed flow.
+    dt, n_steps : float, int
+        Of the true displacement.
+
+    Returns
+    -------
+    dict
+        ``{"oracle_<stat>": value}`` for every such row of the table.
+    """
+    err = case_errors(oracle, flow, dt=dt, n_steps=n_steps)
+    out: dict[str, float] = {}
+    for m in metric_table.METRICS:
+        if m.name.startswith(ORACLE_PREFIX):
+            stat = m.name.removeprefix(ORACLE_PREFIX)
+            if stat not in err:
+                raise KeyError(f"metric {m.name!r}: case_errors gives no {stat!r} for the oracle")
+            out[m.name] = float(err[stat])
+    return out
+
+
+def quadrature_excess(total: float, part: float) -> float:
+    """``sqrt(max(total² − part², 0))``: what ``total`` holds beyond ``part`` when independent errors
+    add in quadrature (0 where ``part`` is the larger; NaN where either is NaN)."""
+    total, part = float(total), float(part)
+    if not (math.isfinite(total) and math.isfinite(part)):
+        return math.nan
+    return math.sqrt(max(total * total - part * part, 0.0))
+
+
+def error_budget(case: Mapping[str, float], oracle: Mapping[str, float]) -> dict[str, float]:
+    """The error the reconstruction adds: every table row ``recon_added_<stat>`` is
+    :func:`quadrature_excess` of the case's ``<stat>`` over the oracle's ``oracle_<stat>``.
+
+    The oracle is what the design's grid and PIV windows give on perfect volumes; the case's error
+    beyond it comes from the reconstruction (and the imaging before it). Where the added share exceeds
+    the oracle's error the reconstruction limits the design; where the oracle's dominates, the PIV
+    windows do (:func:`lfstudy.study.designs.error_limit`).
+    """
+    out: dict[str, float] = {}
+    for m in metric_table.METRICS:
+        if m.name.startswith(ADDED_PREFIX):
+            stat = m.name.removeprefix(ADDED_PREFIX)
+            out[m.name] = quadrature_excess(case[stat], oracle[ORACLE_PREFIX + stat])
+    return out
+
+
 def with_metrics(ds: xr.Dataset, values: Mapping[str, float], **extra_attrs: Mapping[str, Any]) -> xr.Dataset:
     """``ds`` with each of ``values`` as a 0-d variable whose attrs come from the metric table.
 
@@ -531,8 +639,10 @@ def case_metrics(
     sigma_mm: float | Sequence[float],
     dt: float = 1.0,
     n_steps: int = 100,
+    oracle: xr.Dataset | None = None,
 ) -> xr.Dataset:
-    """Every metric of one case: :func:`case_errors`, the field of view, Q and the depth gain.
+    """Every metric of one case: :func:`case_errors`, the field of view, Q, the depth gain and,
+    given the oracle's PIV result, the error budget.
 
     Parameters
     ----------
@@ -550,18 +660,44 @@ def case_metrics(
         Size of the true particles for Q (:func:`lfstudy.study.case.truth_sigma`).
     dt, n_steps : float, int
         Of the true displacement (:func:`case_errors`).
+    oracle : xarray.Dataset, optional
+        The case's PIV on the true volumes (:func:`lfstudy.study.case.oracle_piv`), on the case's
+        PIV grid.
 
     Returns
     -------
     xarray.Dataset
         The fields and scalars of :func:`case_errors` plus ``fov_x_mm``, ``fov_y_mm``, ``Q``
-        (with ``truth_sigma_mm``) and ``depth_gain``; every scalar's attrs from the metric table.
+        (with ``truth_sigma_mm``) and ``depth_gain``; with ``oracle``, the ``oracle_*`` metrics
+        (:func:`oracle_metrics`), the ``recon_added_*`` ones (:func:`error_budget`), ``time_oracle``
+        (its ``oracle_seconds`` attr) and the oracle's vectors ``oracle_u_mm``, ``oracle_v_mm``,
+        ``oracle_w_mm`` and ``oracle_valid``. Every scalar's attrs come from the metric table.
     """
     err = case_errors(piv, flow, dt=dt, n_steps=n_steps)
     q = reconstruction_quality(volume, particles, sigma_mm=sigma_mm)
     sigma = [float(s) for s in np.broadcast_to(np.asarray(sigma_mm, float), (3,))]
-    return with_metrics(
-        err,
-        {**field_of_view(camera), "Q": q, "depth_gain": depth_gain(piv)},
-        Q={"truth_sigma_mm": sigma},
-    )
+    values = {**field_of_view(camera), "Q": q, "depth_gain": depth_gain(piv)}
+    if oracle is not None:
+        orc = oracle_metrics(oracle, flow, dt=dt, n_steps=n_steps)
+        case = {str(n): float(v) for n, v in err.data_vars.items() if v.ndim == 0}
+        values.update(orc, **error_budget(case, orc), time_oracle=float(oracle.attrs.get("oracle_seconds", math.nan)))
+        err = _with_oracle_vectors(err, oracle)
+    return with_metrics(err, values, Q={"truth_sigma_mm": sigma})
+
+
+def _with_oracle_vectors(err: xr.Dataset, oracle: xr.Dataset) -> xr.Dataset:
+    """``err`` with the oracle's displacements and validity as ``oracle_<c>_mm`` and ``oracle_valid``
+    (the oracle's PIV grid is the case's: the same volume grid and windows)."""
+    dims = tuple(d for d in ("z", "y", "x") if d in err.dims)
+    for d in dims:
+        if oracle.sizes.get(d) != err.sizes[d] or not np.allclose(oracle[d].values, err[d].values):
+            raise ValueError(f"the oracle's PIV grid differs from the case's along {d}: were both run on one grid?")
+    out = err.copy()
+    for ax in dims:
+        c = AXES[ax]
+        if f"{c}_mm" in oracle:
+            long_name = f"{ax} displacement of the oracle (the case's PIV on the true volumes)"
+            out[f"oracle_{c}_mm"] = (dims, oracle[f"{c}_mm"].transpose(*dims).values, _attrs("mm", long_name))
+    if "valid" in oracle:
+        out["oracle_valid"] = (dims, oracle["valid"].transpose(*dims).values, {"long_name": "oracle vector valid"})
+    return out

@@ -360,6 +360,28 @@ def _answer_blocks(study: xr.Dataset) -> Iterator[Block]:
             html=f"<h4>Pareto front, {html.escape(flow)}</h4>"
             + _table(front[cols].sort_values("rms_total_mm"), index=False),
         )
+    yield from _budget_blocks(study)
+
+
+def _budget_blocks(study: xr.Dataset) -> Iterator[Block]:
+    """Per design: the oracle's error beside the error the reconstruction adds, and which dominates."""
+    from lfstudy.study.designs import budget_table
+
+    bt = budget_table(study)
+    if bt.empty:
+        return
+    sort = [c for c in ("flow", "design") if c in bt]
+    yield Block(
+        "answer",
+        "budget",
+        html="<h4>Error budget: the PIV windows against the reconstruction</h4><p>The <i>oracle</i> is the "
+        "case's PIV (same grid, windows and passes) run on the true particle volumes of both frames: the best any "
+        "reconstruction could hand to the PIV, so its error is what the design's grid and PIV windows can "
+        "resolve. The error the reconstruction adds is the case's beyond it, in quadrature "
+        "(sqrt(case² − oracle²)). <i>limited_by</i> names the larger of the two. The crosstalk columns give, for "
+        "a uniform flow, the spurious w per unit of lateral shift.</p>"
+        + _table(bt.sort_values(sort) if sort else bt, index=False),
+    )
 
 
 def _overview_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> Iterator[Block]:

@@ -106,7 +106,8 @@ STAGES: dict[str, _Stage] = {
         ("depth_calibration.enabled",),  # whether the PIV uses it, not what it is
     ),
     "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "depthcal")),
-    "errors": _Stage(("flow", "camera"), ("piv", "reconstruct", "particles")),
+    # the errors stage also runs the oracle: the case's PIV on the true volumes, on the case's grid
+    "errors": _Stage(("flow", "camera", "refocus", "grid", "piv"), ("piv", "reconstruct", "particles", "displace")),
 }
 
 
