@@ -57,9 +57,15 @@ HEAVY = min(CORES, CFG["workflow"]["threads_per_job"] or CORES)
 # them against a total only when one is given (--resources mem_mb=N); without one, the total is
 # 90 % of this machine's memory (as check_memory), so `--cores N` never runs more heavy jobs side
 # by side than the memory holds. A cluster executor (its jobs run elsewhere) is left as it is.
-if "mem_mb" not in workflow.global_resources and workflow.global_resources["_nodes"].value is None:
-    if machine_memory():
-        workflow.register_resource("mem_mb", int(0.9 * machine_memory() / 1e6))
+# register_resource and the "_nodes" entry are Snakemake 9 internals (pyproject pins snakemake < 10);
+# without them the rules still declare mem_mb, only the local total is not set.
+if (
+    hasattr(workflow, "register_resource")
+    and "mem_mb" not in workflow.global_resources
+    and getattr(workflow.global_resources.get("_nodes"), "value", 0) is None
+    and machine_memory()
+):
+    workflow.register_resource("mem_mb", int(0.9 * machine_memory() / 1e6))
 
 wildcard_constraints:
     sid=r"[^/~]+~[^/]+(/[^/~]+~[^/]+)*",

@@ -393,9 +393,9 @@ def test_error_budget_splits_in_quadrature():
 def test_oracle_recovers_a_uniform_shift():
     """PIV on the true volumes of the tiny study's case (a 0.1 mm x shift, 1.13 voxels) reads the shift
     to a few µm, every vector valid, no spurious w; on the case's own reconstruction grid."""
-    from lfstudy.study.config import case_config, expand_cases, load_config
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study import case as cl
+    from lfstudy.study.config import case_config, expand_cases, load_config
     from lfstudy.study.metrics import oracle_metrics
 
     cfg = load_config(ROOT / "tests" / "data" / "tiny.yaml")
