@@ -98,6 +98,7 @@ __all__ = ["IPR", "ipr_particles", "calibrated_camera", "particle_patches", "ren
 
 _MAX_ROTATION_PX = 0.05  # largest lenslet displacement [px] a calibrated rotation may cause and be ignored
 _MARGIN_PX = 3  # pixels added around each patch's layout bound (covers the ±δ trial positions)
+_MIN_SEPARATION = 1.5  # residual candidates nearer an existing particle [voxels, per-axis scaled] are not added
 
 
 # ------------------------------------------------------------------ the calibrated model camera
@@ -326,10 +327,11 @@ def particle_patches(
     gidx = np.repeat(np.arange(n, dtype=np.int64), k)
     start = (offsets[:-1, None] + np.arange(k)[None, :] * size[:, None]).ravel()
     boff = np.stack([start, start + np.repeat(size, k)], axis=1).astype(np.int64)
-    wt = np.repeat(_unit_weights(camera, x, y, z), k)  # the trial offsets barely change Ω: keep it fixed
+    # task t = particle t // k at trial t % k
+    tx, ty, tz = (a.reshape(k, n).T.ravel().copy() for a in (ax_, ay_, az_))
+    wt = _unit_weights(camera, tx, ty, tz)
     stats = np.zeros((n * k, _ST_SIZE))
-    _patch_kernel(ax_.reshape(k, n).T.ravel().copy(), ay_.reshape(k, n).T.ravel().copy(),
-                  az_.reshape(k, n).T.ravel().copy(), wt, geos, gidx, buf, boff, psz, nlmax, stats)  # fmt: skip
+    _patch_kernel(tx, ty, tz, wt, geos, gidx, buf, boff, psz, nlmax, stats)
     if stats[:, _ST_BIG].sum() > 0 or stats[:, _ST_SPILL].sum() > 1e-9 * max(float(wt.sum()), 1e-300):
         raise RuntimeError("particle_patches: a patch exceeded its scratch or spilled (a bug)")
     np.maximum(buf, 0.0, out=buf)  # rounding residue of either sign, as render_exact clips
@@ -648,7 +650,7 @@ def ipr_particles(
             new = _peaks(mart(rlf, inputs.camera, grid, iterations=mart_iterations).values, grid, peak_threshold)
             if len(new) and len(xyz):
                 dist = np.min(np.linalg.norm(((new[:, None, :] - xyz[None, :, :]) / vox), axis=2), axis=1)
-                new = new[dist > 1.5]
+                new = new[dist > _MIN_SEPARATION]
             if len(new):
                 n_cand += len(new)
                 amp0 = fit(new, np.zeros(len(new)), res, False)[:, 3]
@@ -687,7 +689,7 @@ def ipr_particles(
             "background": float(background),
             "candidates": int(n_cand),
             "removed_ghosts": int(ghosts),
-            "n_particles": int(len(xyz)),
+            "n_particles": len(xyz),
             "residual_norm": [float(r) for r in res_hist],
             "seconds": float(time.perf_counter() - t_start),
             **ginfo,
