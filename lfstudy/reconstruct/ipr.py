@@ -94,7 +94,7 @@ from lfstudy.simulate.exact import (
     _workspace,
 )
 
-__all__ = ["IPR", "ipr_particles", "calibrated_camera", "particle_patches", "render_particles"]
+__all__ = ["IPR", "ipr", "ipr_particles", "calibrated_camera", "particle_patches", "render_particles"]
 
 _MAX_ROTATION_PX = 0.05  # largest lenslet displacement [px] a calibrated rotation may cause and be ignored
 _MARGIN_PX = 3  # pixels added around each patch's layout bound (covers the ±δ trial positions)
@@ -646,7 +646,7 @@ def ipr_particles(
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
         if it < residual_candidates:
             res = render_model(xyz, inten)
-            rlf = _lightfield_from_raw(np.maximum(res, 0.0) + background * 0, lf)
+            rlf = _lightfield_from_raw(np.maximum(res, 0.0), lf)
             new = _peaks(mart(rlf, inputs.camera, grid, iterations=mart_iterations).values, grid, peak_threshold)
             if len(new) and len(xyz):
                 dist = np.min(np.linalg.norm(((new[:, None, :] - xyz[None, :, :]) / vox), axis=2), axis=1)
@@ -764,6 +764,53 @@ def render_particles(
     return out, sig
 
 
+def ipr(
+    inputs: ReconstructionInputs,
+    *,
+    iterations: int = 6,
+    peak_threshold: float = 0.1,
+    min_intensity: float = 0.2,
+    shake: float = 0.1,
+    max_step: float = 0.5,
+    damping: float = 0.01,
+    background: float = 0.0,
+    residual_candidates: int = 2,
+    mart_iterations: int = 3,
+    blob_sigma: float = 0.0,
+    batch: int = 2048,
+    progress: bool = False,
+) -> xr.DataArray:
+    """The ``ipr`` volume: :func:`ipr_particles` rendered on the grid by :func:`render_particles`.
+
+    Parameters as :func:`ipr_particles`; ``blob_sigma`` as :func:`render_particles`. The
+    volume's attrs carry the particle list's (``n_particles``, ``candidates``,
+    ``removed_ghosts``, ``residual_norm``, the calibrated grid) and ``blob_sigma_mm``.
+    """
+    parts = ipr_particles(
+        inputs,
+        iterations=iterations,
+        peak_threshold=peak_threshold,
+        min_intensity=min_intensity,
+        shake=shake,
+        max_step=max_step,
+        damping=damping,
+        background=background,
+        residual_candidates=residual_candidates,
+        mart_iterations=mart_iterations,
+        batch=batch,
+        progress=progress,
+    )
+    vol, sig = render_particles(parts, inputs.grid, inputs.camera, blob_sigma)
+    attrs = {k: v for k, v in parts.attrs.items() if k != "method"}
+    return inputs.grid.volume(
+        vol.astype(np.float32),
+        long_name="particle volume (IPR, exact camera model)",
+        units=str(inputs.lightfield.attrs.get("units", "counts")),
+        blob_sigma_mm=[float(v) for v in sig],
+        **attrs,
+    )
+
+
 class IPR(ReconstructionMethod):
     """``ipr``: iterative particle reconstruction fitted with the exact camera model."""
 
@@ -834,7 +881,7 @@ class IPR(ReconstructionMethod):
         blob_sigma: float = 0.0,
         progress: bool = False,
     ) -> xr.DataArray:
-        parts = ipr_particles(
+        return ipr(
             inputs,
             iterations=iterations,
             peak_threshold=peak_threshold,
@@ -845,14 +892,6 @@ class IPR(ReconstructionMethod):
             background=background,
             residual_candidates=residual_candidates,
             mart_iterations=mart_iterations,
+            blob_sigma=blob_sigma,
             progress=progress,
-        )
-        vol, sig = render_particles(parts, inputs.grid, inputs.camera, blob_sigma)
-        attrs = {k: v for k, v in parts.attrs.items() if k != "method"}
-        return inputs.grid.volume(
-            vol.astype(np.float32),
-            long_name="particle volume (IPR, exact camera model)",
-            units=str(inputs.lightfield.attrs.get("units", "counts")),
-            blob_sigma_mm=[float(s) for s in sig],
-            **attrs,
         )
