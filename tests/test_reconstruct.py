@@ -91,7 +91,7 @@ def test_registry_and_unknown_method():
     finally:
         unregister_method("identity-test")
     assert "identity-test" not in available_methods()
-    with pytest.raises(ValueError, match=r"unknown reconstruction method; available: deconvolution, mart, none"):
+    with pytest.raises(ValueError, match=r"unknown reconstruction method; available: deconvolution, ipr, mart, none"):
         reconstruct(st, method="nosuch")
 
 

@@ -29,6 +29,7 @@ from lfstudy.reconstruct import (
     threshold_dilate,
 )
 from lfstudy.reconstruct.deconvolution import richardson_lucy
+from lfstudy.reconstruct.ipr import ipr
 from lfstudy.reconstruct.mart import mart
 from lfstudy.reconstruct.projector import PlenopticProjector
 from lfstudy.reconstruct.registry import BUILTIN, ENTRY_POINT_GROUP, detect_parameters
@@ -216,6 +217,7 @@ ALGORITHMS = {
     "none": focal_stack_as_is,
     "mart": mart,
     "deconvolution": richardson_lucy,
+    "ipr": ipr,
 }
 
 

@@ -74,6 +74,7 @@ BUILTIN: dict[str, str] = {
     "none": "lfstudy.reconstruct.threshold:FocalStack",
     "mart": "lfstudy.reconstruct.mart:MART",
     "deconvolution": "lfstudy.reconstruct.deconvolution:RichardsonLucy",
+    "ipr": "lfstudy.reconstruct.ipr:IPR",
 }
 
 #: Entry-point group of methods from other packages.

@@ -1,0 +1,897 @@
+"""IPR: iterative particle reconstruction with the exact camera model (beyond thesis sec. 5.6).
+
+Iterative Particle Reconstruction (Wieneke 2013, Meas. Sci. Technol. 24 024008) with the
+position refinement ("shaking") of Shake-the-Box (Schanz, Gesemann & Schröder 2016, Exp.
+Fluids 57:70): the particles are the unknowns, not the voxels. Their expected image is
+:func:`lfstudy.simulate.exact.render_exact`'s, the one forward model the study trusts, here
+used to fit the data.
+
+Forward model and where it is compared
+--------------------------------------
+The registered light field is the raw image cut into integer pixel blocks at the
+*calibrated* lenslet centres (:func:`lfstudy.lightfield.register`; no pixel is resampled).
+IPR puts its samples back on the sensor (``raw[row0 + prow, col0 + pcol]``) and compares
+there, on exactly the pixels the light field holds (the rest is masked out). The model
+camera is the nominal camera (optics, sensor) with its lenslet grid replaced by the one
+fitted to the calibrated centres (pitch and offset by least squares, :func:`calibrated_camera`),
+never the simulator's true grid: with a calibration error the model is wrong exactly as an
+experiment's would be. The exact renderer handles rotated grids only in focus, so a
+calibration whose rotation moves a lenslet by more than ``_MAX_ROTATION_PX`` pixels at the
+array's edge is refused; below that the grid is taken as unrotated (the residual is in the
+result's attrs, ``grid_residual_px``).
+
+Per-particle image. A particle reaches a few dozen lenslets: its image is rendered into a
+patch (its bounding box on the sensor, from :func:`lfstudy.simulate.exact`'s layout bound,
+plus a margin) by the exact renderer's own per-lenslet kernels, with the sensor cropped to
+the patch (the cell edges move by whole pixels, so the patch is the full render's pixels up
+to rounding: the tests bound the difference by 1e-9 of the patch's peak). No approximation
+is made, so the bound is the renderer's own.
+
+Fit. Each outer iteration renders, for every particle, its image U and the images at
+±δ in x, y and z (central differences D_x, D_y, D_z; δ = ``shake`` voxels); then, particle
+after particle (Gauss–Seidel, as Wieneke's shaking), the particle's current image is added
+back to the residual and the linear least-squares problem
+``min ‖R_p − I'·U − Σ_k a_k·D_k‖²`` over (I', a) is solved (4 x 4 normal equations,
+Levenberg–Marquardt damped); the step Δ_k = a_k/I' is clipped to ``max_step`` voxels and the
+linearised image of the moved particle is subtracted again. The next iteration renders every
+particle exactly at its new position, so linearisation errors do not accumulate. After each
+iteration particles weaker than ``min_intensity`` times the median are removed as ghosts, and
+pairs closer than half a voxel are merged. The position uncertainty is the fit's covariance
+σ²·(JᵀJ)⁻¹ with σ² the patch's residual variance.
+
+Candidates: the peaks of a MART volume (:func:`lfstudy.reconstruct.mart.mart`) on the grid,
+above ``peak_threshold`` of its maximum; with ``residual_candidates`` more are taken after
+each of the first iterations from the MART volume of the positive residual (Wieneke's
+"add candidates from the residual").
+
+Output: :func:`ipr_particles` returns the particle list; the method ``ipr`` returns the
+volume on the grid rendered from the particles with :func:`render_particles` (Gaussians of
+the case's truth σ, half a resolution cell, integrated over each voxel), so depth
+calibration, PIV, errors and report run unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, ClassVar
+
+import numpy as np
+import xarray as xr
+from numba import njit, prange
+from scipy import ndimage
+from tqdm.auto import tqdm
+
+from lfstudy.optics import PlenopticCamera
+from lfstudy.reconstruct.grid import ReconstructionGrid, default_voxel_z
+from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs, ReconstructionMethod
+from lfstudy.simulate._render_common import (
+    _G_HH,
+    _G_HW,
+    _G_NCOL,
+    _G_NLX,
+    _G_NLY,
+    _G_NROW,
+    _G_PL,
+    _blurs,
+    _geometry,
+    solid_angle,
+)
+from lfstudy.simulate.exact import (
+    _K,
+    _S_RHO,
+    _S_SIZE,
+    _ST_BIG,
+    _ST_SIZE,
+    _ST_SPILL,
+    _axis_current,
+    _axis_pass,
+    _axis_store,
+    _lenslet_image,
+    _lenslet_span,
+    _load,
+    _particle,
+    _workspace,
+)
+
+__all__ = ["IPR", "ipr", "ipr_particles", "calibrated_camera", "particle_patches", "render_particles"]
+
+_MAX_ROTATION_PX = 0.05  # largest lenslet displacement [px] a calibrated rotation may cause and be ignored
+_MARGIN_PX = 3  # pixels added around each patch's layout bound (covers the ±δ trial positions)
+_MIN_SEPARATION = 1.5  # residual candidates nearer an existing particle [voxels, per-axis scaled] are not added
+
+
+# ------------------------------------------------------------------ the calibrated model camera
+def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[PlenopticCamera, dict[str, float]]:
+    """The nominal camera with its lenslet grid fitted to the calibrated centres.
+
+    The lenslet centres are the calibrated spot centres un-projected (``spot·si/(si + fl)``);
+    an affine lattice ``c = o + A·(col, row)`` is fitted to the valid ones by least squares.
+    The pitch is the mean of the two axes', the offset the one that puts the camera's own
+    lattice (centred on its offset) on the fitted one.
+
+    Returns
+    -------
+    camera : PlenopticCamera
+        ``camera.with_(lenslet_pitch=..., lenslet_offset_x=..., lenslet_offset_y=..., lenslet_rotation=0)``.
+    info : dict
+        ``grid_pitch_mm``, ``grid_offset_x_mm``, ``grid_offset_y_mm``, ``grid_rotation_rad`` (fitted,
+        not used), ``grid_residual_px`` (largest distance of a calibrated centre from the model lattice).
+
+    Raises
+    ------
+    ReconstructionError
+        Too few valid centres, or a rotation the exact renderer cannot model out of focus.
+    """
+    for k in ("x", "y"):
+        if k not in centers:
+            raise ReconstructionError(f"centers lacks {k!r}: use lfstudy.lightfield.find_lenslet_centers")
+    s = camera.si / (camera.si + camera.lenslet_focal_length)
+    cx = np.asarray(centers["x"].values, dtype=np.float64) * s
+    cy = np.asarray(centers["y"].values, dtype=np.float64) * s
+    ok = np.asarray(centers["valid"].values, bool) if "valid" in centers else np.ones(cx.shape, bool)
+    ok &= np.isfinite(cx) & np.isfinite(cy)
+    if ok.sum() < 6:
+        raise ReconstructionError(f"centers: {int(ok.sum())} valid lenslet centres; IPR needs at least 6")
+    rows, cols = np.nonzero(ok)
+    a = np.column_stack([np.ones(rows.size), cols, rows])
+    (ax0, ax1, ax2), *_ = np.linalg.lstsq(a, cx[ok], rcond=None)
+    (ay0, ay1, ay2), *_ = np.linalg.lstsq(a, cy[ok], rcond=None)
+    pitch = 0.5 * (math.hypot(ax1, ay1) + math.hypot(ax2, ay2))
+    rot = math.atan2(ay1, ax1)
+    span_px = 0.5 * max(cx.shape) * pitch / camera.pixel_pitch
+    if abs(rot) * span_px > _MAX_ROTATION_PX:
+        raise ReconstructionError(
+            f"centers: the calibrated lenslet grid is rotated by {rot:.3g} rad ({abs(rot) * span_px:.2g} px at the "
+            f"array's edge, allowed {_MAX_ROTATION_PX} px): the exact renderer IPR fits with models rotated grids "
+            "only in focus; use reconstruct.method mart for this camera"
+        )
+    # the camera's lattice is o + pitch·(k − (N − 1)/2); move o until it holds the fitted point (ax0, ay0)
+    ox = oy = 0.0
+    cam = camera
+    for _ in range(4):
+        cam = camera.with_(lenslet_pitch=pitch, lenslet_offset_x=ox, lenslet_offset_y=oy, lenslet_rotation=0.0)
+        bx = ox - pitch * (cam.n_lenslets_x - 1) / 2.0
+        by = oy + pitch * (cam.n_lenslets_y - 1) / 2.0
+        dx = (ax0 - bx + pitch / 2.0) % pitch - pitch / 2.0
+        dy = (ay0 - by + pitch / 2.0) % pitch - pitch / 2.0
+        if abs(dx) < 1e-12 and abs(dy) < 1e-12:
+            break
+        ox, oy = ox + dx, oy + dy
+    mx, my = cam.lenslet_centers()
+    fx = ax0 + ax1 * cols + ax2 * rows
+    fy = ay0 + ay1 * cols + ay2 * rows
+    # distance of each calibrated centre from the nearest model lenslet centre
+    jx = np.clip(np.rint((cx[ok] - mx[0, 0]) / pitch).astype(int), 0, mx.shape[1] - 1)
+    iy = np.clip(np.rint((my[0, 0] - cy[ok]) / pitch).astype(int), 0, mx.shape[0] - 1)
+    resid = np.hypot(cx[ok] - mx[iy, jx], cy[ok] - my[iy, jx]).max() / camera.pixel_pitch
+    del fx, fy
+    return cam, {
+        "grid_pitch_mm": float(pitch),
+        "grid_offset_x_mm": float(cam.lenslet_offset_x),
+        "grid_offset_y_mm": float(cam.lenslet_offset_y),
+        "grid_rotation_rad": float(rot),
+        "grid_residual_px": float(resid),
+    }
+
+
+# ------------------------------------------------------------------ per-particle patches
+@njit(parallel=True, cache=True)
+def _patch_kernel(px, py, pz, wt, geos, gidx, buf, boff, psz, nlmax, stats):  # pragma: no cover - jitted
+    """Render particle t (``px[t], py[t], pz[t]``, weight ``wt[t]``) with the cropped geometry
+    ``geos[gidx[t]]`` into ``buf[boff[t, 0]:boff[t, 1]]`` (its patch, rows × cols of the crop).
+
+    The per-particle loop of :func:`lfstudy.simulate.exact._render_kernel` (unrotated grid),
+    one particle per task, each with its own sensor crop.
+    """
+    for t in prange(px.size):
+        geo = geos[gidx[t]]
+        sc = np.zeros(_S_SIZE)
+        cols = _axis_store(nlmax, psz)
+        rows = _axis_store(nlmax, psz)
+        curx = _axis_current(psz)
+        cury = _axis_current(psz)
+        tmp = np.zeros(psz)
+        work = _workspace(geo, psz)
+        cnt = np.zeros(_ST_SIZE)
+        b = buf[boff[t, 0] : boff[t, 1]]
+        r1 = int(geo[_G_NROW]) - 1
+        w = wt[t]
+        spot = _particle(geo, px[t], py[t], pz[t], sc)
+        g0x, g0y, t0x, t0y, _, reach, focus, bh = spot
+        j0, j1 = _lenslet_span(geo, g0x, reach, True)
+        i0, i1 = _lenslet_span(geo, g0y, reach, False)
+        if w == 0.0 or j1 < j0 or i1 < i0:
+            continue
+        if j1 - j0 + 1 > nlmax or i1 - i0 + 1 > nlmax:
+            stats[t, _ST_BIG] += 1.0
+            continue
+        fac0 = w / (math.pi * sc[_S_RHO] * sc[_S_RHO])
+        _axis_pass(geo, sc, True, j0, j1, g0x, t0x, focus, reach, bh, False, curx, cols, tmp, cnt)
+        _axis_pass(geo, sc, False, i0, i1, g0y, t0y, focus, reach, bh, False, cury, rows, tmp, cnt)
+        facx = cols[5]
+        facy = rows[5]
+        pl = geo[_G_PL]
+        cx0, cy0 = 0.5 * (geo[_G_NLX] - 1.0), 0.5 * (geo[_G_NLY] - 1.0)
+        for li in range(i0, i1 + 1):
+            sy = li - i0
+            if facy[sy] == 0.0:
+                continue
+            v1 = (cy0 - li - 0.5) * pl
+            ddy = max(v1 - g0y, 0.0, g0y - (v1 + pl))
+            _load(cury, rows, sy)
+            for lj in range(j0, j1 + 1):
+                sx = lj - j0
+                if facx[sx] == 0.0:
+                    continue
+                u1 = (lj - cx0 - 0.5) * pl
+                ddx = max(u1 - g0x, 0.0, g0x - (u1 + pl))
+                if ddx * ddx + ddy * ddy > reach * reach:
+                    continue
+                _load(curx, cols, sx)
+                nax, nay = cols[4][sx], rows[4][sy]
+                fac = fac0 * facx[sx] * facy[sy]
+                _lenslet_image(geo, sc, li, lj, spot, fac, curx, cury, nax, nay, work, b, 0, r1, cnt)
+        for q in range(_ST_SIZE):
+            stats[t, q] += cnt[q]
+
+
+def _patch_boxes(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, sm: float, sl: float, pad: int):
+    """Sensor bounding boxes (row0, col0, rows, cols) of the particles' images; the bound of
+    :func:`lfstudy.simulate.exact._layout` plus ``pad`` pixels; ``psz`` and ``nlmax`` for the scratch."""
+    so, si, fm, fl = camera.so, camera.si, camera.main_focal_length, camera.lenslet_focal_length
+    rad, pl, pp = camera.aperture_diameter / 2.0, camera.lenslet_pitch, camera.pixel_pitch
+    d = so + z
+    c1 = 1.0 / d - 1.0 / fm
+    xc, yc = -(si + fl) * x / d, -(si + fl) * y / d
+    rho = rad * fl * np.abs(c1)
+    reach = rad * np.abs(1.0 + si * c1) + _K * sm
+    half = reach + pl * math.sqrt(0.5) + rho + _K * sl + 2.0 * pp
+    hw, hh = camera.sensor_width / 2.0, camera.sensor_height / 2.0
+    nr, nc = camera.n_pixels_y, camera.n_pixels_x
+    r0 = np.clip(np.floor((hh - (yc + half)) / pp).astype(np.int64) - pad, 0, nr - 1)
+    r1 = np.clip(np.floor((hh - (yc - half)) / pp).astype(np.int64) + pad, 0, nr - 1)
+    c0 = np.clip(np.floor((xc - half + hw) / pp).astype(np.int64) - pad, 0, nc - 1)
+    c1_ = np.clip(np.floor((xc + half + hw) / pp).astype(np.int64) + pad, 0, nc - 1)
+    psz = math.ceil((2.0 * float(rho.max()) + 2.0 * _K * sl) / pp) + 4
+    nlmax = min(math.ceil(2.0 * float(reach.max()) / pl) + 3, max(camera.n_lenslets_x, camera.n_lenslets_y))
+    return r0, c0, r1 - r0 + 1, c1_ - c0 + 1, psz, nlmax
+
+
+def _unit_weights(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Ω/Ω_ref per particle (eq. 4.14 generalised): a particle of intensity I delivers I·Ω/Ω_ref."""
+    rad = camera.aperture_diameter / 2.0
+    ref = 2.0 * np.pi * (1.0 - camera.so / math.hypot(camera.so, rad))
+    return solid_angle(camera, x, y, z) / ref
+
+
+def particle_patches(
+    camera: PlenopticCamera,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    *,
+    trials: np.ndarray | None = None,
+    diffraction: bool = True,
+    pad: int = _MARGIN_PX,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact images of unit-intensity particles, each in its own sensor patch.
+
+    Parameters
+    ----------
+    camera : PlenopticCamera
+        Unrotated lenslet grid (the model camera of :func:`calibrated_camera`).
+    x, y, z : ndarray, shape (n,)
+        Positions [mm].
+    trials : ndarray, shape (k, 3), optional
+        Offsets (dx, dy, dz) [mm]: each particle is rendered at each offset too, into the same
+        patch (the patch is the box of the unshifted position plus ``pad`` pixels). Default: none.
+    diffraction : bool
+        The camera's diffraction blurs (sec. 4.2.3), as :func:`~lfstudy.simulate.exact.render_exact`.
+    pad : int
+        Pixels added around the layout bound of each patch.
+
+    Returns
+    -------
+    patches : ndarray, shape (n·(k + 1)·h·w summed), float64
+        Flat; particle i's images (unshifted first, then each trial) start at ``offsets[i]``,
+        each ``rows[i] × cols[i]``, row-major.
+    offsets, row0, col0, shape : ndarray
+        ``offsets`` (n + 1,), the patch's first sensor row and column, and ``(rows, cols)`` (n, 2).
+
+    The image of unit intensity is the expected image of ``render_exact`` with one ray per
+    particle: it sums to Ω/Ω_ref minus what misses the lenslet array or the sensor.
+    """
+    if abs(camera.lenslet_rotation) > 0:
+        raise ReconstructionError("particle_patches: the camera's lenslet grid must be unrotated")
+    x, y, z = (np.ascontiguousarray(np.asarray(a, dtype=np.float64).ravel()) for a in (x, y, z))
+    n = x.size
+    tr = np.zeros((1, 3)) if trials is None else np.vstack([np.zeros((1, 3)), np.asarray(trials, float)])
+    k = tr.shape[0]
+    sm, sl = _blurs(camera, diffraction, None)
+    r0, c0, h, w, psz, nlmax = _patch_boxes(camera, x, y, z, sm, sl, pad)
+    # the trial offsets may widen the scratch needed: size it on every position
+    ax_, ay_, az_ = (np.concatenate([v + d for d in tr[:, i]]) for i, v in enumerate((x, y, z)))
+    *_, psz, nlmax = _patch_boxes(camera, ax_, ay_, az_, sm, sl, pad)
+    geo = _geometry(camera, sm, sl)
+    pp = camera.pixel_pitch
+    geos = np.repeat(geo[None], n, axis=0)
+    geos[:, _G_HW] = geo[_G_HW] - c0 * pp  # the crop's left edge is sensor x = −HW + c0·pp
+    geos[:, _G_NCOL] = w
+    geos[:, _G_HH] = geo[_G_HH] - (camera.n_pixels_y - r0 - h) * pp  # its bottom edge
+    geos[:, _G_NROW] = h
+    size = h * w
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum(size * k)
+    buf = np.zeros(int(offsets[-1]))
+    gidx = np.repeat(np.arange(n, dtype=np.int64), k)
+    start = (offsets[:-1, None] + np.arange(k)[None, :] * size[:, None]).ravel()
+    boff = np.stack([start, start + np.repeat(size, k)], axis=1).astype(np.int64)
+    # task t = particle t // k at trial t % k
+    tx, ty, tz = (a.reshape(k, n).T.ravel().copy() for a in (ax_, ay_, az_))
+    wt = _unit_weights(camera, tx, ty, tz)
+    stats = np.zeros((n * k, _ST_SIZE))
+    _patch_kernel(tx, ty, tz, wt, geos, gidx, buf, boff, psz, nlmax, stats)
+    if stats[:, _ST_BIG].sum() > 0 or stats[:, _ST_SPILL].sum() > 1e-9 * max(float(wt.sum()), 1e-300):
+        raise RuntimeError("particle_patches: a patch exceeded its scratch or spilled (a bug)")
+    np.maximum(buf, 0.0, out=buf)  # rounding residue of either sign, as render_exact clips
+    return buf, offsets, r0, c0, np.stack([h, w], axis=1)
+
+
+# ------------------------------------------------------------------ the fit (numba)
+@njit(cache=True)
+def _accumulate(img, buf, offs, r0, c0, shp, inten, sign):  # pragma: no cover - jitted
+    """img[patch] += sign·inten[i]·U_i for every particle's first (unshifted) image."""
+    for i in range(r0.size):
+        h, w = shp[i, 0], shp[i, 1]
+        o = offs[i]
+        a = sign * inten[i]
+        if a == 0.0:
+            continue
+        for r in range(h):
+            for c in range(w):
+                img[r0[i] + r, c0[i] + c] += a * buf[o + r * w + c]
+
+
+@njit(cache=True)
+def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, move, out):  # pragma: no cover
+    """One Gauss–Seidel pass of the linearised fit over the particles (module docstring).
+
+    ``buf`` holds per particle 7 images: U, then +x, −x, +y, −y, +z, −z (steps ``delta``).
+    ``res`` is the residual image (data − model), updated in place. ``out[i]`` receives
+    (dx, dy, dz, I', var_x, var_y, var_z, relative residual, pixels).
+    """
+    n = r0.size
+    for i in range(n):
+        h, w = shp[i, 0], shp[i, 1]
+        sz = h * w
+        o = offs[i]
+        ii = inten[i]
+        g = np.zeros((4, 4))
+        v = np.zeros(4)
+        npx = 0.0
+        # add the particle back, then the normal equations of [U, D_x, D_y, D_z]
+        for r in range(h):
+            for c in range(w):
+                rr, cc = r0[i] + r, c0[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                q = o + r * w + c
+                u = buf[q]
+                res[rr, cc] += ii * u
+                f0 = u
+                f1 = (buf[q + sz] - buf[q + 2 * sz]) / (2.0 * delta[0])
+                f2 = (buf[q + 3 * sz] - buf[q + 4 * sz]) / (2.0 * delta[1])
+                f3 = (buf[q + 5 * sz] - buf[q + 6 * sz]) / (2.0 * delta[2])
+                fv = (f0, f1, f2, f3)
+                rv = res[rr, cc]
+                npx += 1.0
+                for a in range(4):
+                    v[a] += fv[a] * rv
+                    for b in range(a, 4):
+                        g[a, b] += fv[a] * fv[b]
+        for a in range(4):
+            for b in range(a):
+                g[a, b] = g[b, a]
+        step = np.zeros(3)
+        inew = 0.0
+        var = np.zeros(3)
+        if g[0, 0] > 0.0:
+            if move:
+                ga = g.copy()
+                for a in range(1, 4):
+                    ga[a, a] *= 1.0 + damping
+                theta = np.linalg.solve(ga, v)
+                inew = theta[0]
+                if inew > 0.0:
+                    for a in range(3):
+                        step[a] = min(max(theta[a + 1] / inew, -max_step[a]), max_step[a])
+            else:
+                inew = v[0] / g[0, 0]
+            inew = max(inew, 0.0)
+        # subtract the (linearised) image of the moved particle; its residual and covariance
+        rr2 = 0.0
+        mm2 = 0.0
+        for r in range(h):
+            for c in range(w):
+                rr, cc = r0[i] + r, c0[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                q = o + r * w + c
+                m = buf[q]
+                for a in range(3):
+                    m += step[a] * (buf[q + (2 * a + 1) * sz] - buf[q + (2 * a + 2) * sz]) / (2.0 * delta[a])
+                m *= inew
+                res[rr, cc] -= m
+                rr2 += res[rr, cc] * res[rr, cc]
+                mm2 += m * m
+        if move and inew > 0.0 and npx > 4.0:
+            s2 = rr2 / (npx - 4.0)
+            jt = g.copy()  # J = [U, I'·D]: scale the derivative rows and columns by I'
+            for a in range(1, 4):
+                for b in range(4):
+                    jt[a, b] *= inew
+                    jt[b, a] *= inew
+            det_ok = True
+            for a in range(4):
+                if jt[a, a] <= 0.0:
+                    det_ok = False
+            if det_ok:
+                cov = np.linalg.inv(jt) * s2
+                for a in range(3):
+                    var[a] = max(cov[a + 1, a + 1], 0.0)
+        out[i, 0] = step[0]
+        out[i, 1] = step[1]
+        out[i, 2] = step[2]
+        out[i, 3] = inew
+        out[i, 4] = var[0]
+        out[i, 5] = var[1]
+        out[i, 6] = var[2]
+        out[i, 7] = math.sqrt(rr2 / mm2) if mm2 > 0.0 else np.inf
+        out[i, 8] = npx
+
+
+# ------------------------------------------------------------------ candidates
+def _peaks(vol: np.ndarray, grid: ReconstructionGrid, threshold: float) -> np.ndarray:
+    """Local maxima of ``vol`` above ``threshold``·max, (n, 3) x, y, z [mm], by the
+    intensity centroid of their 3 x 3 x 3 neighbourhood above its minimum."""
+    vmax = float(vol.max()) if vol.size else 0.0
+    if vmax <= 0:
+        return np.zeros((0, 3))
+    peak = (vol == ndimage.maximum_filter(vol, size=3, mode="constant")) & (vol > threshold * vmax)
+    iz, iy, ix = np.nonzero(peak)
+    pad = np.pad(vol, 1, mode="edge")
+    out = np.zeros((iz.size, 3))
+    for axis, (idx, coord) in enumerate(((ix, grid.x), (iy, grid.y), (iz, grid.z))):
+        # centroid offset along the axis from the neighbour sums on either side
+        sl_lo = [iz + 1, iy + 1, ix + 1]
+        sl_hi = [iz + 1, iy + 1, ix + 1]
+        ax = 2 - axis
+        sl_lo[ax] = sl_lo[ax] - 1
+        sl_hi[ax] = sl_hi[ax] + 1
+        lo, mid, hi = pad[tuple(sl_lo)], pad[iz + 1, iy + 1, ix + 1], pad[tuple(sl_hi)]
+        den = lo - 2 * mid + hi
+        frac = np.where(den < 0, 0.5 * (lo - hi) / np.where(den < 0, den, 1.0), 0.0)
+        frac = np.clip(frac, -0.5, 0.5)
+        f = idx + frac
+        out[:, axis] = np.interp(f, np.arange(coord.size), coord)
+    return out
+
+
+def _raw_from_lightfield(lf: xr.DataArray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The light field's samples put back on the sensor, and the mask of the pixels it holds."""
+    vals = np.asarray(lf.values, dtype=np.float64)
+    lr, lc, n, _ = vals.shape
+    row0 = np.asarray(lf["row0"].values, np.int64)
+    col0 = np.asarray(lf["col0"].values, np.int64)
+    valid = np.asarray(lf["valid"].values, bool) if "valid" in lf.coords else np.ones((lr, lc), bool)
+    img = np.zeros(shape)
+    mask = np.zeros(shape, np.uint8)
+    k = np.arange(n)
+    for i, j in zip(*np.nonzero(valid)):
+        rr, cc = row0[i, j] + k, col0[i, j] + k
+        img[np.ix_(rr, cc)] = vals[i, j]
+        mask[np.ix_(rr, cc)] = 1
+    return img, mask
+
+
+def _lightfield_from_raw(img: np.ndarray, lf: xr.DataArray) -> xr.DataArray:
+    """An image cut into ``lf``'s blocks (the inverse of :func:`_raw_from_lightfield`)."""
+    n = lf.sizes["prow"]
+    row0 = np.asarray(lf["row0"].values, np.int64)[..., None, None] + np.arange(n)[:, None]
+    col0 = np.asarray(lf["col0"].values, np.int64)[..., None, None] + np.arange(n)[None, :]
+    ny, nx = img.shape
+    ok = (row0 >= 0) & (row0 < ny) & (col0 >= 0) & (col0 < nx)
+    vals = np.where(ok, img[np.clip(row0, 0, ny - 1), np.clip(col0, 0, nx - 1)], 0.0)
+    return lf.copy(data=vals.astype(lf.dtype))
+
+
+# ------------------------------------------------------------------ the method
+def _check(name: str, value: float, lo: float, hi: float, *, lo_open: bool = False) -> None:
+    ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
+    if not ok:
+        br = "(" if lo_open else "["
+        raise ReconstructionError(f"reconstruct.ipr.{name} = {value!r}: allowed range is {br}{lo}, {hi}]")
+
+
+def ipr_particles(
+    inputs: ReconstructionInputs,
+    *,
+    iterations: int = 6,
+    peak_threshold: float = 0.1,
+    min_intensity: float = 0.2,
+    shake: float = 0.1,
+    max_step: float = 0.5,
+    damping: float = 0.01,
+    background: float = 0.0,
+    residual_candidates: int = 2,
+    mart_iterations: int = 3,
+    batch: int = 2048,
+    progress: bool = False,
+) -> xr.Dataset:
+    """Particles fitted to a registered light field by IPR (see the module docstring).
+
+    Parameters
+    ----------
+    inputs : ReconstructionInputs
+        ``lightfield``, ``centers``, ``camera`` and ``grid``.
+    iterations : int
+        Outer iterations (render, fit, remove ghosts, add candidates).
+    peak_threshold : float
+        MART peaks below this fraction of the volume's maximum are no candidates.
+    min_intensity : float
+        Particles fainter than this fraction of the median intensity are removed as ghosts.
+    shake : float
+        Finite-difference step δ of the Jacobian, in voxels of the grid (per axis).
+    max_step : float
+        Largest move of a particle in one iteration, in voxels (the trust region).
+    damping : float
+        Levenberg–Marquardt damping λ of the position part of the normal equations.
+    background : float
+        Dark level subtracted from the light field (image units).
+    residual_candidates : int
+        After each of this many first iterations, MART peaks of the positive residual add candidates.
+    mart_iterations : int
+        MART iterations of the candidate volumes.
+    batch : int
+        Particles rendered at once (bounds the patch memory).
+    progress : bool
+        A tqdm bar over the iterations.
+
+    Returns
+    -------
+    xarray.Dataset
+        Over ``particle``: ``x``, ``y``, ``z`` [mm], ``intensity`` (the exact model's: a particle of
+        intensity I at the reference solid angle puts I into the image), ``residual`` (‖residual‖/‖image‖
+        on its patch), ``sigma_x``, ``sigma_y``, ``sigma_z`` [mm] (from the fit's covariance). Attrs:
+        the settings, ``candidates``, ``removed_ghosts``, ``residual_norm`` per iteration (relative,
+        exact), ``seconds`` and the calibrated grid (:func:`calibrated_camera`).
+    """
+    t_start = time.perf_counter()
+    for name in ("lightfield", "centers", "camera", "grid"):
+        if getattr(inputs, name) is None:
+            raise ReconstructionError(f"reconstruct.ipr needs the {name}")
+    if not isinstance(iterations, (int, np.integer)) or not 0 <= iterations <= 100:
+        raise ReconstructionError(f"reconstruct.ipr.iterations = {iterations!r}: allowed range is [0, 100]")
+    _check("peak_threshold", peak_threshold, 0.0, 1.0, lo_open=True)
+    _check("min_intensity", min_intensity, 0.0, 1.0)
+    _check("shake", shake, 0.0, 1.0, lo_open=True)
+    _check("max_step", max_step, 0.0, 5.0, lo_open=True)
+    _check("damping", damping, 0.0, 1e6)
+    _check("background", background, 0.0, math.inf)
+    if not isinstance(batch, (int, np.integer)) or batch < 1:
+        raise ReconstructionError(f"reconstruct.ipr.batch = {batch!r}: allowed range is integers >= 1")
+    from lfstudy.reconstruct.mart import mart
+
+    lf, grid = inputs.lightfield, inputs.grid
+    cam, ginfo = calibrated_camera(inputs.camera, inputs.centers)
+    data, mask = _raw_from_lightfield(lf, (cam.n_pixels_y, cam.n_pixels_x))
+    if not np.all(np.isfinite(data)):
+        raise ReconstructionError("reconstruct.ipr: the light field has non-finite samples")
+    data = np.where(mask > 0, data - background, 0.0)
+    dz, dy, dx = grid.voxel_size()
+    vox = np.array([dx, dy, dz])
+    delta = shake * vox
+    mstep = max_step * vox
+    tr = np.array([[d if a == i else 0.0 for a in range(3)] for i in range(3) for d in (delta[i], -delta[i])])
+    xyz = _peaks(mart(lf, inputs.camera, grid, iterations=mart_iterations).values, grid, peak_threshold)
+    n_cand = len(xyz)
+    inten = np.zeros(len(xyz))
+    sig = np.full((len(xyz), 3), np.inf)
+    rel = np.full(len(xyz), np.inf)
+    norm_d = float(np.sqrt(np.sum(data**2))) or 1.0
+    res_hist: list[float] = []
+    ghosts = 0
+    inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
+
+    def render_model(pos: np.ndarray, amp: np.ndarray) -> np.ndarray:
+        res = data.copy()
+        for s in range(0, len(pos), batch):
+            sl = slice(s, s + batch)
+            buf, offs, r0, c0, shp = particle_patches(cam, *pos[sl].T)
+            _accumulate(res, buf, offs, r0, c0, shp, amp[sl] * 1.0, -1.0)
+        return np.where(mask > 0, res, 0.0)
+
+    def fit(pos: np.ndarray, amp: np.ndarray, res: np.ndarray, move: bool) -> np.ndarray:
+        out = np.zeros((len(pos), 9))
+        for s in range(0, len(pos), batch):
+            sl = slice(s, s + batch)
+            buf, offs, r0, c0, shp = particle_patches(cam, *pos[sl].T, trials=tr)
+            o = out[sl]
+            _sweep(res, mask, buf, offs * 1, r0, c0, shp, amp[sl].copy(), delta, mstep, float(damping), move, o)
+        return out
+
+    bar = tqdm(total=iterations, desc="IPR", unit="it", disable=not progress)
+    # intensities of the candidates first (positions fixed)
+    if len(xyz):
+        res = render_model(xyz, inten)
+        inten = fit(xyz, inten, res, False)[:, 3]
+    for it in range(iterations):
+        if not len(xyz):
+            break
+        res = render_model(xyz, inten)
+        res_hist.append(float(np.sqrt(np.sum(res**2))) / norm_d)
+        out = fit(xyz, inten, res, True)
+        xyz = xyz + out[:, :3]
+        inten = out[:, 3]
+        sig = np.sqrt(out[:, 4:7])
+        rel = out[:, 7]
+        # ghosts: faint particles, and particles that left the grid
+        med = float(np.median(inten[inten > 0])) if np.any(inten > 0) else 0.0
+        keep = inten > min_intensity * med
+        for a in range(3):
+            keep &= (xyz[:, a] >= inside[a][0] - vox[a]) & (xyz[:, a] <= inside[a][1] + vox[a])
+        keep &= _unmerged(xyz, inten, vox)
+        ghosts += int((~keep).sum())
+        xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
+        if it < residual_candidates:
+            res = render_model(xyz, inten)
+            rlf = _lightfield_from_raw(np.maximum(res, 0.0), lf)
+            new = _peaks(mart(rlf, inputs.camera, grid, iterations=mart_iterations).values, grid, peak_threshold)
+            if len(new) and len(xyz):
+                dist = np.min(np.linalg.norm(((new[:, None, :] - xyz[None, :, :]) / vox), axis=2), axis=1)
+                new = new[dist > _MIN_SEPARATION]
+            if len(new):
+                n_cand += len(new)
+                amp0 = fit(new, np.zeros(len(new)), res, False)[:, 3]
+                good = amp0 > min_intensity * med
+                xyz = np.vstack([xyz, new[good]])
+                inten = np.concatenate([inten, amp0[good]])
+                sig = np.vstack([sig, np.full((int(good.sum()), 3), np.inf)])
+                rel = np.concatenate([rel, np.full(int(good.sum()), np.inf)])
+        bar.update(1)
+        if res_hist:
+            bar.set_postfix(particles=len(xyz), residual=f"{res_hist[-1]:.4f}")
+    bar.close()
+    if len(xyz):
+        res_hist.append(float(np.sqrt(np.sum(render_model(xyz, inten) ** 2))) / norm_d)
+    P = "particle"
+    mm = lambda ln: {"units": "mm", "long_name": ln}  # noqa: E731
+    return xr.Dataset(
+        {
+            "x": (P, xyz[:, 0], mm("particle x")),
+            "y": (P, xyz[:, 1], mm("particle y (up)")),
+            "z": (P, xyz[:, 2], mm("particle z (depth from the focal plane)")),
+            "intensity": (P, inten, {"units": "image units per Ω_ref", "long_name": "fitted intensity"}),
+            "residual": (P, rel, {"units": "1", "long_name": "fit residual / particle image on its patch"}),
+            "sigma_x": (P, sig[:, 0], mm("position uncertainty x (fit covariance)")),
+            "sigma_y": (P, sig[:, 1], mm("position uncertainty y (fit covariance)")),
+            "sigma_z": (P, sig[:, 2], mm("position uncertainty z (fit covariance)")),
+        },
+        attrs={
+            "method": "ipr",
+            "iterations": int(iterations),
+            "peak_threshold": float(peak_threshold),
+            "min_intensity": float(min_intensity),
+            "shake": float(shake),
+            "max_step": float(max_step),
+            "damping": float(damping),
+            "background": float(background),
+            "candidates": int(n_cand),
+            "removed_ghosts": int(ghosts),
+            "n_particles": len(xyz),
+            "residual_norm": [float(r) for r in res_hist],
+            "seconds": float(time.perf_counter() - t_start),
+            **ginfo,
+        },
+    )
+
+
+def _unmerged(xyz: np.ndarray, inten: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """False for the fainter of each pair closer than half a voxel (per axis, scaled)."""
+    from scipy.spatial import cKDTree
+
+    keep = np.ones(len(xyz), bool)
+    if len(xyz) < 2:
+        return keep
+    pairs = cKDTree(xyz / vox).query_pairs(0.5, output_type="ndarray")
+    for a, b in pairs[np.argsort(-np.maximum(inten[pairs[:, 0]], inten[pairs[:, 1]]))] if len(pairs) else ():
+        if keep[a] and keep[b]:
+            keep[b if inten[a] >= inten[b] else a] = False
+    return keep
+
+
+def _edges(c: np.ndarray) -> np.ndarray:
+    """Voxel edges half-way between ascending centres (the outer ones as far out as the inner)."""
+    c = np.asarray(c, float)
+    if c.size == 1:
+        return np.array([c[0] - 0.5, c[0] + 0.5])
+    mid = 0.5 * (c[1:] + c[:-1])
+    return np.concatenate([[2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]])
+
+
+def render_particles(
+    particles: xr.Dataset, grid: ReconstructionGrid, camera: PlenopticCamera, blob_sigma: float = 0.0
+) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """The volume on ``grid`` of a particle list: each particle's Gaussian integrated over each voxel.
+
+    The definition of :func:`lfstudy.study.metrics.render_truth` (the true volume of Q; the tests
+    check they agree), written here because the reconstruction may not import the study.
+    ``blob_sigma`` [voxels per axis] sets σ; 0 takes the case's truth σ
+    (:func:`lfstudy.study.case.truth_sigma`: half a resolution cell, one lenslet at the
+    focal-plane magnification in x, y and the voxel depth of :func:`default_voxel_z` in z).
+
+    Returns
+    -------
+    volume : ndarray (z, y, x), float64
+    sigma : (σz, σy, σx) [mm]
+    """
+    from scipy.special import ndtr
+
+    if blob_sigma > 0:
+        dz, dy, dx = grid.voxel_size()
+        sig = (blob_sigma * dz, blob_sigma * dy, blob_sigma * dx)
+    else:
+        dxy = camera.lenslet_pitch / abs(camera.magnification)
+        sig = (default_voxel_z(camera), dxy / 2.0, dxy / 2.0)
+    axes = (grid.z, grid.y, grid.x)
+    out = np.zeros(tuple(a.size for a in axes))
+    amp = np.asarray(particles["intensity"].values, float)
+    edges = [_edges(a) for a in axes]
+    pos = [np.asarray(particles[name].values, float) for name in ("z", "y", "x")]
+    for i in np.flatnonzero(amp > 0):
+        w, sl = [], []
+        for e, p, s in zip(edges, pos, sig):
+            # the voxels within 4 σ (render_truth's truncation)
+            lo = max(int(np.searchsorted(e, p[i] - 4.0 * s)) - 1, 0)
+            hi = min(int(np.searchsorted(e, p[i] + 4.0 * s)), e.size - 1)
+            if hi <= lo:
+                break
+            w.append(np.diff(ndtr((e[lo : hi + 1] - p[i]) / s)))
+            sl.append(slice(lo, hi))
+        else:
+            out[tuple(sl)] += amp[i] * w[0][:, None, None] * w[1][None, :, None] * w[2][None, None, :]
+    return out, sig
+
+
+def ipr(
+    inputs: ReconstructionInputs,
+    *,
+    iterations: int = 6,
+    peak_threshold: float = 0.1,
+    min_intensity: float = 0.2,
+    shake: float = 0.1,
+    max_step: float = 0.5,
+    damping: float = 0.01,
+    background: float = 0.0,
+    residual_candidates: int = 2,
+    mart_iterations: int = 3,
+    blob_sigma: float = 0.0,
+    batch: int = 2048,
+    progress: bool = False,
+) -> xr.DataArray:
+    """The ``ipr`` volume: :func:`ipr_particles` rendered on the grid by :func:`render_particles`.
+
+    Parameters as :func:`ipr_particles`; ``blob_sigma`` as :func:`render_particles`. The
+    volume's attrs carry the particle list's (``n_particles``, ``candidates``,
+    ``removed_ghosts``, ``residual_norm``, the calibrated grid) and ``blob_sigma_mm``.
+    """
+    parts = ipr_particles(
+        inputs,
+        iterations=iterations,
+        peak_threshold=peak_threshold,
+        min_intensity=min_intensity,
+        shake=shake,
+        max_step=max_step,
+        damping=damping,
+        background=background,
+        residual_candidates=residual_candidates,
+        mart_iterations=mart_iterations,
+        batch=batch,
+        progress=progress,
+    )
+    vol, sig = render_particles(parts, inputs.grid, inputs.camera, blob_sigma)
+    attrs = {k: v for k, v in parts.attrs.items() if k != "method"}
+    return inputs.grid.volume(
+        vol.astype(np.float32),
+        long_name="particle volume (IPR, exact camera model)",
+        units=str(inputs.lightfield.attrs.get("units", "counts")),
+        blob_sigma_mm=[float(v) for v in sig],
+        **attrs,
+    )
+
+
+class IPR(ReconstructionMethod):
+    """``ipr``: iterative particle reconstruction fitted with the exact camera model."""
+
+    name = "ipr"
+    description = "iterative particle reconstruction (Wieneke 2013) with shaking, fitted with the exact renderer"
+    requires = ("lightfield", "centers", "camera", "grid")
+    parameters: ClassVar[dict[str, dict[str, Any]]] = {
+        "iterations": {"type": "integer", "minimum": 0, "maximum": 100, "description": "outer iterations"},
+        "peak_threshold": {
+            "type": "number",
+            "exclusiveMinimum": 0,
+            "maximum": 1,
+            "description": "MART peaks below this fraction of its maximum are no candidates",
+        },
+        "min_intensity": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 1,
+            "description": "particles fainter than this fraction of the median are removed as ghosts",
+        },
+        "shake": {
+            "type": "number",
+            "exclusiveMinimum": 0,
+            "maximum": 1,
+            "description": "finite-difference step of the position Jacobian [voxels]",
+        },
+        "max_step": {
+            "type": "number",
+            "exclusiveMinimum": 0,
+            "maximum": 5,
+            "description": "largest move of a particle per iteration [voxels]",
+        },
+        "damping": {"type": "number", "minimum": 0, "description": "Levenberg-Marquardt damping of the positions"},
+        "background": {"type": "number", "minimum": 0, "description": "dark level subtracted (image units)"},
+        "residual_candidates": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 100,
+            "description": "first iterations after which MART peaks of the residual add candidates",
+        },
+        "mart_iterations": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 50,
+            "description": "MART iterations of the candidate volumes",
+        },
+        "blob_sigma": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 5,
+            "description": "sigma [voxels] of the output volume's particles; 0: the case's truth sigma",
+        },
+    }
+
+    def run(
+        self,
+        inputs: ReconstructionInputs,
+        *,
+        iterations: int = 6,
+        peak_threshold: float = 0.1,
+        min_intensity: float = 0.2,
+        shake: float = 0.1,
+        max_step: float = 0.5,
+        damping: float = 0.01,
+        background: float = 0.0,
+        residual_candidates: int = 2,
+        mart_iterations: int = 3,
+        blob_sigma: float = 0.0,
+        progress: bool = False,
+    ) -> xr.DataArray:
+        return ipr(
+            inputs,
+            iterations=iterations,
+            peak_threshold=peak_threshold,
+            min_intensity=min_intensity,
+            shake=shake,
+            max_step=max_step,
+            damping=damping,
+            background=background,
+            residual_candidates=residual_candidates,
+            mart_iterations=mart_iterations,
+            blob_sigma=blob_sigma,
+            progress=progress,
+        )
