@@ -1654,13 +1654,13 @@ def _workspace(geo, psz):  # pragma: no cover - jitted
 
 
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
-def _render_kernel(
-    px, py, pz, wt, order, starts, ends, geo, buf, boff, brow0, brow1, psz, nlmax, stats
-):  # pragma: no cover
+def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats):  # pragma: no cover - jitted
     """Render particles ``order[starts[c]:ends[c]]`` of chunk c into its rows of the image; chunks in parallel.
 
-    ``buf`` is the flat float64 image; chunk c owns ``buf[boff[c, 0]:boff[c, 1]]``, image rows
-    ``brow0[c]..brow1[c]`` (the caller passes chunks with disjoint rows only).
+    ``parts``: (px, py, pz, wt, order), the particles' positions (mm), expected intensities and
+    sort order; ``chunks``: (starts, ends, boff, brow0, brow1). ``buf`` is the flat float64
+    image; chunk c owns ``buf[boff[c, 0]:boff[c, 1]]``, image rows ``brow0[c]..brow1[c]`` (the
+    caller passes chunks with disjoint rows only).
 
     Everything accumulates, so a chunk done in consecutive pieces (one call per
     piece) sums in the same order as in one piece. ``stats[c]`` accumulates the
@@ -1672,6 +1672,8 @@ def _render_kernel(
     (:func:`_lenslet_span`), the tables of their columns and rows (:func:`_axis_pass`),
     then each lenslet's image (:func:`_lenslet_image`).
     """
+    px, py, pz, wt, order = parts
+    starts, ends, boff, brow0, brow1 = chunks
     rotated = geo[_G_SIN] != 0.0 or geo[_G_COS] != 1.0
     for c in prange(starts.shape[0]):
         sc = np.zeros(_S_SIZE)
@@ -1898,13 +1900,15 @@ def render_exact(
     boff = np.stack([r0 * ncol, (r1 + 1) * ncol], axis=1).astype(np.int64)
     stats = np.zeros((k, _ST_SIZE))
     waves = [np.array(w, dtype=np.int64) for w in _waves(r0, r1)]
+    parts = (x, y, z, wt, order)
     with tqdm(total=x.size, desc="exact rendering", unit="particle", disable=not progress, mininterval=1.0) as bar:
         for p in range(_PIECES):
             starts = bounds[:-1] + (bounds[1:] - bounds[:-1]) * p // _PIECES
             ends = bounds[:-1] + (bounds[1:] - bounds[:-1]) * (p + 1) // _PIECES
             for w in waves:  # disjoint row bands within a wave: its parallel chunks never write one pixel
                 st = np.zeros((w.size, _ST_SIZE))
-                _render_kernel(x, y, z, wt, order, starts[w], ends[w], geo, flat, boff[w], r0[w], r1[w], psz, nlmax, st)
+                chunks = (starts[w], ends[w], boff[w], r0[w], r1[w])
+                _render_kernel(parts, chunks, geo, flat, psz, nlmax, st)
                 stats[w] += st
             bar.update(int((ends - starts).sum()))
     tot = stats.sum(axis=0)
