@@ -135,6 +135,17 @@ weight, and the two cell indices of the vectorised pass; batches 0 = x-antideriv
 1 = with the y-window, 2 = y-antiderivative, 3 = near a corner), ``ncnt[batch]`` nodes
 queued, ``vb`` (rows: argument, Φ, φ of the vectorised batch).
 
+Tuples the kernel's steps pass (each unpacked by name where it is used): ``work``, the patch
+scratch above in that order; ``spot`` (:func:`_particle`): g0x, g0y, t0x, t0y, rs, reach,
+focus, bh; ``cur`` (``curx``/``cury``, :func:`_axis_current`): one axis of the current lenslet,
+its descriptor ``ax``, Λ(lo) table ``lam``, full table ``full`` (per pixel cell of the patch)
+and circle crossings ``ang`` (rows: angle, cos, sin); ``store`` (``cols``/``rows``,
+:func:`_axis_store`): the same four per lenslet column/row the particle reaches, plus the
+crossings' count ``nang`` and the window factor ``fac``; ``chunk``: (buf, r0, r1), the
+chunk's image rows r0..r1 as a flat slice of the image. The patch steps call the axis of
+their antiderivative ``pri`` and the other ``sec``; ``swap`` is true when ``pri`` is y (the
+patch is then indexed [k, j] and its carry is carry_y).
+
 Determinism and memory
 ----------------------
 Particles are sorted by the sensor row of their image and cut into a fixed
@@ -822,29 +833,37 @@ def _u_partial(ax, sc, lamlo, full, k, v, zone):  # pragma: no cover - jitted
 
 # ---------------------------------------------------------------- patch assembly
 @_helper
-def _nodes(pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, zp, sec_window, wk, cnt):  # pragma: no cover
-    """Boundary nodes i < n of ∮ U_k(vp)·m_s(vs)·b_j(vs) d(vs) (nod rows: vp, vs, weight).
+def _nodes(pri, sec, sc, swap, work, bt, zp, sec_window, cnt):  # pragma: no cover - jitted
+    """The queued nodes of batch bt of ∮ U_k(vp)·m_s(vs)·b_j(vs) d(vs) (nodv rows: vp, vs, weight).
 
     U_k is the antiderivative along the primary axis, b_j the blurred cells of the
-    secondary axis and m_s the lenslet window along it. Cells of the primary axis wholly
-    below vp take their full share through the carry (summed once per patch). One call
-    per arc piece: the loop calls only scalar functions (no per-node array passing).
+    secondary axis and m_s the lenslet window along it (applied if ``sec_window``); ``zp``
+    is the nodes' zone on the primary axis. ``pri``, ``sec``: the primary and secondary
+    axis (``cur`` tuples); ``swap``: the primary axis is y (patch indexed [k, j], carry_y);
+    ``work``: the patch scratch. Cells of the primary axis wholly below vp take their full
+    share through the carry (summed once per patch). One call per arc piece: the loop
+    calls only scalar functions (no per-node array passing).
     """
+    pa, lam_p, full_p, _ = pri
+    sa = sec[0]
+    direct, carry_x, carry_y, _, _, wk, nodv, ncnt, _ = work
+    carry = carry_y if swap else carry_x
+    n = ncnt[bt]
     pp = sc[_S_PP]
     ksl = sc[_S_KSL]
     sl = sc[_S_SL]
     sm = sc[_S_SM]
     kap = sc[_S_KAP]
-    pe0 = pri[_A_E0]
-    npri = int(pri[_A_N])
-    se0 = sec[_A_E0]
-    ns = int(sec[_A_N])
-    sg0 = sec[_A_G0]
-    sc0 = sec[_A_C]
-    se1 = sec[_A_E1]
-    se2 = sec[_A_E2]
-    sa1 = sec[_A_A1] != 0.0
-    sa2 = sec[_A_A2] != 0.0
+    pe0 = pa[_A_E0]
+    npri = int(pa[_A_N])
+    se0 = sa[_A_E0]
+    ns = int(sa[_A_N])
+    sg0 = sa[_A_G0]
+    sc0 = sa[_A_C]
+    se1 = sa[_A_E1]
+    se2 = sa[_A_E2]
+    sa1 = sa[_A_A1] != 0.0
+    sa2 = sa[_A_A2] != 0.0
     inv_pp = 1.0 / pp
     cnt[_ST_NODES] += n
     if zp in (_BLO, _BHI):
@@ -883,9 +902,9 @@ def _nodes(pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, zp, se
             # carried from the previous node of this piece (vp is monotone along a piece).
             for k in range(k0, kpart + 1):
                 if wk[5, k] != 0.0:
-                    u = wk[3, k] + _num_step(pri, sc, k, wk[4, k], vp)
+                    u = wk[3, k] + _num_step(pa, sc, k, wk[4, k], vp)
                 else:
-                    u = _u_partial(pri, sc, lam_p, full_p, k, vp, zp)
+                    u = _u_partial(pa, sc, lam_p, full_p, k, vp, zp)
                 wk[3, k] = u
                 wk[4, k] = vp
                 wk[5, k] = 1.0
@@ -911,12 +930,15 @@ def _nodes(pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, zp, se
 
 
 @_helper
-def _nodes_vec(
-    pri, sec, sc, lam_p, full_p, direct, carry, swap, nodv, bt, n, sec_window, vb, wk, cnt
-):  # pragma: no cover
+def _nodes_vec(pri, sec, sc, swap, work, bt, sec_window, cnt):  # pragma: no cover - jitted
     """As :func:`_nodes` for nodes in the flat middle of the primary window, with σl > 0 (and σm > 0
     if the secondary window is needed): the Φ values of a whole batch are computed in one
     vectorised pass, for a fixed set of 2W + 2 pixel edges around each node (W = ⌈6σl/pp⌉)."""
+    pa, lam_p, _, _ = pri
+    sa = sec[0]
+    direct, carry_x, carry_y, _, _, wk, nodv, ncnt, vb = work
+    carry = carry_y if swap else carry_x
+    n = ncnt[bt]
     pp = sc[_S_PP]
     sl = sc[_S_SL]
     sm = sc[_S_SM]
@@ -926,16 +948,16 @@ def _nodes_vec(
     ism = 1.0 / sm if sm > 0.0 else 0.0
     wh = math.ceil(sc[_S_KSL] * inv_pp)
     ne = 2 * wh + 2
-    pe0 = pri[_A_E0]
-    npri = int(pri[_A_N])
-    se0 = sec[_A_E0]
-    ns = int(sec[_A_N])
-    sg0 = sec[_A_G0]
-    sc0 = sec[_A_C]
-    se1 = sec[_A_E1]
-    se2 = sec[_A_E2]
-    sa1 = sec[_A_A1] != 0.0
-    sa2 = sec[_A_A2] != 0.0
+    pe0 = pa[_A_E0]
+    npri = int(pa[_A_N])
+    se0 = sa[_A_E0]
+    ns = int(sa[_A_N])
+    sg0 = sa[_A_G0]
+    sc0 = sa[_A_C]
+    se1 = sa[_A_E1]
+    se2 = sa[_A_E2]
+    sa1 = sa[_A_A1] != 0.0
+    sa2 = sa[_A_A2] != 0.0
     cnt[_ST_NODES] += n
     for i in range(n):  # arguments of every Φ the batch needs
         vp = nodv[bt, 0, i]
@@ -1000,32 +1022,38 @@ def _v_at(ax, sc, lamv, fullv, j, v, zone):  # pragma: no cover - jitted
 
 
 @_helper
-def _cut(pri, sec, sc, lam_p, full_p, lam_s, full_s, direct, carry, swap, v, s0, s1, sign, uk):  # pragma: no cover
+def _cut(pri, sec, sc, swap, work, v, s0, s1, sign):  # pragma: no cover - jitted
     """A straight segment at primary coordinate v from s0 to s1 along the secondary axis:
-    sign·U_p(v)·[V_s(s1) − V_s(s0)] for every cell pair (``uk``: scratch for the U_p(v) of each cell)."""
+    sign·U_p(v)·[V_s(s1) − V_s(s0)] for every cell pair (``pri``, ``sec``, ``swap``, ``work``:
+    as for :func:`_nodes`; wk row 2 holds the U_p(v) of each cell)."""
+    pa, lam_p, full_p, _ = pri
+    sa, lam_s, full_s, _ = sec
+    direct, carry_x, carry_y, _, _, wk, _, _, _ = work
+    carry = carry_y if swap else carry_x
+    uk = wk[2]
     pp = sc[_S_PP]
     ksl = sc[_S_KSL]
-    ns = int(sec[_A_N])
-    npri = int(pri[_A_N])
-    zp = _zone(pri, v)
+    ns = int(sa[_A_N])
+    npri = int(pa[_A_N])
+    zp = _zone(pa, v)
     if zp == _LOW:
         return
-    z0 = _zone(sec, s0)
-    z1 = _zone(sec, s1)
-    kfull = min(max(math.floor((v - ksl - pri[_A_E0]) / pp) - 1, -1), npri - 1)
-    kpart = min(math.floor((v + ksl - pri[_A_E0]) / pp), npri - 1)
+    z0 = _zone(sa, s0)
+    z1 = _zone(sa, s1)
+    kfull = min(max(math.floor((v - ksl - pa[_A_E0]) / pp) - 1, -1), npri - 1)
+    kpart = min(math.floor((v + ksl - pa[_A_E0]) / pp), npri - 1)
     if zp == _HIGH:  # every cell takes its full share
         kfull = kpart = npri - 1
-    j0 = max(math.floor((s0 - ksl - sec[_A_E0]) / pp), 0)
-    j1 = min(math.floor((s1 + ksl - sec[_A_E0]) / pp), ns - 1)
+    j0 = max(math.floor((s0 - ksl - sa[_A_E0]) / pp), 0)
+    j1 = min(math.floor((s1 + ksl - sa[_A_E0]) / pp), ns - 1)
     if j1 < j0:
         return
     # U_p(v) does not depend on the secondary cell: once per primary cell (inside a band it is
     # a numeric integral).
     for k in range(kfull + 1, kpart + 1):
-        uk[k] = _u_partial(pri, sc, lam_p, full_p, k, v, zp)
+        uk[k] = _u_partial(pa, sc, lam_p, full_p, k, v, zp)
     for j in range(j0, j1 + 1):
-        dv = sign * (_v_at(sec, sc, lam_s, full_s, j, s1, z1) - _v_at(sec, sc, lam_s, full_s, j, s0, z0))
+        dv = sign * (_v_at(sa, sc, lam_s, full_s, j, s1, z1) - _v_at(sa, sc, lam_s, full_s, j, s0, z0))
         if dv == 0.0:
             continue
         if kfull >= 0:
@@ -1076,29 +1104,27 @@ def _cs_small(d):  # pragma: no cover - jitted
 
 
 @_helper
-def _flush(bt, ax, ay, sc, tabs, work, cnt):  # pragma: no cover - jitted
+def _flush(bt, curx, cury, sc, work, cnt):  # pragma: no cover - jitted
     """Process batch bt of arc nodes: 0 = x-antiderivative, 1 = the same with the y-window,
     2 = y-antiderivative (x inside a band, y in the flat middle)."""
-    lamx, fullx, lamy, fully = tabs
-    direct, carry_x, carry_y, _, _, wk, nodv, ncnt, vb = work
-    n = ncnt[bt]
-    if n == 0:
+    ncnt = work[7]
+    if ncnt[bt] == 0:
         return
     vec = sc[_S_SL] > 0.0 and (sc[_S_SM] > 0.0 or bt == 0)
     if bt < 2:
         if vec:
-            _nodes_vec(ax, ay, sc, lamx, fullx, direct, carry_x, False, nodv, bt, n, bt == 1, vb, wk, cnt)
+            _nodes_vec(curx, cury, sc, False, work, bt, bt == 1, cnt)
         else:
-            _nodes(ax, ay, sc, lamx, fullx, direct, carry_x, False, nodv, bt, n, _MID, bt == 1, wk, cnt)
+            _nodes(curx, cury, sc, False, work, bt, _MID, bt == 1, cnt)
     elif vec:
-        _nodes_vec(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, n, True, vb, wk, cnt)
+        _nodes_vec(cury, curx, sc, True, work, bt, True, cnt)
     else:
-        _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, n, _MID, True, wk, cnt)
+        _nodes(cury, curx, sc, True, work, bt, _MID, True, cnt)
     ncnt[bt] = 0
 
 
 @_helper
-def _arc(ax, ay, sc, tabs, work, ia, cnt):  # pragma: no cover - jitted
+def _arc(curx, cury, sc, work, ia, cnt):  # pragma: no cover - jitted
     """Gauss–Legendre nodes of arc piece ia (pcs[:, ia] to pcs[:, ia + 1]: angle, cos, sin),
     monotone in x and y and in one zone pair.
 
@@ -1109,8 +1135,9 @@ def _arc(ax, ay, sc, tabs, work, ia, cnt):  # pragma: no cover - jitted
     except near a corner of the blurred square, done at once (numeric, monotone order).
     Cosines and sines come from the crossing geometry and rotations, not from libm.
     """
-    _, _, lamy, fully = tabs
-    direct, _, carry_y, pcs, brk, wk, nodv, ncnt, _ = work
+    ax = curx[0]
+    ay = cury[0]
+    _, _, _, pcs, brk, _, nodv, ncnt, _ = work
     rho = sc[_S_RHO]
     cx = ax[_A_C]
     cy = ay[_A_C]
@@ -1212,10 +1239,10 @@ def _arc(ax, ay, sc, tabs, work, ia, cnt):  # pragma: no cover - jitted
         for _ in range(m):
             if ncnt[bt] + ng > cap:  # flush a full batch
                 if corner:
-                    _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, ncnt[bt], zy, True, wk, cnt)
+                    _nodes(cury, curx, sc, True, work, bt, zy, True, cnt)
                     ncnt[bt] = 0
                 else:
-                    _flush(bt, ax, ay, sc, tabs, work, cnt)
+                    _flush(bt, curx, cury, sc, work, cnt)
             nn = ncnt[bt]
             for q in range(ng):
                 cd, sd = _cs_small(h * _GL_X[ng, q])  # angle-sum rule about the sub-panel centre
@@ -1237,21 +1264,22 @@ def _arc(ax, ay, sc, tabs, work, ia, cnt):  # pragma: no cover - jitted
         c0 = c1
         s0 = s1
     if corner and ncnt[bt] > 0:  # numeric antiderivatives carried along this piece: done now
-        _nodes(ay, ax, sc, lamy, fully, direct, carry_y, True, nodv, bt, ncnt[bt], zy, True, wk, cnt)
+        _nodes(cury, curx, sc, True, work, bt, zy, True, cnt)
         ncnt[bt] = 0
 
 
 @_helper
-def _boundary(ax, ay, sc, tabs, angx, nangx, angy, nangy, work, cnt):  # pragma: no cover - jitted
+def _boundary(curx, nangx, cury, nangy, sc, work, cnt):  # pragma: no cover - jitted
     """The patch of a lenslet whose blurred square meets the rim of the aperture image (Green's theorem).
 
-    ``tabs``: the Λ(lo) and full tables of the lenslet's column and row (lamx, fullx, lamy,
-    fully); ``angx``/``angy``: the first ``nangx``/``nangy`` circle crossings of the column's
-    and row's zone boundaries; ``work``: the patch scratch of :func:`_workspace`. The patch
-    accumulates into ``work[0]`` (direct).
+    ``curx``/``cury``: the lenslet's column and row (descriptor, Λ(lo) and full tables, circle
+    crossings: see "Data layout"), of which the first ``nangx``/``nangy`` crossings are set;
+    ``work``: the patch scratch of :func:`_workspace`. The patch accumulates into ``work[0]``
+    (direct).
     """
-    lamx, fullx, lamy, fully = tabs
-    direct, carry_x, carry_y, pcs, _, wk, _, _, _ = work
+    ax, _, fullx, angx = curx
+    ay, _, fully, angy = cury
+    direct, carry_x, carry_y, pcs, _, _, _, _, _ = work
     rho = sc[_S_RHO]
     cx = ax[_A_C]
     cy = ay[_A_C]
@@ -1281,9 +1309,9 @@ def _boundary(ax, ay, sc, tabs, angx, nangx, angy, nangy, work, cnt):  # pragma:
     nb += 1
     for i in range(nb - 1):
         if pcs[0, i + 1] > pcs[0, i]:
-            _arc(ax, ay, sc, tabs, work, i, cnt)
+            _arc(curx, cury, sc, work, i, cnt)
     for bt in range(3):
-        _flush(bt, ax, ay, sc, tabs, work, cnt)
+        _flush(bt, curx, cury, sc, work, cnt)
     # Vertical cuts between the flat middle (x-antiderivative) and the bands (y-antiderivative).
     if ax[_A_MRG] == 0.0:
         for v, sign in ((ax[_A_LO] + bx, -1.0), (ax[_A_HI] - bx, 1.0)):
@@ -1292,7 +1320,7 @@ def _boundary(ax, ay, sc, tabs, angx, nangx, angy, nangy, work, cnt):  # pragma:
                 s0 = max(cy - h, ay[_A_LO] - by)
                 s1 = min(cy + h, ay[_A_HI] + by)
                 if s1 > s0:
-                    _cut(ax, ay, sc, lamx, fullx, lamy, fully, direct, carry_x, False, v, s0, s1, sign, wk[2])
+                    _cut(curx, cury, sc, False, work, v, s0, s1, sign)
     # The top edge of the blurred square inside the bands (y-antiderivative: V is full there).
     y0 = ay[_A_HI] + by
     if abs(y0 - cy) < rho:
@@ -1313,7 +1341,7 @@ def _boundary(ax, ay, sc, tabs, angx, nangx, angy, nangy, work, cnt):  # pragma:
             xl = max(b0, cx - hx)
             xr = min(b1, cx + hx)
             if xr > xl:
-                _cut(ay, ax, sc, lamy, fully, lamx, fullx, direct, carry_y, True, y0, xl, xr, 1.0, wk[2])
+                _cut(cury, curx, sc, True, work, y0, xl, xr, 1.0)
     # Carries: cells wholly below a node take their full share.
     for j in range(ny):
         acc = 0.0
@@ -1330,8 +1358,12 @@ def _boundary(ax, ay, sc, tabs, angx, nangx, angy, nangy, work, cnt):  # pragma:
 
 
 @_helper
-def _write_patch(direct, ax, ay, geo, buf, r0, r1, fac):  # pragma: no cover - jitted
-    """Add fac·direct into the chunk buffer (rows r0..r1) and clear it; returns (total, on the sensor, spilled)."""
+def _write_patch(direct, ax, ay, geo, chunk, fac):  # pragma: no cover - jitted
+    """Add fac·direct into the chunk's rows and clear it; returns (total, on the sensor, spilled).
+
+    ``chunk``: (buf, r0, r1), the chunk's image rows r0..r1 as a flat slice of the image.
+    """
+    buf, r0, r1 = chunk
     nx = int(ax[_A_N])
     ny = int(ay[_A_N])
     tx0 = int(ax[_A_T0])
@@ -1361,8 +1393,9 @@ def _write_patch(direct, ax, ay, geo, buf, r0, r1, fac):  # pragma: no cover - j
 
 
 @_helper
-def _write_outer(fx, ax, fy, ay, geo, buf, r0, r1, fac):  # pragma: no cover - jitted
-    """Add fac·fy[j]·fx[k] (a separable patch) into the chunk buffer; returns (total, on the sensor, spilled)."""
+def _write_outer(fx, ax, fy, ay, geo, chunk, fac):  # pragma: no cover - jitted
+    """Add fac·fy[j]·fx[k] (a separable patch) into the chunk's rows; returns (total, on the sensor, spilled)."""
+    buf, r0, r1 = chunk
     nx = int(ax[_A_N])
     ny = int(ay[_A_N])
     tx0 = int(ax[_A_T0])
@@ -1396,8 +1429,10 @@ def _write_outer(fx, ax, fy, ay, geo, buf, r0, r1, fac):  # pragma: no cover - j
 
 
 @njit(inline="always", cache=True)
-def _store(ax, lam, full, ang, axs, lams, fulls, angs, slot):  # pragma: no cover - jitted
-    """Keep a column's (row's) descriptor and tables for the lenslets that share it."""
+def _store(cur, store, slot):  # pragma: no cover - jitted
+    """Keep a column's (row's) descriptor and tables for the lenslets that share it (the inverse of :func:`_load`)."""
+    ax, lam, full, ang = cur
+    axs, lams, fulls, angs, _, _ = store
     for q in range(_A_SIZE):
         axs[slot, q] = ax[q]
     for k in range(int(ax[_A_N])):
@@ -1476,12 +1511,16 @@ def _lenslet_span(geo, g0, reach, is_x):  # pragma: no cover - jitted
 
 
 @njit(inline="always", cache=True)
-def _axis_pass(geo, sc, is_x, lo, hi, g0, t0, focus, reach, bh, rotated, cur, store, tmp, cnt):  # pragma: no cover
-    """Step 3, per lenslet column (``is_x``) or row ``lo..hi``: its window factor (in focus: the
-    share of the spot it takes; else 0 if the spot misses it) and, for an unrotated grid, its
-    axis descriptor, tables and circle crossings, kept in ``store`` for the lenslets that share it."""
+def _axis_pass(geo, sc, spot, is_x, lo, hi, rotated, cur, store, tmp, cnt):  # pragma: no cover - jitted
+    """Step 3, per lenslet column (``is_x``) or row ``lo..hi`` the spot (:func:`_particle`) reaches: its
+    window factor (in focus: the share of the spot it takes; else 0 if the spot misses it) and, for
+    an unrotated grid, its axis descriptor, tables and circle crossings, kept in ``store`` for the
+    lenslets that share it."""
+    g0 = spot[0] if is_x else spot[1]
+    t0 = spot[2] if is_x else spot[3]
+    reach, focus, bh = spot[5], spot[6], spot[7]
     ax, lam, full, ang = cur
-    axs, lams, fulls, angs, nang, fac = store
+    _, _, _, _, nang, fac = store
     pl, fl, sm = geo[_G_PL], geo[_G_FL], geo[_G_SM]
     if is_x:
         c0, off, origin = 0.5 * (geo[_G_NLX] - 1.0), geo[_G_OX], -geo[_G_HW]
@@ -1520,7 +1559,7 @@ def _axis_pass(geo, sc, is_x, lo, hi, g0, t0, focus, reach, bh, rotated, cur, st
             continue
         _axis_tables(ax, sc, lam, full, tmp)
         nang[slot] = _axis_angles(ax, sc[_S_RHO], ang, is_x)
-        _store(ax, lam, full, ang, axs, lams, fulls, angs, slot)
+        _store(cur, store, slot)
 
 
 @njit(inline="always", cache=True)
@@ -1546,31 +1585,30 @@ def _rotated_axes(geo, sc, li, lj, spot, curx, cury, tmp):  # pragma: no cover -
 
 
 @njit(inline="always", cache=True)
-def _lenslet_image(geo, sc, li, lj, spot, fac, curx, cury, nangx, nangy, work, b, r0, r1, cnt):  # pragma: no cover
-    """Step 4b, one lenslet's image (descriptors in ``curx``, ``cury``) added into the chunk's rows:
+def _lenslet_image(geo, sc, spot, fac, curx, nangx, cury, nangy, work, chunk, cnt):  # pragma: no cover - jitted
+    """Step 4b, one lenslet's image (its column and row in ``curx``, ``cury``, with ``nangx``, ``nangy``
+    circle crossings) times ``fac``, added into the chunk's rows (``chunk``: see :func:`_write_patch`):
     separable if the blurred square lies inside the aperture image, else by Green's theorem."""
     g0x, g0y, rs, focus = spot[0], spot[1], spot[4], spot[6]
-    ax, lamx, fullx, angx = curx
-    ay, lamy, fully, angy = cury
+    ax, _, fullx, _ = curx
+    ay, _, fully, _ = cury
     direct = work[0]
     if ax[_A_N] == 0.0 or ay[_A_N] == 0.0:
         return
-    pl, sm = geo[_G_PL], geo[_G_SM]
-    u1 = (lj - 0.5 * (geo[_G_NLX] - 1.0) - 0.5) * pl
-    u2 = u1 + pl
-    v1 = (0.5 * (geo[_G_NLY] - 1.0) - li - 0.5) * pl
-    v2 = v1 + pl
+    sm = sc[_S_SM]
+    u1, u2 = ax[_A_E1], ax[_A_E2]  # the lenslet's square (grid frame)
+    v1, v2 = ay[_A_E1], ay[_A_E2]
     interior = False
     if not focus and ax[_A_A1] * ax[_A_A2] * ay[_A_A1] * ay[_A_A2] != 0.0:
         ex = max(abs(u1 - _K * sm - g0x), abs(u2 + _K * sm - g0x))
         ey = max(abs(v1 - _K * sm - g0y), abs(v2 + _K * sm - g0y))
         interior = ex * ex + ey * ey <= rs * rs
     if interior:
-        tot, ins, sp = _write_outer(fullx, ax, fully, ay, geo, b, r0, r1, fac)
+        tot, ins, sp = _write_outer(fullx, ax, fully, ay, geo, chunk, fac)
         cnt[_ST_INTERIOR] += 1.0
     else:
-        _boundary(ax, ay, sc, (lamx, fullx, lamy, fully), angx, nangx, angy, nangy, work, cnt)
-        tot, ins, sp = _write_patch(direct, ax, ay, geo, b, r0, r1, fac)
+        _boundary(curx, nangx, cury, nangy, sc, work, cnt)
+        tot, ins, sp = _write_patch(direct, ax, ay, geo, chunk, fac)
     cnt[_ST_ALL] += tot
     cnt[_ST_IN] += ins
     cnt[_ST_SPILL] += abs(sp)
@@ -1616,13 +1654,13 @@ def _workspace(geo, psz):  # pragma: no cover - jitted
 
 
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
-def _render_kernel(
-    px, py, pz, wt, order, starts, ends, geo, buf, boff, brow0, brow1, psz, nlmax, stats
-):  # pragma: no cover
+def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats):  # pragma: no cover - jitted
     """Render particles ``order[starts[c]:ends[c]]`` of chunk c into its rows of the image; chunks in parallel.
 
-    ``buf`` is the flat float64 image; chunk c owns ``buf[boff[c, 0]:boff[c, 1]]``, image rows
-    ``brow0[c]..brow1[c]`` (the caller passes chunks with disjoint rows only).
+    ``parts``: (px, py, pz, wt, order), the particles' positions (mm), expected intensities and
+    sort order; ``chunks``: (starts, ends, boff, brow0, brow1). ``buf`` is the flat float64
+    image; chunk c owns ``buf[boff[c, 0]:boff[c, 1]]``, image rows ``brow0[c]..brow1[c]`` (the
+    caller passes chunks with disjoint rows only).
 
     Everything accumulates, so a chunk done in consecutive pieces (one call per
     piece) sums in the same order as in one piece. ``stats[c]`` accumulates the
@@ -1634,6 +1672,8 @@ def _render_kernel(
     (:func:`_lenslet_span`), the tables of their columns and rows (:func:`_axis_pass`),
     then each lenslet's image (:func:`_lenslet_image`).
     """
+    px, py, pz, wt, order = parts
+    starts, ends, boff, brow0, brow1 = chunks
     rotated = geo[_G_SIN] != 0.0 or geo[_G_COS] != 1.0
     for c in prange(starts.shape[0]):
         sc = np.zeros(_S_SIZE)
@@ -1644,9 +1684,7 @@ def _render_kernel(
         tmp = np.zeros(psz)
         work = _workspace(geo, psz)
         cnt = np.zeros(_ST_SIZE)
-        b = buf[boff[c, 0] : boff[c, 1]]  # the chunk's rows of the image
-        r0 = brow0[c]
-        r1 = brow1[c]
+        chunk = (buf[boff[c, 0] : boff[c, 1]], brow0[c], brow1[c])  # the chunk's rows of the image
         for idx in range(starts[c], ends[c]):
             i = order[idx]
             w = wt[i]
@@ -1654,7 +1692,7 @@ def _render_kernel(
             if w == 0.0:
                 continue
             spot = _particle(geo, px[i], py[i], pz[i], sc)
-            g0x, g0y, t0x, t0y, _, reach, focus, bh = spot
+            g0x, g0y, _, _, _, reach, focus, _ = spot
             j0, j1 = _lenslet_span(geo, g0x, reach, True)
             i0, i1 = _lenslet_span(geo, g0y, reach, False)
             if j1 < j0 or i1 < i0:
@@ -1663,8 +1701,8 @@ def _render_kernel(
                 cnt[_ST_BIG] += 1.0
                 continue
             fac0 = w / (math.pi * sc[_S_RHO] * sc[_S_RHO])  # uniform over the aperture image
-            _axis_pass(geo, sc, True, j0, j1, g0x, t0x, focus, reach, bh, rotated, curx, cols, tmp, cnt)
-            _axis_pass(geo, sc, False, i0, i1, g0y, t0y, focus, reach, bh, rotated, cury, rows, tmp, cnt)
+            _axis_pass(geo, sc, spot, True, j0, j1, rotated, curx, cols, tmp, cnt)
+            _axis_pass(geo, sc, spot, False, i0, i1, rotated, cury, rows, tmp, cnt)
             facx = cols[5]
             facy = rows[5]
             pl = geo[_G_PL]
@@ -1697,7 +1735,7 @@ def _render_kernel(
                         _load(curx, cols, sx)
                         nax, nay = cols[4][sx], rows[4][sy]
                     fac = fac0 * facx[sx] * facy[sy]
-                    _lenslet_image(geo, sc, li, lj, spot, fac, curx, cury, nax, nay, work, b, r0, r1, cnt)
+                    _lenslet_image(geo, sc, spot, fac, curx, nax, cury, nay, work, chunk, cnt)
         for q in range(_ST_SIZE):
             stats[c, q] += cnt[q]
 
@@ -1862,13 +1900,15 @@ def render_exact(
     boff = np.stack([r0 * ncol, (r1 + 1) * ncol], axis=1).astype(np.int64)
     stats = np.zeros((k, _ST_SIZE))
     waves = [np.array(w, dtype=np.int64) for w in _waves(r0, r1)]
+    parts = (x, y, z, wt, order)
     with tqdm(total=x.size, desc="exact rendering", unit="particle", disable=not progress, mininterval=1.0) as bar:
         for p in range(_PIECES):
             starts = bounds[:-1] + (bounds[1:] - bounds[:-1]) * p // _PIECES
             ends = bounds[:-1] + (bounds[1:] - bounds[:-1]) * (p + 1) // _PIECES
             for w in waves:  # disjoint row bands within a wave: its parallel chunks never write one pixel
                 st = np.zeros((w.size, _ST_SIZE))
-                _render_kernel(x, y, z, wt, order, starts[w], ends[w], geo, flat, boff[w], r0[w], r1[w], psz, nlmax, st)
+                chunks = (starts[w], ends[w], boff[w], r0[w], r1[w])
+                _render_kernel(parts, chunks, geo, flat, psz, nlmax, st)
                 stats[w] += st
             bar.update(int((ends - starts).sum()))
     tot = stats.sum(axis=0)
