@@ -69,30 +69,12 @@ from lfstudy.simulate._render_common import (
     _G_HH,
     _G_HW,
     _G_NCOL,
-    _G_NLX,
-    _G_NLY,
     _G_NROW,
-    _G_PL,
     _blurs,
     _geometry,
     solid_angle,
 )
-from lfstudy.simulate.exact import (
-    _K,
-    _S_RHO,
-    _S_SIZE,
-    _ST_BIG,
-    _ST_SIZE,
-    _ST_SPILL,
-    _axis_current,
-    _axis_pass,
-    _axis_store,
-    _lenslet_image,
-    _lenslet_span,
-    _load,
-    _particle,
-    _workspace,
-)
+from lfstudy.simulate.exact import _K, _ST_BIG, _ST_SIZE, _ST_SPILL, _render_particle, _scratch
 
 __all__ = ["IPR", "ipr", "ipr_particles", "calibrated_camera", "particle_patches", "render_particles"]
 
@@ -181,57 +163,16 @@ def _patch_kernel(px, py, pz, wt, geos, gidx, buf, boff, psz, nlmax, stats):  # 
     """Render particle t (``px[t], py[t], pz[t]``, weight ``wt[t]``) with the cropped geometry
     ``geos[gidx[t]]`` into ``buf[boff[t, 0]:boff[t, 1]]`` (its patch, rows × cols of the crop).
 
-    The per-particle loop of :func:`lfstudy.simulate.exact._render_kernel` (unrotated grid),
-    one particle per task, each with its own sensor crop.
+    One particle per task, each with its own sensor crop, by the full render's own per-particle
+    step (:func:`lfstudy.simulate.exact._render_particle`, unrotated grid).
     """
     for t in prange(px.size):
         geo = geos[gidx[t]]
-        sc = np.zeros(_S_SIZE)
-        cols = _axis_store(nlmax, psz)
-        rows = _axis_store(nlmax, psz)
-        curx = _axis_current(psz)
-        cury = _axis_current(psz)
-        tmp = np.zeros(psz)
-        work = _workspace(geo, psz)
+        if wt[t] == 0.0:
+            continue
         cnt = np.zeros(_ST_SIZE)
-        b = buf[boff[t, 0] : boff[t, 1]]
-        r1 = int(geo[_G_NROW]) - 1
-        w = wt[t]
-        spot = _particle(geo, px[t], py[t], pz[t], sc)
-        g0x, g0y, t0x, t0y, _, reach, focus, bh = spot
-        j0, j1 = _lenslet_span(geo, g0x, reach, True)
-        i0, i1 = _lenslet_span(geo, g0y, reach, False)
-        if w == 0.0 or j1 < j0 or i1 < i0:
-            continue
-        if j1 - j0 + 1 > nlmax or i1 - i0 + 1 > nlmax:
-            stats[t, _ST_BIG] += 1.0
-            continue
-        fac0 = w / (math.pi * sc[_S_RHO] * sc[_S_RHO])
-        _axis_pass(geo, sc, True, j0, j1, g0x, t0x, focus, reach, bh, False, curx, cols, tmp, cnt)
-        _axis_pass(geo, sc, False, i0, i1, g0y, t0y, focus, reach, bh, False, cury, rows, tmp, cnt)
-        facx = cols[5]
-        facy = rows[5]
-        pl = geo[_G_PL]
-        cx0, cy0 = 0.5 * (geo[_G_NLX] - 1.0), 0.5 * (geo[_G_NLY] - 1.0)
-        for li in range(i0, i1 + 1):
-            sy = li - i0
-            if facy[sy] == 0.0:
-                continue
-            v1 = (cy0 - li - 0.5) * pl
-            ddy = max(v1 - g0y, 0.0, g0y - (v1 + pl))
-            _load(cury, rows, sy)
-            for lj in range(j0, j1 + 1):
-                sx = lj - j0
-                if facx[sx] == 0.0:
-                    continue
-                u1 = (lj - cx0 - 0.5) * pl
-                ddx = max(u1 - g0x, 0.0, g0x - (u1 + pl))
-                if ddx * ddx + ddy * ddy > reach * reach:
-                    continue
-                _load(curx, cols, sx)
-                nax, nay = cols[4][sx], rows[4][sy]
-                fac = fac0 * facx[sx] * facy[sy]
-                _lenslet_image(geo, sc, li, lj, spot, fac, curx, cury, nax, nay, work, b, 0, r1, cnt)
+        chunk = (buf[boff[t, 0] : boff[t, 1]], 0, int(geo[_G_NROW]) - 1)
+        _render_particle(geo, False, px[t], py[t], pz[t], wt[t], _scratch(geo, psz, nlmax), chunk, cnt)
         for q in range(_ST_SIZE):
             stats[t, q] += cnt[q]
 

@@ -1653,6 +1653,80 @@ def _workspace(geo, psz):  # pragma: no cover - jitted
     )
 
 
+@njit(inline="always", cache=True)
+def _scratch(geo, psz, nlmax):  # pragma: no cover - jitted
+    """One thread's scratch for :func:`_render_particle`: (sc, cols, rows, curx, cury, tmp, work)."""
+    return (
+        np.zeros(_S_SIZE),
+        _axis_store(nlmax, psz),
+        _axis_store(nlmax, psz),
+        _axis_current(psz),
+        _axis_current(psz),
+        np.zeros(psz),
+        _workspace(geo, psz),
+    )
+
+
+@njit(cache=True)
+def _render_particle(geo, rotated, x, y, z, w, scr, chunk, cnt):  # pragma: no cover - jitted
+    """Add the expected image of one particle (``x, y, z`` [mm], expected intensity ``w``) to ``chunk``.
+
+    Its geometry (:func:`_particle`), the lenslets it reaches (:func:`_lenslet_span`), the
+    tables of their columns and rows (:func:`_axis_pass`), then each lenslet's image
+    (:func:`_lenslet_image`). ``scr`` is :func:`_scratch`'s tuple, ``chunk`` = (buf, r0, r1) the
+    rows it writes, ``cnt`` the ``_ST_*`` counters. The full render (:func:`_render_kernel`) and
+    the per-particle patches of :mod:`lfstudy.reconstruct.ipr` both call it, so both give the
+    same bytes for the same particle.
+    """
+    sc, cols, rows, curx, cury, tmp, work = scr
+    nlmax = cols[0].shape[0]
+    spot = _particle(geo, x, y, z, sc)
+    g0x, g0y, _, _, _, reach, focus, _ = spot
+    j0, j1 = _lenslet_span(geo, g0x, reach, True)
+    i0, i1 = _lenslet_span(geo, g0y, reach, False)
+    if j1 < j0 or i1 < i0:
+        return
+    if j1 - j0 + 1 > nlmax or i1 - i0 + 1 > nlmax:
+        cnt[_ST_BIG] += 1.0
+        return
+    fac0 = w / (math.pi * sc[_S_RHO] * sc[_S_RHO])  # uniform over the aperture image
+    _axis_pass(geo, sc, spot, True, j0, j1, rotated, curx, cols, tmp, cnt)
+    _axis_pass(geo, sc, spot, False, i0, i1, rotated, cury, rows, tmp, cnt)
+    facx = cols[5]
+    facy = rows[5]
+    pl = geo[_G_PL]
+    cx0, cy0 = 0.5 * (geo[_G_NLX] - 1.0), 0.5 * (geo[_G_NLY] - 1.0)
+    for li in range(i0, i1 + 1):
+        sy = li - i0
+        if facy[sy] == 0.0:
+            continue
+        v1 = (cy0 - li - 0.5) * pl
+        ddy = max(v1 - g0y, 0.0, g0y - (v1 + pl))
+        if not rotated:
+            _load(cury, rows, sy)
+        for lj in range(j0, j1 + 1):
+            sx = lj - j0
+            if facx[sx] == 0.0:
+                continue
+            u1 = (lj - cx0 - 0.5) * pl
+            ddx = max(u1 - g0x, 0.0, g0x - (u1 + pl))
+            if ddx * ddx + ddy * ddy > reach * reach:
+                continue
+            if rotated:
+                if not focus:
+                    cnt[_ST_REFUSED] += 1.0
+                    continue
+                if not _rotated_axes(geo, sc, li, lj, spot, curx, cury, tmp):
+                    cnt[_ST_BIG] += 1.0
+                    continue
+                nax = nay = 0
+            else:
+                _load(curx, cols, sx)
+                nax, nay = cols[4][sx], rows[4][sy]
+            fac = fac0 * facx[sx] * facy[sy]
+            _lenslet_image(geo, sc, spot, fac, curx, nax, cury, nay, work, chunk, cnt)
+
+
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
 def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats):  # pragma: no cover - jitted
     """Render particles ``order[starts[c]:ends[c]]`` of chunk c into its rows of the image; chunks in parallel.
@@ -1667,22 +1741,13 @@ def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats):  # pragma: no co
     ``_ST_*`` counters (intensity expected / on the sensor / on the lenslet array /
     outside the chunk's rows (must stay 0), lenslets refused (rotated grid out of
     focus), lenslet images, interior ones, arc nodes, band nodes, patches too big).
-
-    Per particle: its geometry (:func:`_particle`), the lenslets it reaches
-    (:func:`_lenslet_span`), the tables of their columns and rows (:func:`_axis_pass`),
-    then each lenslet's image (:func:`_lenslet_image`).
+    Each particle is :func:`_render_particle`.
     """
     px, py, pz, wt, order = parts
     starts, ends, boff, brow0, brow1 = chunks
     rotated = geo[_G_SIN] != 0.0 or geo[_G_COS] != 1.0
     for c in prange(starts.shape[0]):
-        sc = np.zeros(_S_SIZE)
-        cols = _axis_store(nlmax, psz)
-        rows = _axis_store(nlmax, psz)
-        curx = _axis_current(psz)
-        cury = _axis_current(psz)
-        tmp = np.zeros(psz)
-        work = _workspace(geo, psz)
+        scr = _scratch(geo, psz, nlmax)
         cnt = np.zeros(_ST_SIZE)
         chunk = (buf[boff[c, 0] : boff[c, 1]], brow0[c], brow1[c])  # the chunk's rows of the image
         for idx in range(starts[c], ends[c]):
@@ -1691,51 +1756,7 @@ def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats):  # pragma: no co
             cnt[_ST_W] += w
             if w == 0.0:
                 continue
-            spot = _particle(geo, px[i], py[i], pz[i], sc)
-            g0x, g0y, _, _, _, reach, focus, _ = spot
-            j0, j1 = _lenslet_span(geo, g0x, reach, True)
-            i0, i1 = _lenslet_span(geo, g0y, reach, False)
-            if j1 < j0 or i1 < i0:
-                continue
-            if j1 - j0 + 1 > nlmax or i1 - i0 + 1 > nlmax:
-                cnt[_ST_BIG] += 1.0
-                continue
-            fac0 = w / (math.pi * sc[_S_RHO] * sc[_S_RHO])  # uniform over the aperture image
-            _axis_pass(geo, sc, spot, True, j0, j1, rotated, curx, cols, tmp, cnt)
-            _axis_pass(geo, sc, spot, False, i0, i1, rotated, cury, rows, tmp, cnt)
-            facx = cols[5]
-            facy = rows[5]
-            pl = geo[_G_PL]
-            cx0, cy0 = 0.5 * (geo[_G_NLX] - 1.0), 0.5 * (geo[_G_NLY] - 1.0)
-            for li in range(i0, i1 + 1):
-                sy = li - i0
-                if facy[sy] == 0.0:
-                    continue
-                v1 = (cy0 - li - 0.5) * pl
-                ddy = max(v1 - g0y, 0.0, g0y - (v1 + pl))
-                if not rotated:
-                    _load(cury, rows, sy)
-                for lj in range(j0, j1 + 1):
-                    sx = lj - j0
-                    if facx[sx] == 0.0:
-                        continue
-                    u1 = (lj - cx0 - 0.5) * pl
-                    ddx = max(u1 - g0x, 0.0, g0x - (u1 + pl))
-                    if ddx * ddx + ddy * ddy > reach * reach:
-                        continue
-                    if rotated:
-                        if not focus:
-                            cnt[_ST_REFUSED] += 1.0
-                            continue
-                        if not _rotated_axes(geo, sc, li, lj, spot, curx, cury, tmp):
-                            cnt[_ST_BIG] += 1.0
-                            continue
-                        nax = nay = 0
-                    else:
-                        _load(curx, cols, sx)
-                        nax, nay = cols[4][sx], rows[4][sy]
-                    fac = fac0 * facx[sx] * facy[sy]
-                    _lenslet_image(geo, sc, spot, fac, curx, nax, cury, nay, work, chunk, cnt)
+            _render_particle(geo, rotated, px[i], py[i], pz[i], w, scr, chunk, cnt)
         for q in range(_ST_SIZE):
             stats[c, q] += cnt[q]
 
