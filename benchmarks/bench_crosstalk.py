@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import copy
 import math
+import pickle
 import time
 from pathlib import Path
 
@@ -48,7 +49,7 @@ from lfstudy.study.config import case_config, sweep_of, validate_config
 from lfstudy.study.metrics import case_errors, render_truth
 
 ROOT = Path(__file__).resolve().parents[1]
-VARIANTS = ("elong", "shifta", "centroids", "piv", "mart")
+VARIANTS = ("elong", "shifta", "centroids", "piv", "mart", "phase")
 
 
 def build_config(args: argparse.Namespace) -> dict:
@@ -95,6 +96,14 @@ def show(label: str, s: dict[str, float], lateral: float) -> None:
         f"z {s['rms_z_mm']:.4f} tot {s['rms_total_mm']:.4f} mm | valid {s['valid_percent']:.0f} %",
         flush=True,
     )
+
+
+def profile(piv: xr.Dataset, disp) -> None:
+    """Where the spurious w lives: mean w − w_true [mm] of the valid vectors per x column and per z row."""
+    w = piv["w_mm"].where(piv["valid"]) - disp[2]
+    print("    w by x [mm]: " + " ".join(f"{v:+.3f}" for v in w.mean(("z", "y")).values))
+    print("    w by y [mm]: " + " ".join(f"{v:+.3f}" for v in w.mean(("z", "x")).values))
+    print("    w by z [mm]: " + " ".join(f"{v:+.3f}" for v in w.mean(("y", "x")).values))
 
 
 def blob_sigma(vol: np.ndarray, steps: tuple[float, float, float]) -> tuple[float, float, float]:
@@ -158,6 +167,69 @@ def trend(values: np.ndarray, along: np.ndarray) -> float:
     return float(np.polyfit(along, values, 1)[0])
 
 
+def lattice(template: xr.Dataset, grid, d: float, phase: float, depths: np.ndarray, step: int = 6) -> xr.Dataset:
+    """Isolated particles every ``step`` voxels in x, y (all at one sub-lenslet x phase), depths cycled."""
+    gx = grid.x[step // 2 : -step // 2 : step] + phase * d
+    gy = grid.y[step // 2 : -step // 2 : step]
+    x, y = (v.ravel() for v in np.meshgrid(gx, gy))
+    z = np.resize(depths, x.size)
+    n = x.size
+    return xr.Dataset(
+        {k: ("particle", v) for k, v in (("x", x), ("y", y), ("z", z), ("intensity", np.ones(n)))},
+        coords={"particle": np.arange(n)},
+        attrs=template.attrs,
+    )
+
+
+def column_z(vol: np.ndarray, grid, p: xr.Dataset, half: int = 2) -> np.ndarray:
+    """z centroid [mm] of the whole depth column +-half voxels around each isolated particle."""
+    out = []
+    for x, y in zip(p["x"].values, p["y"].values):
+        i, j = int(round((x - grid.x[0]) / grid.dx)), int(round((y - grid.y[0]) / grid.dy))
+        col = vol[:, max(0, j - half) : j + half + 1, max(0, i - half) : i + half + 1].sum((1, 2))
+        out.append(float((col * grid.z).sum() / col.sum()) if col.sum() > 0 else np.nan)
+    return np.asarray(out)
+
+
+def phase_scan(ccfg: dict, template: xr.Dataset, centers: xr.Dataset, model: bool) -> None:
+    """Depth error of isolated particles against their sub-lenslet x phase, per true depth.
+
+    ``model``: the light field is the projector's own forward model of the true volume (no
+    imaging mismatch; what is left is MART's); else the case's renderer and sensor.
+    """
+    from lfstudy.lightfield.registration import register
+    from lfstudy.reconstruct.projector import PlenopticProjector
+
+    cam = cl.case_camera(ccfg)
+    grid = cl.case_grid(ccfg, cam)
+    d = cam.lenslet_pitch / abs(cam.magnification)
+    depths = np.array([-1.5, -1.0, -0.5, -0.2, 0.0, 0.2, 0.5, 1.0, 1.5])
+    phases = np.linspace(0.0, 0.875, 8)
+    rows = []
+    proj = lf0 = None
+    for ph in phases:
+        p = lattice(template, grid, d, ph, depths)
+        if model:
+            if proj is None:
+                lf0 = register(cl.case_image(ccfg, p, "a"), centers, cam)
+                proj = PlenopticProjector(lf0, cam, grid)
+            sig = [0.25 * float(grid.voxel_size()[0]), 0.25 * grid.dy, 0.25 * grid.dx]
+            truth = render_truth({"z": grid.z, "y": grid.y, "x": grid.x}, p, sigma_mm=sig)
+            lf = lf0.copy(data=proj.forward(truth).astype(np.float32))
+            vol = cl.case_volume(ccfg, None, lf, centers).values
+        else:
+            vol = cl.render_volume(cl.case_image(ccfg, p, "a"), centers, ccfg)[2].values
+        ez = column_z(vol, grid, p) - p["z"].values
+        rows.append([np.nanmean(ez[p["z"].values == z0]) for z0 in depths])
+    rows = np.asarray(rows)
+    src = "projector model" if model else "rendered images"
+    print(f"  isolated particles ({src}): mean z error [mm] per x phase (rows, lenslets) and true z (columns)")
+    print("    phase \\ z " + " ".join(f"{z0:+7.2f}" for z0 in depths))
+    for ph, r in zip(phases, rows):
+        print(f"    {ph:9.3f} " + " ".join(f"{v:+7.3f}" for v in r))
+    print("    p-p      " + " ".join(f"{v:7.3f}" for v in np.ptp(rows, axis=0)))
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--config", default=str(ROOT / "config" / "demo.yaml"), help="study config (demo or thesis)")
@@ -173,6 +245,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rays", type=int, default=None, help="rays per particle (default: the config's)")
     ap.add_argument("--z-range", type=float, nargs=2, default=None, help="grid.z_range [mm]")
     ap.add_argument("--voxel-z", type=float, default=None, help="grid.voxel_z [mm]")
+    ap.add_argument("--cache", default=None, help="pickle of the particles, light fields and volumes (reused)")
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=VARIANTS, help="diagnostics to run")
     args = ap.parse_args(argv)
 
@@ -190,17 +263,27 @@ def main(argv: list[str] | None = None) -> None:
         f"phase {args.phase}; seed {args.seed}",
         flush=True,
     )
-    pa = cl.case_particles(ccfg)
-    pa = pa.assign(x=pa["x"] + args.phase[0] * d, y=pa["y"] + args.phase[1] * d)
-    pb = cl.case_displaced(ccfg, pa)
-    centers = find_lenslet_centers(cl.case_pinhole(ccfg), cam)
-    vols, lfs, stacks = {}, {}, {}
-    for f, p in (("a", pa), ("b", pb)):
-        lfs[f], stacks[f], vols[f] = cl.render_volume(cl.case_image(ccfg, p, f), centers, ccfg)
-        vols[f] = vols[f].load()
+    cache = Path(args.cache) if args.cache else None
+    if cache is not None and cache.is_file():
+        with cache.open("rb") as fh:
+            pa, pb, centers, lfs, stacks, vols = pickle.load(fh)
+    else:
+        pa = cl.case_particles(ccfg)
+        pa = pa.assign(x=pa["x"] + args.phase[0] * d, y=pa["y"] + args.phase[1] * d)
+        pb = cl.case_displaced(ccfg, pa)
+        centers = find_lenslet_centers(cl.case_pinhole(ccfg), cam)
+        vols, lfs, stacks = {}, {}, {}
+        for f, p in (("a", pa), ("b", pb)):
+            lfs[f], stacks[f], vols[f] = cl.render_volume(cl.case_image(ccfg, p, f), centers, ccfg)
+            lfs[f], stacks[f], vols[f] = lfs[f].load(), stacks[f].load(), vols[f].load()
+        if cache is not None:
+            with cache.open("wb") as fh:
+                pickle.dump((pa, pb, centers, lfs, stacks, vols), fh)
     print(f"  [{pa.sizes['particle']} particles; imaged and reconstructed in {time.perf_counter() - t0:.0f} s]")
-    case = summary(cl.case_piv(ccfg, vols["a"], vols["b"]), ccfg)
+    piv = cl.case_piv(ccfg, vols["a"], vols["b"])
+    case = summary(piv, ccfg)
     show("case (MART)", case, lateral)
+    profile(piv, disp)
     oa, ob = cl.oracle_volumes(ccfg, pa, pb)
     show("oracle (true volumes)", summary(cl.case_piv(ccfg, oa, ob), ccfg), lateral)
 
@@ -263,6 +346,9 @@ def main(argv: list[str] | None = None) -> None:
             c2 = {**ccfg, "reconstruct": {**ccfg["reconstruct"], "mart": {**base, **change}}}
             va, vb = (cl.case_volume(c2, stacks[f], lfs[f], centers).load() for f in ("a", "b"))
             show(label, summary(cl.case_piv(c2, va, vb), c2), lateral)
+    if "phase" in args.variants:
+        phase_scan(ccfg, pa, centers, model=False)
+        phase_scan(ccfg, pa, centers, model=True)
     print(f"  [total {time.perf_counter() - t0:.0f} s]")
 
 
