@@ -68,12 +68,26 @@ def build_config(args: argparse.Namespace) -> dict:
     if args.rays is not None:
         cfg["raytrace"]["rays_per_particle"] = args.rays
     cfg["seed"] = args.seed
+    if args.no_diffraction:
+        cfg["raytrace"]["diffraction"] = False
+    if args.no_shot_noise:
+        cfg.setdefault("sensor", {})["shot_noise"] = False
     a = math.radians(args.angle)
-    cfg["flows"] = {"lateral": {"kind": "uniform", "displacement": [args.shift * math.cos(a), args.shift * math.sin(a), 0]}}
+    cfg["flows"] = {
+        "lateral": {"kind": "uniform", "displacement": [args.shift * math.cos(a), args.shift * math.sin(a), 0]}
+    }
     cfg["sweep"] = {"flow": ["lateral"]}
     cfg.setdefault("depth_calibration", {})["enabled"] = False
     if args.z_range:
         cfg.setdefault("grid", {})["z_range"] = list(args.z_range)
+    if args.xy_refine > 1:  # finer voxels, the same PIV windows in mm
+        c = validate_config(copy.deepcopy(cfg))
+        cam0 = cl.case_camera(case_config(c, sweep_of(c).cases()[0]))
+        k = args.xy_refine
+        cfg.setdefault("grid", {})["voxel_xy"] = cam0.lenslet_pitch / abs(cam0.magnification) / k
+        piv = cfg.setdefault("piv", {})
+        piv["window"] = [piv["window"][0], *(w * k for w in piv["window"][1:])]
+        piv["spacing"] = [piv["spacing"][0], *(s * k for s in piv["spacing"][1:])]
     if args.voxel_z:
         cfg.setdefault("grid", {})["voxel_z"] = args.voxel_z
     cfg = validate_config(cfg)
@@ -143,7 +157,7 @@ def centroid_errors(vol: xr.DataArray, particles: xr.Dataset, box: tuple[int, in
         keep &= (f >= b) & (f <= n - 1 - b)
     rows = {k: [] for k in ("x", "y", "z", "dx", "dy", "dz")}
     for i in np.flatnonzero(keep):
-        c = [int(round(f[i])) for f in fi]
+        c = [round(f[i]) for f in fi]
         sl = tuple(slice(ci - b, ci + b + 1) for ci, b in zip(c, box))
         w = data[sl]
         tot = w.sum()
@@ -185,7 +199,7 @@ def column_z(vol: np.ndarray, grid, p: xr.Dataset, half: int = 2) -> np.ndarray:
     """z centroid [mm] of the whole depth column +-half voxels around each isolated particle."""
     out = []
     for x, y in zip(p["x"].values, p["y"].values):
-        i, j = int(round((x - grid.x[0]) / grid.dx)), int(round((y - grid.y[0]) / grid.dy))
+        i, j = round((x - grid.x[0]) / grid.dx), round((y - grid.y[0]) / grid.dy)
         col = vol[:, max(0, j - half) : j + half + 1, max(0, i - half) : i + half + 1].sum((1, 2))
         out.append(float((col * grid.z).sum() / col.sum()) if col.sum() > 0 else np.nan)
     return np.asarray(out)
@@ -243,6 +257,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--sensor", type=int, nargs=2, default=None, metavar=("W", "H"), help="sensor crop [px]")
     ap.add_argument("--ppp", type=float, default=None, help="particles per pixel (default: the config's)")
     ap.add_argument("--rays", type=int, default=None, help="rays per particle (default: the config's)")
+    ap.add_argument("--no-diffraction", action="store_true", help="render without diffraction")
+    ap.add_argument("--no-shot-noise", action="store_true", help="sensor without shot noise")
+    ap.add_argument("--xy-refine", type=int, default=1, help="x, y voxels of pl/|M|/K, PIV windows K times wider")
     ap.add_argument("--z-range", type=float, nargs=2, default=None, help="grid.z_range [mm]")
     ap.add_argument("--voxel-z", type=float, default=None, help="grid.voxel_z [mm]")
     ap.add_argument("--cache", default=None, help="pickle of the particles, light fields and volumes (reused)")
@@ -305,7 +322,7 @@ def main(argv: list[str] | None = None) -> None:
         so = grid.volume(ndimage.shift(oa.values, sh, order=3, mode="nearest").astype(np.float32))
         show("oracle a vs a shifted numerically", summary(cl.case_piv(ccfg, oa, so), ccfg), lateral)
     if "centroids" in args.variants:
-        nz = max(1, int(round(2 * sig_r[0] / steps[0]))) if "elong" in args.variants else 3
+        nz = max(1, round(2 * sig_r[0] / steps[0])) if "elong" in args.variants else 3
         box = (nz, 1, 1)
         print(f"  centroids in a box of +-{box} voxels (z, y, x) around each true particle:")
         res = {}
@@ -331,8 +348,13 @@ def main(argv: list[str] | None = None) -> None:
         for label, change in (
             ("PIV one level", {"levels": 1}),
             ("PIV no predictor filter", {"predictor_filter": 0.0}),
-            ("PIV windows halved in x, y", {"window": [base["window"][0], *(max(4, w // 2) for w in base["window"][1:])],
-                                            "spacing": [base["spacing"][0], *(max(2, s // 2) for s in base["spacing"][1:])]}),  # fmt: skip
+            (
+                "PIV windows halved in x, y",
+                {
+                    "window": [base["window"][0], *(max(4, w // 2) for w in base["window"][1:])],
+                    "spacing": [base["spacing"][0], *(max(2, s // 2) for s in base["spacing"][1:])],
+                },
+            ),
         ):
             c2 = {**ccfg, "piv": {**base, **change}}
             show(label, summary(cl.case_piv(c2, vols["a"], vols["b"]), c2), lateral)
