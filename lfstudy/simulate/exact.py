@@ -1667,7 +1667,7 @@ def _scratch(geo, psz, nlmax):  # pragma: no cover - jitted
     )
 
 
-@njit(cache=True)
+@njit(inline="always", cache=True)
 def _render_particle(geo, rotated, x, y, z, w, scr, chunk, cnt):  # pragma: no cover - jitted
     """Add the expected image of one particle (``x, y, z`` [mm], expected intensity ``w``) to ``chunk``.
 
