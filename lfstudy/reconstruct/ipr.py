@@ -65,6 +65,7 @@ from tqdm.auto import tqdm
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct.grid import ReconstructionGrid, default_voxel_z
 from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs, ReconstructionMethod
+from lfstudy.reconstruct.truth import render_truth
 from lfstudy.simulate._render_common import (
     _G_HH,
     _G_HW,
@@ -711,22 +712,13 @@ def _unmerged(xyz: np.ndarray, inten: np.ndarray, vox: np.ndarray) -> np.ndarray
     return keep
 
 
-def _edges(c: np.ndarray) -> np.ndarray:
-    """Voxel edges half-way between ascending centres (the outer ones as far out as the inner)."""
-    c = np.asarray(c, float)
-    if c.size == 1:
-        return np.array([c[0] - 0.5, c[0] + 0.5])
-    mid = 0.5 * (c[1:] + c[:-1])
-    return np.concatenate([[2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]])
-
-
 def render_particles(
     particles: xr.Dataset, grid: ReconstructionGrid, camera: PlenopticCamera, blob_sigma: float = 0.0
 ) -> tuple[np.ndarray, tuple[float, float, float]]:
     """The volume on ``grid`` of a particle list: each particle's Gaussian integrated over each voxel.
 
-    The definition of :func:`lfstudy.study.metrics.render_truth` (the true volume of Q; the tests
-    check they agree), written here because the reconstruction may not import the study.
+    The particles as :func:`lfstudy.reconstruct.truth.render_truth` renders the truth (the
+    reference volume of Q), so a perfect particle list gives the true volume.
     ``blob_sigma`` [voxels per axis] sets σ; 0 takes the case's truth σ
     (:func:`lfstudy.study.case.truth_sigma`: half a resolution cell, one lenslet at the
     focal-plane magnification in x, y and the voxel depth of :func:`default_voxel_z` in z).
@@ -736,32 +728,13 @@ def render_particles(
     volume : ndarray (z, y, x), float64
     sigma : (σz, σy, σx) [mm]
     """
-    from scipy.special import ndtr
-
     if blob_sigma > 0:
         dz, dy, dx = grid.voxel_size()
         sig = (blob_sigma * dz, blob_sigma * dy, blob_sigma * dx)
     else:
         dxy = camera.lenslet_pitch / abs(camera.magnification)
         sig = (default_voxel_z(camera), dxy / 2.0, dxy / 2.0)
-    axes = (grid.z, grid.y, grid.x)
-    out = np.zeros(tuple(a.size for a in axes))
-    amp = np.asarray(particles["intensity"].values, float)
-    edges = [_edges(a) for a in axes]
-    pos = [np.asarray(particles[name].values, float) for name in ("z", "y", "x")]
-    for i in np.flatnonzero(amp > 0):
-        w, sl = [], []
-        for e, p, s in zip(edges, pos, sig):
-            # the voxels within 4 σ (render_truth's truncation)
-            lo = max(int(np.searchsorted(e, p[i] - 4.0 * s)) - 1, 0)
-            hi = min(int(np.searchsorted(e, p[i] + 4.0 * s)), e.size - 1)
-            if hi <= lo:
-                break
-            w.append(np.diff(ndtr((e[lo : hi + 1] - p[i]) / s)))
-            sl.append(slice(lo, hi))
-        else:
-            out[tuple(sl)] += amp[i] * w[0][:, None, None] * w[1][None, :, None] * w[2][None, None, :]
-    return out, sig
+    return render_truth({"z": grid.z, "y": grid.y, "x": grid.x}, particles, sigma_mm=sig), sig
 
 
 def ipr(
