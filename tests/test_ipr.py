@@ -82,6 +82,22 @@ def test_calibrated_camera_finds_the_offset_grid():
         calibrated_camera(tilted, find_lenslet_centers(synthetic_pinhole(tilted, amplitude=3000, seed=1), tilted))
 
 
+@pytest.mark.parametrize("height", [300, 400])
+def test_calibrated_camera_keeps_the_phase_when_the_lenslet_count_changes(height):
+    """The lenslet count depends on the offset (the grid covers the sensor), so an offset moved by half a
+    pitch can flip N's parity and move the lattice by half a pitch: every offset must come back onto the
+    calibrated centres (found on a 400 x 400 crop: the lattice half a pitch off, 8.4 px, and offsets out of range)."""
+    import xarray as xr
+
+    for oy in np.linspace(-0.07, 0.07, 15):
+        cam = PlenopticCamera(400, height, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_offset_x=0.013, lenslet_offset_y=oy)
+        cx, cy = cam.lenslet_centers()
+        s = (cam.si + cam.lenslet_focal_length) / cam.si
+        cen = xr.Dataset({"x": (("row", "col"), cx * s), "y": (("row", "col"), cy * s)})
+        fit, info = calibrated_camera(cam.with_(lenslet_offset_x=0.0, lenslet_offset_y=0.0), cen)
+        assert info["grid_residual_px"] < 1e-6, (oy, fit.lenslet_offset_y)
+
+
 def test_ipr_finds_the_particles(scene):
     """Measured: 8 of 12 within half a voxel, those to <= 0.02 voxel; 2 ghosts. The four missed are a
     pair 1 voxel apart and two particles within a voxel of the focal plane, where a lenslet hides

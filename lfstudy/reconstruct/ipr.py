@@ -147,26 +147,21 @@ def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[Ple
             f"array's edge, allowed {_MAX_ROTATION_PX} px): the exact renderer IPR fits with models rotated grids "
             "only in focus; use reconstruct.method mart for this camera"
         )
-    # the camera's lattice is o + pitch·(k − (N − 1)/2); move o until it holds the fitted point (ax0, ay0)
-    ox = oy = 0.0
-    cam = camera
-    for _ in range(4):
-        cam = camera.with_(lenslet_pitch=pitch, lenslet_offset_x=ox, lenslet_offset_y=oy, lenslet_rotation=0.0)
-        bx = ox - pitch * (cam.n_lenslets_x - 1) / 2.0
-        by = oy + pitch * (cam.n_lenslets_y - 1) / 2.0
-        dx = (ax0 - bx + pitch / 2.0) % pitch - pitch / 2.0
-        dy = (ay0 - by + pitch / 2.0) % pitch - pitch / 2.0
-        if abs(dx) < 1e-12 and abs(dy) < 1e-12:
-            break
-        ox, oy = ox + dx, oy + dy
-    mx, my = cam.lenslet_centers()
-    fx = ax0 + ax1 * cols + ax2 * rows
-    fy = ay0 + ay1 * cols + ay2 * rows
-    # distance of each calibrated centre from the nearest model lenslet centre
-    jx = np.clip(np.rint((cx[ok] - mx[0, 0]) / pitch).astype(int), 0, mx.shape[1] - 1)
-    iy = np.clip(np.rint((my[0, 0] - cy[ok]) / pitch).astype(int), 0, mx.shape[0] - 1)
-    resid = np.hypot(cx[ok] - mx[iy, jx], cy[ok] - my[iy, jx]).max() / camera.pixel_pitch
-    del fx, fy
+    # the camera's lattice is o + pitch·(k − (N − 1)/2) with N itself depending on o (the grid covers
+    # the sensor): the offsets that put a lattice point on the fitted one (ax0, ay0) are a ladder of
+    # half pitches, of which those whose own N keeps the phase are valid; of these, the pair whose
+    # lattice holds every calibrated centre (an edge row may exist for one and not the other), then the smallest
+    best = None
+    for ox in _lattice_offsets(camera, pitch, ax0, "x"):
+        for oy in _lattice_offsets(camera, pitch, ay0, "y"):
+            c = camera.with_(lenslet_pitch=pitch, lenslet_offset_x=ox, lenslet_offset_y=oy, lenslet_rotation=0.0)
+            key = (round(_grid_residual(c, cx[ok], cy[ok]), 3), math.hypot(ox, oy))
+            if best is None or key < best[0]:
+                best = key, c
+    if best is None:
+        raise ReconstructionError("centers: no lenslet offset reproduces the calibrated grid")
+    cam = best[1]
+    resid = _grid_residual(cam, cx[ok], cy[ok])
     return cam, {
         "grid_pitch_mm": float(pitch),
         "grid_offset_x_mm": float(cam.lenslet_offset_x),
@@ -174,6 +169,30 @@ def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[Ple
         "grid_rotation_rad": float(rot),
         "grid_residual_px": float(resid),
     }
+
+
+def _lattice_offsets(camera: PlenopticCamera, pitch: float, point: float, axis: str) -> list[float]:
+    """The lenslet offsets along ``axis`` (within one pitch) whose lattice, with the lenslet count
+    that offset gives, holds ``point`` [mm]."""
+
+    def phase_error(o: float) -> float:
+        cam = camera.with_(lenslet_pitch=pitch, **{f"lenslet_offset_{axis}": o}, lenslet_rotation=0.0)
+        n = cam.n_lenslets_x if axis == "x" else cam.n_lenslets_y
+        first = o - pitch * (n - 1) / 2.0 if axis == "x" else o + pitch * (n - 1) / 2.0
+        return (point - first + pitch / 2.0) % pitch - pitch / 2.0
+
+    base = phase_error(0.0)
+    ladder = (base + m * pitch / 2.0 for m in range(-4, 5))
+    return [float(o) for o in ladder if abs(o) < pitch and abs(phase_error(o)) < 1e-9 * pitch]
+
+
+def _grid_residual(cam: PlenopticCamera, cx: np.ndarray, cy: np.ndarray) -> float:
+    """Largest distance [px] of the centres (cx, cy) [mm] from the nearest lenslet centre of ``cam``."""
+    mx, my = cam.lenslet_centers()
+    pitch = cam.lenslet_pitch
+    jx = np.clip(np.rint((cx - mx[0, 0]) / pitch).astype(int), 0, mx.shape[1] - 1)
+    iy = np.clip(np.rint((my[0, 0] - cy) / pitch).astype(int), 0, mx.shape[0] - 1)
+    return float(np.hypot(cx - mx[iy, jx], cy - my[iy, jx]).max() / cam.pixel_pitch)
 
 
 # ------------------------------------------------------------------ per-particle patches
