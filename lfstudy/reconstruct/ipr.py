@@ -60,6 +60,7 @@ import numpy as np
 import xarray as xr
 from numba import njit, prange
 from scipy import ndimage
+from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from lfstudy.optics import PlenopticCamera
@@ -99,7 +100,10 @@ __all__ = ["IPR", "ipr", "ipr_particles", "calibrated_camera", "particle_patches
 
 _MAX_ROTATION_PX = 0.05  # largest lenslet displacement [px] a calibrated rotation may cause and be ignored
 _MARGIN_PX = 3  # pixels added around each patch's layout bound (covers the ±δ trial positions)
-_MIN_SEPARATION = 1.5  # residual candidates nearer an existing particle [voxels, per-axis scaled] are not added
+_MIN_SEPARATION = 0.5  # residual candidates nearer an existing particle [voxels, per-axis scaled] are not added
+_REFINE_XY = 3  # candidate MART grid: this many voxels per case voxel in x and y
+_REFINE_Z = 2  # and in z
+_GHOST_FROM = 0  # first iteration after which faint particles are removed
 
 
 # ------------------------------------------------------------------ the calibrated model camera
@@ -471,6 +475,82 @@ def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, m
         out[i, 8] = npx
 
 
+@njit(cache=True)
+def _choose(res, mask, buf, offs, r0, c0, shp, nimg, inten, bufn, offn, r0n, c0n, shpn, out):  # pragma: no cover
+    """Gauss–Seidel choice of each particle's next position among exact images: its ``nimg`` images in
+    ``buf`` (the current one, then the ±δ trials) and the Gauss–Newton step's in ``bufn``.
+
+    The particle (intensity ``inten[i]``, image 0) is added back to the residual ``res``; for every
+    candidate image U the best intensity a/uu (a = ⟨R, U⟩, uu = ⟨U, U⟩) lowers ‖R‖² by a²/uu, so the
+    candidate with the largest drop is taken (the current one unless another is strictly better: a move
+    never raises the residual) and its image subtracted. ``out[i]`` = (choice, intensity): choice k < nimg
+    is buf's image k, ``nimg`` the step.
+    """
+    for i in range(r0.size):
+        h, w = shp[i, 0], shp[i, 1]
+        sz = h * w
+        o = offs[i]
+        a = np.zeros(nimg + 1)
+        uu = np.zeros(nimg + 1)
+        for r in range(h):
+            for c in range(w):
+                rr, cc = r0[i] + r, c0[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                q = o + r * w + c
+                res[rr, cc] += inten[i] * buf[q]
+                rv = res[rr, cc]
+                for k in range(nimg):
+                    u = buf[q + k * sz]
+                    a[k] += rv * u
+                    uu[k] += u * u
+        hn, wn = shpn[i, 0], shpn[i, 1]
+        for r in range(hn):
+            for c in range(wn):
+                rr, cc = r0n[i] + r, c0n[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                u = bufn[offn[i] + r * wn + c]
+                a[nimg] += res[rr, cc] * u
+                uu[nimg] += u * u
+        best, gain = 0, -1.0
+        for k in range(nimg + 1):
+            g = a[k] * a[k] / uu[k] if (uu[k] > 0.0 and a[k] > 0.0) else 0.0
+            if g > gain * (1.0 + 1e-12):
+                best, gain = k, g
+        amp = a[best] / uu[best] if (uu[best] > 0.0 and a[best] > 0.0) else 0.0
+        if best < nimg:
+            for r in range(h):
+                for c in range(w):
+                    rr, cc = r0[i] + r, c0[i] + c
+                    if mask[rr, cc] != 0:
+                        res[rr, cc] -= amp * buf[o + best * sz + r * w + c]
+        else:
+            for r in range(hn):
+                for c in range(wn):
+                    rr, cc = r0n[i] + r, c0n[i] + c
+                    if mask[rr, cc] != 0:
+                        res[rr, cc] -= amp * bufn[offn[i] + r * wn + c]
+        out[i, 0] = best
+        out[i, 1] = amp
+
+
+def _refined(grid: ReconstructionGrid, rxy: int, rz: int) -> ReconstructionGrid:
+    """``grid`` with each voxel split into rxy x rxy x rz (same extent; the candidate grid)."""
+
+    def split(c: np.ndarray, k: int) -> np.ndarray:
+        if k == 1 or c.size < 2:
+            return c
+        t = (np.arange(c.size * k) + 0.5) / k - 0.5
+        out = np.interp(t, np.arange(c.size), c)
+        out[t < 0] = c[0] + t[t < 0] * (c[1] - c[0])
+        hi = t > c.size - 1
+        out[hi] = c[-1] + (t[hi] - (c.size - 1)) * (c[-1] - c[-2])
+        return out
+
+    return ReconstructionGrid(split(grid.x, rxy), split(grid.y, rxy), split(grid.z, rz), spacing=grid.spacing)
+
+
 # ------------------------------------------------------------------ candidates
 def _peaks(vol: np.ndarray, grid: ReconstructionGrid, threshold: float) -> np.ndarray:
     """Local maxima of ``vol`` above ``threshold``·max, (n, 3) x, y, z [mm], by the
@@ -614,7 +694,12 @@ def ipr_particles(
     delta = shake * vox
     mstep = max_step * vox
     tr = np.array([[d if a == i else 0.0 for a in range(3)] for i in range(3) for d in (delta[i], -delta[i])])
-    xyz = _peaks(mart(lf, inputs.camera, grid, iterations=mart_iterations).values, grid, peak_threshold)
+    cgrid = _refined(grid, _REFINE_XY, _REFINE_Z)
+
+    def candidates(light: xr.DataArray) -> np.ndarray:
+        return _peaks(mart(light, inputs.camera, cgrid, iterations=mart_iterations).values, cgrid, peak_threshold)
+
+    xyz = candidates(lf)
     n_cand = len(xyz)
     inten = np.zeros(len(xyz))
     sig = np.full((len(xyz), 3), np.inf)
@@ -632,33 +717,48 @@ def ipr_particles(
             _accumulate(res, buf, offs, r0, c0, shp, amp[sl] * 1.0, -1.0)
         return np.where(mask > 0, res, 0.0)
 
-    def fit(pos: np.ndarray, amp: np.ndarray, res: np.ndarray, move: bool) -> np.ndarray:
+    def fit_intensity(pos: np.ndarray, amp: np.ndarray, res: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(pos), 2))
+        for s in range(0, len(pos), batch):
+            sl = slice(s, s + batch)
+            buf, offs, r0, c0, shp = particle_patches(cam, *pos[sl].T)
+            _choose(res, mask, buf, offs, r0, c0, shp, 1, amp[sl], buf, offs, r0, c0, shp, out[sl])
+        return out[:, 1]
+
+    def shake_step(pos: np.ndarray, amp: np.ndarray, res: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gauss–Newton steps on a linearised copy of the residual, then the exact choice (``_choose``)."""
+        lin = res.copy()
         out = np.zeros((len(pos), 9))
+        pick = np.zeros((len(pos), 2))
+        moved = pos.copy()
         for s in range(0, len(pos), batch):
             sl = slice(s, s + batch)
             buf, offs, r0, c0, shp = particle_patches(cam, *pos[sl].T, trials=tr)
-            o = out[sl]
-            _sweep(res, mask, buf, offs * 1, r0, c0, shp, amp[sl].copy(), delta, mstep, float(damping), move, o)
-        return out
+            _sweep(lin, mask, buf, offs, r0, c0, shp, amp[sl].copy(), delta, mstep, float(damping), True, out[sl])
+            step = pos[sl] + out[sl, :3]
+            bn, on, r0n, c0n, shpn = particle_patches(cam, *step.T)
+            _choose(res, mask, buf, offs, r0, c0, shp, 1 + len(tr), amp[sl], bn, on, r0n, c0n, shpn, pick[sl])
+            k = pick[sl, 0].astype(int)
+            offsets = np.vstack([np.zeros((1, 3)), tr])
+            moved[sl] = np.where((k == len(tr) + 1)[:, None], step, pos[sl] + offsets[np.minimum(k, len(tr))])
+        return moved, pick[:, 1], out
 
     bar = tqdm(total=iterations, desc="IPR", unit="it", disable=not progress)
     # intensities of the candidates first (positions fixed)
     if len(xyz):
         res = render_model(xyz, inten)
-        inten = fit(xyz, inten, res, False)[:, 3]
+        inten = fit_intensity(xyz, inten, res)
     for it in range(iterations):
         if not len(xyz):
             break
         res = render_model(xyz, inten)
         res_hist.append(float(np.sqrt(np.sum(res**2))) / norm_d)
-        out = fit(xyz, inten, res, True)
-        xyz = xyz + out[:, :3]
-        inten = out[:, 3]
+        xyz, inten, out = shake_step(xyz, inten, res)
         sig = np.sqrt(out[:, 4:7])
         rel = out[:, 7]
         # ghosts: faint particles, and particles that left the grid
         med = float(np.median(inten[inten > 0])) if np.any(inten > 0) else 0.0
-        keep = inten > min_intensity * med
+        keep = inten > (min_intensity * med if it >= _GHOST_FROM else 0.0)
         for a in range(3):
             keep &= (xyz[:, a] >= inside[a][0] - vox[a]) & (xyz[:, a] <= inside[a][1] + vox[a])
         keep &= _unmerged(xyz, inten, vox)
@@ -666,14 +766,12 @@ def ipr_particles(
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
         if it < residual_candidates:
             res = render_model(xyz, inten)
-            rlf = _lightfield_from_raw(np.maximum(res, 0.0), lf)
-            new = _peaks(mart(rlf, inputs.camera, grid, iterations=mart_iterations).values, grid, peak_threshold)
+            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf))
             if len(new) and len(xyz):
-                dist = np.min(np.linalg.norm(((new[:, None, :] - xyz[None, :, :]) / vox), axis=2), axis=1)
-                new = new[dist > _MIN_SEPARATION]
+                new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
                 n_cand += len(new)
-                amp0 = fit(new, np.zeros(len(new)), res, False)[:, 3]
+                amp0 = fit_intensity(new, np.zeros(len(new)), res)
                 good = amp0 > min_intensity * med
                 xyz = np.vstack([xyz, new[good]])
                 inten = np.concatenate([inten, amp0[good]])
@@ -719,8 +817,6 @@ def ipr_particles(
 
 def _unmerged(xyz: np.ndarray, inten: np.ndarray, vox: np.ndarray) -> np.ndarray:
     """False for the fainter of each pair closer than half a voxel (per axis, scaled)."""
-    from scipy.spatial import cKDTree
-
     keep = np.ones(len(xyz), bool)
     if len(xyz) < 2:
         return keep
