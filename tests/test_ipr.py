@@ -134,7 +134,7 @@ def test_ipr_volume_beats_mart(scene):
 def test_ipr_parameters_and_bad_input(scene):
     _, inputs = scene
     defaults = get_method("ipr").defaults()
-    assert defaults["iterations"] == 6 and method_schemas()["ipr"]["properties"]["shake"]["default"] == 0.1
+    assert defaults["iterations"] == 10 and method_schemas()["ipr"]["properties"]["shake"]["default"] == 0.1
     with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr.*shake"):
         reconstruct(inputs, "ipr", shake=0.0)
     with pytest.raises(ReconstructionError, match=r"needs centers"):
