@@ -1,7 +1,7 @@
 """IPR on a crop of the Table 4.3 camera: particles found, ghosts, position errors, time, memory (issue 27).
 
     python benchmarks/bench_ipr.py [--crop 600 600] [--ppp 0.001 0.005] [--rays 2000]
-        [--photons 25000] [--threads 2] [--iterations 6] [--seed 0]
+        [--photons 25000] [--threads 2] [--iterations N] [--seed 0]
 
 For each ppp, a particle field over the crop's field of view and the thesis' 7 mm depth is
 imaged with Monte-Carlo rays (``--rays`` per particle) plus shot noise (``--photons`` per
@@ -77,7 +77,7 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=2000, help="Monte-Carlo rays per particle")
     ap.add_argument("--photons", type=int, default=25_000, help="photons per particle (shot noise)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--iterations", type=int, default=6)
+    ap.add_argument("--iterations", type=int, default=None, help="default: the method's")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
@@ -95,7 +95,8 @@ def main() -> None:
         field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed)
         t_sim = time.perf_counter() - t0
         t0 = time.perf_counter()
-        parts = ipr_particles(inputs, iterations=args.iterations)
+        kw = {} if args.iterations is None else {"iterations": args.iterations}
+        parts = ipr_particles(inputs, **kw)
         t_ipr = time.perf_counter() - t0
         s = _score(field, parts, inputs.grid)
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6

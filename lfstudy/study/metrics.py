@@ -34,6 +34,7 @@ import numpy as np
 import xarray as xr
 from scipy.special import ndtr
 
+from lfstudy.reconstruct.truth import render_truth
 from lfstudy.simulate.flows import Flow, true_displacement
 from lfstudy.study import metric_table
 from lfstudy.study.metric_table import metric_attrs
@@ -420,76 +421,6 @@ def _resolution(out: xr.Dataset, piv: xr.Dataset, dims: tuple[str, ...], steps: 
 
 
 # ----------------------------------------------------------- reconstruction Q
-def _voxel_edges(coord: np.ndarray) -> np.ndarray:
-    """Voxel boundaries of ascending centres: midpoints, the end voxels symmetric."""
-    c = np.asarray(coord, dtype=float)
-    if c.size == 1:
-        return np.array([c[0] - 0.5, c[0] + 0.5])
-    mid = 0.5 * (c[1:] + c[:-1])
-    return np.concatenate([[2 * c[0] - mid[0]], mid, [2 * c[-1] - mid[-1]]])
-
-
-def render_truth(
-    coords: Mapping[str, np.ndarray],
-    particles: xr.Dataset,
-    *,
-    sigma_mm: float | Sequence[float],
-    truncate: float = 4.0,
-) -> np.ndarray:
-    """The true volume: every particle a Gaussian of physical size, integrated over each voxel.
-
-    Parameters
-    ----------
-    coords : mapping with ``z``, ``y``, ``x``
-        Ascending voxel centres [mm] (may be uneven; voxels end half-way to
-        their neighbours).
-    particles : xarray.Dataset
-        ``x, y, z`` [mm] and optional ``intensity`` over ``particle``.
-    sigma_mm : float or (sz, sy, sx)
-        Gaussian standard deviation [mm] per axis.
-    truncate : float
-        Blobs are cut at ``truncate`` sigmas.
-
-    Returns
-    -------
-    ndarray, shape (nz, ny, nx), float64
-        Each particle's intensity spread over the voxels by the integral of its
-        Gaussian over each voxel (exact for separable Gaussians), so the result
-        does not depend on where the particle sits relative to the voxel centres.
-    """
-    dims = ("z", "y", "x")
-    shape = tuple(len(coords[d]) for d in dims)
-    sig = np.broadcast_to(np.asarray(sigma_mm, dtype=float), (3,))
-    if np.any(~np.isfinite(sig)) or np.any(sig <= 0):
-        raise ValueError(f"sigma_mm = {sigma_mm!r}: must be > 0 mm per axis")
-    out = np.zeros(shape, dtype=np.float64)
-    n = particles.sizes.get("particle", len(particles["x"]))
-    if n == 0:
-        return out
-    amp = np.asarray(particles["intensity"].values, float) if "intensity" in particles else np.ones(n)
-    idx, wts = [], []
-    for a, d in enumerate(dims):
-        edges = _voxel_edges(coords[d])
-        p = np.asarray(particles[d].values, float)
-        lo = np.clip(np.searchsorted(edges, p - truncate * sig[a]) - 1, 0, shape[a] - 1)
-        hi = np.clip(np.searchsorted(edges, p + truncate * sig[a]), 1, shape[a])
-        span = int(max(1, (hi - lo).max()))
-        i = lo[:, None] + np.arange(span)[None, :]
-        valid = i < hi[:, None]
-        i = np.minimum(i, shape[a] - 1)
-        cdf = ndtr((edges[np.minimum(i + 1, shape[a])] - p[:, None]) / sig[a]) - ndtr((edges[i] - p[:, None]) / sig[a])
-        idx.append(i)
-        wts.append(np.where(valid, cdf, 0.0))
-    # separable: per-axis weights on a (particle, offset) stencil, outer product, one bincount
-    for k in range(0, n, 20000):  # bounded temporaries
-        s = slice(k, k + 20000)
-        flat = (idx[0][s, :, None, None] * shape[1] + idx[1][s, None, :, None]) * shape[2] + idx[2][s, None, None, :]
-        val = amp[s, None, None, None] * wts[0][s, :, None, None] * wts[1][s, None, :, None] * wts[2][s, None, None, :]
-        keep = val > 0
-        out += np.bincount(flat[keep], weights=val[keep], minlength=out.size).reshape(shape)
-    return out
-
-
 def reconstruction_quality(
     volume: xr.DataArray,
     particles: xr.Dataset,
