@@ -4,8 +4,11 @@ Modules: :mod:`~lfstudy.reconstruct.grid` (the reconstruction grid),
 :mod:`~lfstudy.reconstruct.registry` (the method interface, found by name),
 :mod:`~lfstudy.reconstruct.threshold` (sec. 5.5 threshold + dilation, and
 ``none``), :mod:`~lfstudy.reconstruct.projector` (plenoptic weights),
-:mod:`~lfstudy.reconstruct.mart` (MART) and
-:mod:`~lfstudy.reconstruct.deconvolution` (Richardson–Lucy on the focal stack).
+:mod:`~lfstudy.reconstruct.mart` (MART),
+:mod:`~lfstudy.reconstruct.deconvolution` (Richardson–Lucy on the focal stack),
+:mod:`~lfstudy.reconstruct.ipr` (iterative particle reconstruction fitted with the exact
+camera model) and :mod:`~lfstudy.reconstruct.truth` (particles as voxel-integrated Gaussians
+on a grid: the truth Q is measured against, and IPR's volume).
 Import from this package: the modules behind it may move.
 """
 
