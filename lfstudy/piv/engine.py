@@ -39,6 +39,8 @@ from scipy import ndimage
 from tqdm.auto import tqdm
 
 from lfstudy.piv.deform import deform, dense_predictor, spline_coefficients
+from lfstudy.piv.uncertainty import METHODS as _UNC_METHODS
+from lfstudy.piv.uncertainty import window_uncertainty
 
 __all__ = ["widim", "WidimSettings", "peak_locking_index", "grid_nodes"]
 
@@ -685,8 +687,10 @@ def _pass(
     centres: list[np.ndarray],
     settings: WidimSettings,
     cache: dict | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Correlate every window once; returns corrector (nd, *grid), peak, nonempty."""
+    uncertainty: str | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Correlate every window once; returns corrector (nd, *grid), peak, nonempty and, with an
+    ``uncertainty`` method, σ of the corrector (nd, *grid) from the same windows, else None."""
     mode, order, batch = settings.mode, settings.order, settings.batch(w)
     full = tuple(int(s) for s in a.data.shape)
     nd = len(full)
@@ -697,6 +701,7 @@ def _pass(
     corr = np.empty((nwin, nd))
     peak = np.empty(nwin)
     nonempty = np.empty(nwin, dtype=bool)
+    sigma = np.full((nwin, nd), np.nan) if uncertainty else None
     if mode == "offset":
         # integer predictor offsets the second window only (sec. 6.1.4, App. D)
         ioff = np.rint(pred).reshape(nd, -1).T.astype(np.int64)
@@ -757,8 +762,11 @@ def _pass(
             p = np.where(raw_ok, p, 0.0)
             c[~raw_ok] = 0.0
         corr[k0:k1], peak[k0:k1], nonempty[k0:k1] = c, p, ne
+        if sigma is not None:
+            sigma[k0:k1] = np.where(ne[:, None], window_uncertainty(wa, wb, uncertainty), np.nan)
     corr_g = np.moveaxis(corr.reshape((*grid, nd)), -1, 0)
-    return corr_g, peak.reshape(grid), nonempty.reshape(grid)
+    sig_g = None if sigma is None else np.moveaxis(sigma.reshape((*grid, nd)), -1, 0)
+    return corr_g, peak.reshape(grid), nonempty.reshape(grid), sig_g
 
 
 # --------------------------------------------------------------------------- public API
@@ -781,6 +789,7 @@ def widim(
     chunk_windows: int | None = None,
     workers: int | None = None,
     progress: bool = False,
+    uncertainty: str | None = "correlation",
 ) -> xr.Dataset:
     """Multi-pass, multi-grid PIV of two images or volumes (WIDIM, thesis ch. 6).
 
@@ -843,11 +852,18 @@ def widim(
         Threads for ``scipy.fft``; results do not depend on it.
     progress : bool
         Show a tqdm bar over the passes (level, corrector RMS and valid % as it goes).
+    uncertainty : {"correlation", "moment"} or None
+        Per-vector standard uncertainty of each component from the final pass's
+        windows (:mod:`lfstudy.piv.uncertainty`): ``"correlation"`` (default) is
+        Wieneke's correlation statistics [3]_ in 3-D, ``"moment"`` a simpler
+        peak-width estimate; None skips it (no ``unc_*`` variables).
 
     Returns
     -------
     xarray.Dataset
         ``u, v[, w]`` (voxels), ``valid``, ``peak``, optional ``u_mm, v_mm[, w_mm]``,
+        with ``uncertainty``: ``unc_u, unc_v[, unc_w]`` (voxels, NaN where the vector
+        is invalid or replaced) and, with physical coordinates, ``unc_u_mm`` etc.,
         window-centre coordinates ``x, y[, z]`` (physical if available, else voxel
         index) and ``x_index, y_index[, z_index]``, and per-pass ``corrector_rms``,
         ``valid_percent`` and ``level`` over dimension ``pass``.
@@ -867,6 +883,9 @@ def widim(
            filtering on the stability and spatial resolution of iterative PIV
            interrogation", Experiments in Fluids 45 (5) pp 927--941 (2008),
            doi:10.1007/s00348-008-0511-7
+    .. [3] B. Wieneke, "PIV uncertainty quantification from correlation
+           statistics", Measurement Science and Technology 26 (7) 074002
+           (2015), doi:10.1088/0957-0233/26/7/074002
 
     Examples
     --------
@@ -908,6 +927,8 @@ def widim(
         chunk_windows=chunk_windows,
         workers=workers,
     )
+    if uncertainty is not None and uncertainty not in _UNC_METHODS:
+        raise ValueError(f"`uncertainty` must be one of {_UNC_METHODS} or None; got {uncertainty!r}")
     for name, inp in (("a", ia), ("b", ib)):
         bad = _count_nonfinite(inp)
         if bad:
@@ -937,7 +958,9 @@ def widim(
         rms_old = None
         for _ in range(st.max_passes):  # multi-pass (sec. 6.1.4, Fig. 6.1)
             pred = np.rint(field) if st.mode == "offset" else _filter_predictor(field, st.predictor_filter)
-            corr, peak, nonempty = _pass(ia, ib, nodes, w, pred, centres, st, cache)
+            # the uncertainty of the finest level's passes; the last one's is kept
+            unc_method = uncertainty if level == st.levels else None
+            corr, peak, nonempty, sigma = _pass(ia, ib, nodes, w, pred, centres, st, cache, unc_method)
             d = pred + corr  # d = p + c (Fig. 6.1)
             field, valid = _validate(d, nonempty, st.nmt_eps, st.nmt_threshold)
             rms = float(np.sqrt(np.mean(np.sum(corr[:, nonempty] ** 2, axis=0)))) if nonempty.any() else 0.0
@@ -951,7 +974,11 @@ def widim(
     bar.total = bar.n  # converged early: the bar ends full, at the passes actually run
     bar.refresh()
     bar.close()
-    return _to_dataset(field, valid, peak, centres, ia, shape, st, history)
+    if sigma is not None:  # a replaced vector has no uncertainty of its own
+        sigma = np.where(valid, sigma, np.nan)
+    ds = _to_dataset(field, valid, peak, centres, ia, shape, st, history, sigma)
+    ds.attrs["uncertainty"] = uncertainty or "none"
+    return ds
 
 
 @dataclass
@@ -977,6 +1004,7 @@ def _to_dataset(
     shape: tuple[int, ...],
     settings: WidimSettings,
     history: _History,
+    sigma: np.ndarray | None = None,
 ) -> xr.Dataset:
     nd = len(shape)
     dims = _DIMS3[-nd:]
@@ -1008,6 +1036,9 @@ def _to_dataset(
             field[ax],
             {"units": "voxel", "long_name": f"{dim} displacement (array axis {ax - nd})"},
         )
+        unc_name = f"standard uncertainty of the {dim} displacement (NaN: invalid or replaced vector)"
+        if sigma is not None:
+            data_vars[f"unc_{name}"] = (dims, sigma[ax], {"units": "voxel", "long_name": unc_name})
         if phys:
             c = ia.coords[ax]
             step = np.gradient(c) if c.size > 1 else np.ones(1)
@@ -1020,6 +1051,12 @@ def _to_dataset(
                 field[ax] * local.reshape(shp),
                 {"units": ia.coord_units[ax], "long_name": f"{dim} displacement"},
             )
+            if sigma is not None:
+                data_vars[f"unc_{name}_mm"] = (
+                    dims,
+                    sigma[ax] * np.abs(local).reshape(shp),
+                    {"units": ia.coord_units[ax], "long_name": unc_name},
+                )
     data_vars["valid"] = (
         dims,
         valid.astype(bool),
