@@ -130,3 +130,26 @@ def test_the_calibration_corrects_a_held_out_depth_shift():
     assert abs(fixed - truth) < 0.1 * truth, (raw, fixed)
     # x and y are untouched
     np.testing.assert_array_equal(out["u_mm"].values, res["u_mm"].values)
+
+
+@pytest.mark.parametrize("repeats", [1, 2])
+def test_uncertainty_of_w_is_divided_by_the_gain_and_gains_its_spread(repeats):
+    """σ_w goes through the depth map like w; with repeats the gain's own spread adds in quadrature."""
+    z = np.array([-0.5, 0.5])
+    gain = {0.25: [0.5, 0.5], 0.5: [0.5, 0.5]}
+    if repeats == 2:
+        gain = {0.25: [0.45, 0.55], 0.5: [0.45, 0.55]}  # mean 0.5, sd 0.0707 between repeats
+    results = [(s, _result(np.full((2, 2, 2), s * g), z)) for s, gs in gain.items() for g in gs[:repeats]]
+    cal = depth_response(results)
+    res = _result(np.full((2, 2, 2), 0.1), z)  # read 0.1 mm: true 0.2 mm through gain 0.5
+    res["unc_w_mm"] = (("z", "y", "x"), np.full((2, 2, 2), 0.01), {"units": "mm"})
+    res["unc_w_mm"][0, 0, 0] = np.nan  # an invalid vector stays without uncertainty
+    res["unc_w"] = res["unc_w_mm"] / 0.25
+    out = correct_depth(res, cal)
+    np.testing.assert_allclose(out["w_mm"].values, 0.2, rtol=1e-12)
+    rel = 0.0 if repeats == 1 else np.std([0.45, 0.55], ddof=1) / 0.5
+    expect = np.sqrt((0.01 / 0.5) ** 2 + (0.2 * rel) ** 2)
+    np.testing.assert_allclose(out["unc_w_mm"].values.ravel()[1:], expect, rtol=1e-9)
+    np.testing.assert_allclose(out["unc_w"].values.ravel()[1:], expect / 0.25, rtol=1e-9)
+    assert np.isnan(out["unc_w_mm"].values[0, 0, 0]) and np.isnan(out["unc_w"].values[0, 0, 0])
+    np.testing.assert_allclose(out["unc_w_mm_uncorrected"].values.ravel()[1:], 0.01)

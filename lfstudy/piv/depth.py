@@ -164,6 +164,11 @@ def correct_depth(result: xr.Dataset, calibration: xr.Dataset) -> xr.Dataset:
         ``depth_gain_total`` (whole-volume gain at the traverse nearest one
         z voxel), ``depth_calibration_shifts_mm`` and ``depth_corrected``
         (0 where the design does not resolve depth and w is left as read).
+        Uncertainties ``unc_w_mm`` / ``unc_w``, where present, go through the same
+        map (divided by the gain the reading was divided by) and, with repeated
+        calibrations (``gain_total_sd``), gain the spread of the gain in
+        quadrature: σ_w² = (σ_raw / g)² + (w σ_g / g)², g and σ_g of the traverse
+        nearest one z voxel; the raw ones are kept as ``unc_w_mm_uncorrected``.
     """
     out = result.copy()
     raw_mm = result["w_mm"]
@@ -200,4 +205,26 @@ def correct_depth(result: xr.Dataset, calibration: xr.Dataset) -> xr.Dataset:
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = xr.where(raw_mm != 0, out["w_mm"] / raw_mm, 1.0)  # the same map in voxels
         out["w"] = (raw * ratio).assign_attrs(raw.attrs)
+    _propagate_uncertainty(out, result, calibration, one_voxel)
     return out
+
+
+def _propagate_uncertainty(out: xr.Dataset, result: xr.Dataset, calibration: xr.Dataset, one_voxel: int) -> None:
+    """Carry ``unc_w_mm`` / ``unc_w`` through the depth correction (in place on ``out``)."""
+    if "unc_w_mm" not in result:
+        return
+    raw_mm = result["w_mm"]
+    g = float(calibration["gain_total"].values[one_voxel])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # the map's local factor (true / read); a zero reading takes the whole-volume gain
+        factor = xr.where(raw_mm != 0, out["w_mm"] / raw_mm, 1.0 / g if g > 0 else 1.0)
+    rel_sd = 0.0
+    if "gain_total_sd" in calibration and g > 0:
+        rel_sd = float(calibration["gain_total_sd"].values[one_voxel]) / g
+    for name, w in (("unc_w_mm", out["w_mm"]), ("unc_w", out.get("w"))):
+        if name not in result or w is None:
+            continue
+        raw = result[name]
+        out[f"{name}_uncorrected"] = raw.assign_attrs(long_name="uncertainty of z before the depth calibration")
+        sig = np.sqrt((raw * np.abs(factor)) ** 2 + (w * rel_sd) ** 2)
+        out[name] = sig.where(np.isfinite(raw)).transpose(*raw.dims).assign_attrs(raw.attrs)
