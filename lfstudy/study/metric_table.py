@@ -268,6 +268,12 @@ METRICS: tuple[Metric, ...] = (
                description="mean measured displacement " + _ORACLE),
     *_per_axis("recon_added_rms_{ax}_mm", "mm", "RMS error {ax} added by the reconstruction", lower_is_better=True,
                group="error", description="RMS " + _ADDED.format(case="rms_{ax}_mm", oracle="oracle_rms_{ax}_mm")),
+    *_per_axis("unc_coverage_{ax}", "1", "uncertainty coverage {ax}", group="error",
+               description="fraction of the valid vectors whose |error| in {ax} is within their standard uncertainty "
+               "(unc_* of the PIV; 0.68 where the uncertainty is right)"),
+    *_per_axis("unc_ratio_{ax}", "1", "RMS error / RMS uncertainty {ax}", group="error",
+               description="RMS of the {ax} error over RMS of the PIV's standard uncertainty, over the valid vectors "
+               "(1 where the uncertainty is right)"),
     Metric("true_mag_mm", "mm", "mean magnitude of the true displacement", None, (), "displacement"),
     Metric("n_vectors", "1", "number of PIV vectors", None, (), "count"),
     Metric("n_valid", "1", "number of valid vectors", None, (), "count"),

@@ -263,6 +263,9 @@ def case_errors(
           mean true displacement;
         - ``locking_excess_<ax>`` (:func:`locking_excess`), a peak-locking
           figure that holds for uniform displacements too;
+        - ``unc_coverage_<ax>``, ``unc_ratio_<ax>`` (:func:`uncertainty_calibration`):
+          how well the PIV's per-vector uncertainty ``unc_<c>[_mm]`` measures the
+          error (NaN where the result has none);
         - ``true_mag_mm`` (mean |true displacement|) and ``rel_error`` (total
           RMS error in mm over it): comparable across designs;
         - ``window_mm_<ax>``, ``spacing_mm_<ax>`` (final window and vector
@@ -341,6 +344,9 @@ def case_errors(
         # C1 (peak_locking_c1) reads ~1 for any uniform displacement, so the study keeps the
         # truth-aware excess near-integer fraction instead
         out[f"locking_excess_{ax}"] = _scalar(locking_excess(mv, t_vx[fin]))
+        cov, ratio = uncertainty_calibration(e_mm, _uncertainty_mm(piv, c, dims, step_b[ax]), fin)
+        out[f"unc_coverage_{ax}"] = _scalar(cov)
+        out[f"unc_ratio_{ax}"] = _scalar(ratio)
     rt = math.sqrt(sum(float(out[f"rms_{ax}"]) ** 2 for ax in axes)) if n_valid else math.nan
     out["rms_total"] = _scalar(rt)
     rt_mm = math.sqrt(sum(float(out[f"rms_{ax}_mm"]) ** 2 for ax in axes)) if n_valid else math.nan
@@ -364,6 +370,45 @@ def case_errors(
         sign_convention="object frame, +z away from the camera; error = measured - true",
     )
     return out
+
+
+def _uncertainty_mm(piv: xr.Dataset, c: str, dims: tuple[str, ...], step: np.ndarray) -> np.ndarray | None:
+    """The PIV's standard uncertainty of component ``c`` in mm (``unc_<c>_mm``, else ``unc_<c>`` × voxel), or None."""
+    if f"unc_{c}_mm" in piv:
+        return piv[f"unc_{c}_mm"].transpose(*dims).values.astype(float)
+    if f"unc_{c}" in piv:
+        return piv[f"unc_{c}"].transpose(*dims).values.astype(float) * np.abs(step)
+    return None
+
+
+def uncertainty_calibration(error: np.ndarray, sigma: np.ndarray | None, mask: np.ndarray) -> tuple[float, float]:
+    """How well per-vector uncertainties measure the actual errors.
+
+    Parameters
+    ----------
+    error : ndarray
+        Measured − true, per vector.
+    sigma : ndarray or None
+        Standard uncertainty per vector (same units), NaN where the vector has none.
+    mask : ndarray of bool
+        Valid vectors.
+
+    Returns
+    -------
+    coverage, ratio : float
+        Fraction of the valid vectors with a finite σ whose ``|error| <= σ`` (0.68 for
+        a Gaussian error and a right σ) and RMS(error) / RMS(σ) over the same vectors
+        (1 for a right σ). NaN without uncertainties or without such vectors.
+    """
+    if sigma is None:
+        return math.nan, math.nan
+    ok = mask & np.isfinite(sigma) & np.isfinite(error)
+    if not ok.any():
+        return math.nan, math.nan
+    e, s = np.abs(error[ok]), sigma[ok]
+    rms_s = float(np.sqrt(np.mean(s**2)))
+    ratio = float(np.sqrt(np.mean(e**2))) / rms_s if rms_s > 0 else math.nan
+    return float(np.mean(e <= s)), ratio
 
 
 def crosstalk_z(measured_mm: Mapping[str, np.ndarray], true_mm: Mapping[str, Any], mask: np.ndarray) -> float:
