@@ -458,3 +458,20 @@ def test_outliers_in_the_images_are_replaced_in_widim():
     iy, ix = int(np.argmin(np.abs(r["y"].values - 23.5))), int(np.argmin(np.abs(r["x"].values - 23.5)))
     assert not bool(r["valid"].values[iy, ix])
     assert abs(float(r["v"].values[iy, ix]) - 1.4) < 0.3 and abs(float(r["u"].values[iy, ix]) - 2.6) < 0.3
+
+
+def test_uncertainty_is_nan_for_invalid_vectors_and_absent_when_off():
+    """Empty (invalid) windows get NaN σ, valid ones a finite positive σ; uncertainty=None stores none."""
+    a, b = particle_pair((24, 48, 48), (0.3, 0.5, -0.4), density=0.02, seed=3)
+    a[:, :, :16] = 0.0  # an empty slab: its windows are invalid
+    b[:, :, :16] = 0.0
+    res = widim(a, b, window=16, spacing=8)
+    valid = res.valid.values
+    assert (~valid).any() and valid.any()
+    for c in "uvw":
+        sig = res[f"unc_{c}"].values
+        assert np.isnan(sig[~valid]).all()
+        assert (sig[valid] > 0).mean() > 0.95
+    assert "unc_u" not in widim(a, b, window=16, spacing=8, uncertainty=None)
+    with pytest.raises(ValueError, match="uncertainty"):
+        widim(a, b, window=16, uncertainty="bogus")
