@@ -48,7 +48,9 @@ CASES = [c.case_id for c in SWEEP.cases()]
 IDS = {stage: SWEEP.stage_ids(stage) for stage in STAGES}  # stage -> {where it writes: a case}
 # Where the reconstruction fits particles (reconstruct.method: ipr): those jobs also write the
 # particle list (rule reconstruct_particles); every other case's rule reconstruct is unchanged.
-PARTICLE_IDS = sorted(i for i, c in IDS["reconstruct"].items() if gives_particles(SWEEP.apply(c)["reconstruct"]["method"]))
+PARTICLE_IDS = sorted(
+    i for i, c in IDS["reconstruct"].items() if gives_particles(SWEEP.apply(c)["reconstruct"]["method"])
+)
 OUT = f"results/{NAME}"
 LOG = f"{OUT}/logs"
 BENCH = f"{OUT}/benchmarks"
