@@ -20,10 +20,12 @@
 # stages that depend on the change.
 import json
 import os
+import re
 import sys
 
 from snakemake.exceptions import WorkflowError
 
+from lfstudy.reconstruct import gives_particles
 from lfstudy.study.config import stage_config, validate_config
 from lfstudy.study.resources import job_mem_mb, machine_memory
 from lfstudy.study.sweep import SHARED, STAGES, Sweep
@@ -44,6 +46,11 @@ NAME = CFG["name"]
 SWEEP = Sweep(CFG)
 CASES = [c.case_id for c in SWEEP.cases()]
 IDS = {stage: SWEEP.stage_ids(stage) for stage in STAGES}  # stage -> {where it writes: a case}
+# Where the reconstruction fits particles (reconstruct.method: ipr): those jobs also write the
+# particle list (rule reconstruct_particles); every other case's rule reconstruct is unchanged.
+PARTICLE_IDS = sorted(
+    i for i, c in IDS["reconstruct"].items() if gives_particles(SWEEP.apply(c)["reconstruct"]["method"])
+)
 OUT = f"results/{NAME}"
 LOG = f"{OUT}/logs"
 BENCH = f"{OUT}/benchmarks"
@@ -144,6 +151,7 @@ rule all:
         every("register", "lightfield_a.zarr", "lightfield_b.zarr"),
         every("refocus", "stack_a.zarr", "stack_b.zarr"),
         every("reconstruct", "volume_a.zarr", "volume_b.zarr"),
+        [f"{OUT}/{i}/volume_{f}.particles.zarr" for i in PARTICLE_IDS for f in "ab"],
         every("piv", "piv.zarr"),
         every("errors", "errors.zarr"),
 
@@ -251,6 +259,33 @@ rule reconstruct:
     params: cfg=stage_params("reconstruct")
     resources: mem_mb=mem_mb("reconstruct")
     shell: DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
+
+
+# A method that fits particles writes the list beside each volume, from the same fit (one job).
+# Snakemake's outputs are static per rule, so these cases get a rule of their own, bound to
+# their stage ids; it wins over rule reconstruct for their volumes.
+if PARTICLE_IDS:
+
+    ruleorder: reconstruct_particles > reconstruct
+
+    rule reconstruct_particles:
+        wildcard_constraints:
+            sid="(?:" + "|".join(re.escape(i) for i in PARTICLE_IDS) + ")",
+        input:
+            stack=at("stack_{frame}.zarr", "reconstruct"),
+            lightfield=at("lightfield_{frame}.zarr", "reconstruct"),
+            centers=at("centers.zarr", "reconstruct"),
+        output:
+            volume=directory(f"{OUT}/{{sid}}/volume_{{frame}}.zarr"),
+            particles=directory(f"{OUT}/{{sid}}/volume_{{frame}}.particles.zarr"),
+        log: f"{LOG}/reconstruct/{{sid}}_{{frame}}.log"
+        benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
+        threads: HEAVY
+        params: cfg=stage_params("reconstruct")
+        resources: mem_mb=mem_mb("reconstruct")
+        shell:
+            DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q}"
+            " {output.volume:q} {output.particles:q}"
 
 
 rule depthcal:

@@ -147,13 +147,35 @@ def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path
 
 
 def run_reconstruct(
-    ccfg: Mapping[str, Any], stack: str | Path, lightfield: str | Path, centers: str | Path, out: str | Path
+    ccfg: Mapping[str, Any],
+    stack: str | Path,
+    lightfield: str | Path,
+    centers: str | Path,
+    out: str | Path,
+    particles: str | Path | None = None,
 ) -> None:
-    """Focal stack, light field and calibration → particle volume on the reconstruction grid."""
-    vol = cl.case_volume(
+    """Focal stack, light field and calibration → particle volume on the reconstruction grid; for a
+    method that fits particles (``ipr``) also its particle list (``particles``: the store it goes to,
+    required for such a method and refused for the others: the Snakefile declares it per case).
+
+    The list is written before the volume, both atomically: an interrupted job leaves no volume
+    without its list.
+    """
+    from lfstudy.reconstruct import gives_particles
+
+    method = ccfg["reconstruct"]["method"]
+    if gives_particles(method) != bool(particles):
+        need = "needs a particle-list path" if gives_particles(method) else "fits no particles: no particle-list path"
+        raise ValueError(f"reconstruct stage: reconstruct.method = {method!r} {need} (got {particles!r})")
+    vol, parts = cl.case_reconstruction(
         ccfg, io.open_array(stack), io.open_array(lightfield).load(), io.open_zarr(centers).load(), progress=True
     )
-    vol.attrs.update(io.provenance(ccfg, None))
+    prov = io.provenance(ccfg, None)
+    if parts is not None:
+        parts.attrs.update(prov)
+        print(f"{parts.sizes['particle']} particles", flush=True)
+        io.write_zarr(parts, particles)
+    vol.attrs.update(prov)
     io.write_zarr(vol, out, name=vol.name or "intensity")
 
 

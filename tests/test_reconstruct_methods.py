@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import json
 from importlib.metadata import EntryPoint
 from pathlib import Path
 from typing import ClassVar
@@ -314,3 +315,93 @@ def test_a_plugin_that_fails_to_load_is_skipped_with_a_warning(plugins):
         get_method("broken")
     with pytest.raises(ConfigError, match=r"reconstruct.method' = 'broken'"):
         validate_config({"camera": camera, "reconstruct": {"method": "broken"}})
+
+
+# --------------------------------------------------------------------------- methods that fit particles
+def test_a_particle_method_gives_its_list_with_the_volume(frame):
+    """ipr declares particles = True: reconstruct_particles gives the volume reconstruct gives (the same
+    values and attrs) and the particle list it was rendered from; the others give no list."""
+    from lfstudy.reconstruct import gives_particles, reconstruct_particles
+    from lfstudy.reconstruct.ipr import render_particles
+
+    assert gives_particles("ipr") and not any(gives_particles(m) for m in ("mart", "threshold", "none"))
+    kw = {"iterations": 1, "residual_candidates": 0}
+    vol, parts = reconstruct_particles(frame, "ipr", **kw)
+    ref = reconstruct(frame, "ipr", **kw)
+    np.testing.assert_array_equal(vol.values, ref.values)
+    assert {k: v for k, v in vol.attrs.items() if k != "seconds"} == {
+        k: v for k, v in ref.attrs.items() if k != "seconds"
+    }
+    assert parts.sizes["particle"] == vol.attrs["n_particles"] > 0
+    assert parts.attrs["method"] == "ipr" and parts.attrs["param_iterations"] == 1
+    for v in ("x", "y", "z", "sigma_x", "sigma_y", "sigma_z"):
+        assert parts[v].attrs["units"] == "mm" and parts[v].attrs["long_name"]
+    assert {"intensity", "residual"} <= set(parts.data_vars)
+    # the volume is the list's render: one fit, not two
+    np.testing.assert_allclose(
+        vol.values, render_particles(parts, frame.grid, CAM)[0].astype(np.float32), rtol=0, atol=0
+    )
+    mart_vol, none = reconstruct_particles(frame, "mart", iterations=1)
+    assert none is None
+    np.testing.assert_array_equal(mart_vol.values, reconstruct(frame, "mart", iterations=1).values)
+    with pytest.raises(ReconstructionError, match="fits no particles"):
+        get_method("mart")().run_particles(frame)
+    with pytest.raises(ReconstructionError, match=r"'reconstruct.ipr.shake' = 0.0: allowed range"):
+        reconstruct_particles(frame, "ipr", shake=0.0)
+
+
+@pytest.fixture(scope="module")
+def ipr_case(tmp_path_factory):
+    """A tiny ipr case of tests/data/tiny.yaml (8 particles, 2 iterations): its stage config and the
+    stores the reconstruct stage reads."""
+    from lfstudy import io
+    from lfstudy.study import case as cl
+    from lfstudy.study.config import case_config, expand_cases, stage_config
+
+    raw = yaml.safe_load((Path(__file__).parent / "data" / "tiny.yaml").read_text())
+    raw.update(
+        particles={"count": 8, "z_span": 3.0},
+        sweep={"flow": ["uniform_x"]},
+        reconstruct={"method": "ipr", "ipr": {"iterations": 2, "residual_candidates": 1}},
+    )
+    cfg = validate_config(raw)
+    case = expand_cases(cfg)[0]
+    full = case_config(cfg, case)
+    cam = cl.case_camera(full)
+    cen = find_lenslet_centers(cl.case_pinhole(full), cam)
+    lf = register(cl.case_image(full, cl.case_particles(full), "a"), cen, cam)
+    d = tmp_path_factory.mktemp("ipr_case")
+    io.write_zarr(cl.case_stack(full, lf), d / "stack.zarr", name="intensity")
+    io.write_zarr(lf, d / "lightfield.zarr", name="radiance")
+    io.write_zarr(cen, d / "centers.zarr")
+    return stage_config(cfg, case, "reconstruct"), d
+
+
+def test_reconstruct_stage_writes_the_particle_list(ipr_case):
+    """run_reconstruct of an ipr case writes the volume and, beside it, the particle list the volume was
+    rendered from (one fit), with units and provenance; a path that does not fit the method is refused."""
+    from lfstudy import io
+    from lfstudy.reconstruct.ipr import render_particles
+    from lfstudy.study import case as cl
+    from lfstudy.workflow import run_reconstruct
+
+    ccfg, d = ipr_case
+    ins = (d / "stack.zarr", d / "lightfield.zarr", d / "centers.zarr")
+    run_reconstruct(ccfg, *ins, d / "volume_a.zarr", d / "volume_a.particles.zarr")
+    vol = io.open_array(d / "volume_a.zarr").load()
+    parts = io.open_zarr(d / "volume_a.particles.zarr").load()
+    assert vol.attrs["method"] == "ipr" and parts.attrs["method"] == "ipr"
+    assert parts.sizes["particle"] == vol.attrs["n_particles"] > 0
+    assert set(parts.data_vars) >= {"x", "y", "z", "intensity", "residual", "sigma_x", "sigma_y", "sigma_z"}
+    assert parts["z"].attrs["units"] == "mm" and parts["residual"].attrs["long_name"]
+    assert json.loads(parts.attrs["parameters"])["reconstruct"]["method"] == "ipr"
+    assert parts.attrs["lfstudy_version"] == vol.attrs["lfstudy_version"]
+    grid = cl.case_grid(ccfg)
+    np.testing.assert_array_equal(vol.values, render_particles(parts, grid, cl.case_camera(ccfg))[0].astype(np.float32))
+    # the Snakefile declares the list exactly for the methods that fit particles
+    with pytest.raises(ValueError, match=r"reconstruct.method = 'ipr' needs a particle-list path"):
+        run_reconstruct(ccfg, *ins, d / "v2.zarr")
+    mart = {**ccfg, "reconstruct": {**ccfg["reconstruct"], "method": "mart"}}
+    with pytest.raises(ValueError, match=r"reconstruct.method = 'mart' fits no particles"):
+        run_reconstruct(mart, *ins, d / "v3.zarr", d / "v3.particles.zarr")
+    assert not (d / "v2.zarr").exists() and not (d / "v3.zarr").exists() and not (d / "v3.particles.zarr").exists()

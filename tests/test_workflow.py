@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -400,3 +401,27 @@ def test_slurm_profile_leaves_the_estimate_to_the_heavy_rules():
     profile = yaml.safe_load((ROOT / "profiles" / "slurm" / "config.yaml").read_text())
     for rule, res in profile["set-resources"].items():
         assert rule not in RULE_STAGES or "mem_mb" not in res, rule
+
+
+def test_an_ipr_case_plans_its_particle_list(tmp_path):
+    """reconstruct.method swept over mart and ipr: the ipr case's reconstruction (rule
+    reconstruct_particles) also writes volume_{a,b}.particles.zarr, once per frame; the mart case keeps
+    rule reconstruct and its one output. A study without ipr plans no particle list."""
+    import yaml
+
+    raw = yaml.safe_load(TINY.read_text())
+    raw["sweep"] = {"ppp": [0.004], "reconstruct.method": ["mart", "ipr"]}
+    cfg_path = tmp_path / "ipr.yaml"
+    cfg_path.write_text(yaml.safe_dump(raw))
+    work = tmp_path / "work"
+    jobs = _planned_jobs(work, config=cfg_path)
+    assert jobs["reconstruct"] == 2 and jobs["reconstruct_particles"] == 2 and jobs["piv"] == 2
+    r = _snakemake(work, "-n", config=cfg_path)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout + r.stderr
+    planned = set(re.findall(r"\S*volume_[ab]\.particles\.zarr", out))
+    assert {Path(p).parent.name for p in planned} == {"reconstruct.method~ipr"} and len(planned) == 2
+    assert not re.search(r"reconstruct.method~mart/volume_[ab]\.particles", out)
+    tiny = _snakemake(tmp_path / "tiny", "-n", config=TINY)
+    assert tiny.returncode == 0 and "particles.zarr" not in tiny.stdout + tiny.stderr
+    assert "reconstruct_particles" not in _planned_jobs(tmp_path / "tiny")

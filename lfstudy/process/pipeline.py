@@ -24,6 +24,7 @@ Output directory::
     centers.zarr, calibration.zarr, dark.zarr     the calibration (dark only with dark frames)
     depth_calibration.zarr                        the depth response (only with a recorded traverse)
     frames/<k>/lightfield.zarr, stack.zarr, volume.zarr
+    frames/<k>/particles.zarr                     the particle list (a method that fits particles: ipr)
     piv.zarr        every pair's vector field along ``time`` (series) or ``pair``
     metrics.zarr, metrics.csv                     measurement metrics per pair
     report.html     self-contained
@@ -181,14 +182,17 @@ def process_recording(
         metrics: list[xr.Dataset] = []
         for k, frame in enumerate(rec.frames):
             raw, saturated[frame.label] = read_frame(rec, frame, dark)
-            lf, stack, volume = cl.render_volume(raw, centers, cfg)
+            lf, stack, volume, particles = cl.render_frame(raw, centers, cfg)
             d = tmp / frame_dir(k)
-            for obj, name in ((lf, "lightfield"), (stack, "stack"), (volume, "volume")):
+            for obj, name in ((lf, "lightfield"), (stack, "stack"), (volume, "volume"), (particles, "particles")):
+                if obj is None:  # no particle list: the method fits none
+                    continue
                 obj.attrs.update(prov, source=frame.label)
                 io.write_zarr(obj, d / f"{name}.zarr", progress=progress and name == "stack")
+            found = "" if particles is None else f", {particles.sizes['particle']} particles"
             say(
                 f"frame {k + 1}/{len(rec.frames)} {frame.label}: volume {' x '.join(map(str, volume.shape))} voxels "
-                f"(z, y, x), {100 * saturated[frame.label]:.3g} % saturated"
+                f"(z, y, x){found}, {100 * saturated[frame.label]:.3g} % saturated"
             )
             for p, (i, j) in enumerate(rec.pairs):
                 if j != k:

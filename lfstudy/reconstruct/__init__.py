@@ -22,8 +22,10 @@ from lfstudy.reconstruct.registry import (
     available_methods,
     detect_parameters,
     get_method,
+    gives_particles,
     method_schemas,
     reconstruct,
+    reconstruct_particles,
     register_method,
     unregister_method,
 )
@@ -31,6 +33,8 @@ from lfstudy.reconstruct.threshold import disk, focal_stack_as_is, threshold_dil
 
 __all__ = [
     "reconstruct",
+    "reconstruct_particles",
+    "gives_particles",
     "ReconstructionInputs",
     "ReconstructionMethod",
     "ReconstructionError",

@@ -6,7 +6,11 @@ registered light field, the lenslet calibration, the camera, the
 reconstruction grid, and the focal stack refocused on that grid) and its
 ``parameters`` (JSON-schema properties with types and ranges, which the config
 schema includes as ``reconstruct.<name>``). Its ``run`` takes those parameters
-as explicit keyword-only arguments and returns a volume on the grid. The
+as explicit keyword-only arguments and returns a volume on the grid. A method
+that fits particles (``particles = True``, as ``ipr``) also has ``run_particles``:
+the volume and the particle list it was rendered from, out of one fit
+(:func:`reconstruct_particles`); the workflow and ``lfstudy process`` then write
+the list beside the volume. The
 defaults live in one place, ``run``'s signature (:func:`detect_parameters`, as
 xarray's backends): the schema and the filled-in config read them from there.
 
@@ -63,6 +67,8 @@ __all__ = [
     "register_method",
     "unregister_method",
     "reconstruct",
+    "reconstruct_particles",
+    "gives_particles",
 ]
 
 #: What a method may require.
@@ -74,7 +80,8 @@ BUILTIN: dict[str, str] = {
     "none": "lfstudy.reconstruct.threshold:FocalStack",
     "mart": "lfstudy.reconstruct.mart:MART",
     "deconvolution": "lfstudy.reconstruct.deconvolution:RichardsonLucy",
-    "ipr": "lfstudy.reconstruct.ipr:IPR",
+    # IPR with its particle list (run_particles), until lfstudy.reconstruct.ipr:IPR has its own
+    "ipr": "lfstudy.reconstruct._ipr_particles:IPR",
 }
 
 #: Entry-point group of methods from other packages.
@@ -142,9 +149,21 @@ class ReconstructionMethod:
     description: ClassVar[str] = ""
     requires: ClassVar[tuple[str, ...]] = ("stack",)
     parameters: ClassVar[dict[str, dict[str, Any]]] = {}
+    #: True for a method that fits particles: its ``run_particles`` gives the list with the volume.
+    particles: ClassVar[bool] = False
 
     def run(self, inputs: ReconstructionInputs, *, progress: bool = False, **params: Any) -> xr.DataArray:
         raise NotImplementedError  # pragma: no cover - subclasses implement run
+
+    def run_particles(
+        self, inputs: ReconstructionInputs, *, progress: bool = False, **params: Any
+    ) -> tuple[xr.DataArray, xr.Dataset]:
+        """The volume of :meth:`run` and the particle list it was rendered from, out of one fit.
+
+        Only methods with ``particles = True`` have it. The list is a Dataset over ``particle``
+        with at least ``x``, ``y``, ``z`` [mm] and ``intensity``.
+        """
+        raise ReconstructionError(f"reconstruct.method = {self.name!r} fits no particles (particles = False)")
 
     @classmethod
     def schema(cls) -> dict[str, Any]:
@@ -406,6 +425,16 @@ def reconstruct(
     >>> int((vol.values > 0).sum())
     5
     """
+    inputs, cls, full = _prepare(inputs, method, params)
+    vol = cls().run(inputs, progress=progress, **full)
+    vol.attrs.update({"method": cls.name, **{f"param_{k}": v for k, v in full.items()}})
+    return vol
+
+
+def _prepare(
+    inputs: ReconstructionInputs | xr.DataArray, method: str, params: dict[str, Any]
+) -> tuple[ReconstructionInputs, type[ReconstructionMethod], dict[str, Any]]:
+    """The checks of :func:`reconstruct`: the inputs, the method class and its full parameters."""
     if isinstance(inputs, xr.DataArray):
         inputs = ReconstructionInputs(stack=inputs)
     if not isinstance(inputs, ReconstructionInputs):
@@ -416,7 +445,46 @@ def reconstruct(
         raise ReconstructionError(
             f"reconstruct.method = {method!r} needs {', '.join(missing)} (it requires {', '.join(cls.requires)})"
         )
-    full = _check_params(cls, dict(params))
-    vol = cls().run(inputs, progress=progress, **full)
-    vol.attrs.update({"method": cls.name, **{f"param_{k}": v for k, v in full.items()}})
-    return vol
+    return inputs, cls, _check_params(cls, dict(params))
+
+
+def gives_particles(method: str) -> bool:
+    """Whether reconstruction method ``method`` fits particles (``particles = True``): its
+    reconstruction has a particle list besides the volume (:func:`reconstruct_particles`).
+
+    Raises
+    ------
+    ReconstructionError
+        Unknown method.
+    """
+    return bool(get_method(method).particles)
+
+
+def reconstruct_particles(
+    inputs: ReconstructionInputs | xr.DataArray,
+    method: str = "threshold",
+    *,
+    progress: bool = False,
+    **params: Any,
+) -> tuple[xr.DataArray, xr.Dataset | None]:
+    """:func:`reconstruct`, with the particle list of a method that fits particles.
+
+    Parameters and checks as :func:`reconstruct`.
+
+    Returns
+    -------
+    volume : xarray.DataArray
+        As :func:`reconstruct` returns it (the same attrs).
+    particles : xarray.Dataset or None
+        The particle list the volume was rendered from, out of the same fit (a method with
+        ``particles = True``), with the volume's ``method`` and ``param_*`` attrs; None for
+        a method that fits no particles.
+    """
+    if not get_method(method).particles:
+        return reconstruct(inputs, method, progress=progress, **params), None
+    inputs, cls, full = _prepare(inputs, method, params)
+    vol, parts = cls().run_particles(inputs, progress=progress, **full)
+    stamp = {"method": cls.name, **{f"param_{k}": v for k, v in full.items()}}
+    vol.attrs.update(stamp)
+    parts.attrs.update(stamp)
+    return vol, parts

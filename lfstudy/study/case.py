@@ -40,11 +40,13 @@ __all__ = [
     "case_grid",
     "case_stack",
     "case_volume",
+    "case_reconstruction",
     "case_piv",
     "oracle_volumes",
     "oracle_piv",
     "case_depth_calibration",
     "render_volume",
+    "render_frame",
 ]
 
 
@@ -270,16 +272,36 @@ def case_volume(
 ) -> xr.DataArray:
     """The particle volume of one frame with the case's reconstruction method (``reconstruct.method``)
     and its parameters (``reconstruct.<method>``), on the case's grid."""
-    from lfstudy.reconstruct import ReconstructionInputs, reconstruct
+    return case_reconstruction(ccfg, stack, lightfield, centers, progress=progress)[0]
+
+
+def case_reconstruction(
+    ccfg: Mapping[str, Any],
+    stack: xr.DataArray,
+    lightfield: xr.DataArray | None = None,
+    centers: xr.Dataset | None = None,
+    *,
+    progress: bool = False,
+) -> tuple[xr.DataArray, xr.Dataset | None]:
+    """:func:`case_volume` and, for a method that fits particles (``ipr``), the particle list the
+    volume was rendered from, out of the same fit (:func:`lfstudy.reconstruct.reconstruct_particles`).
+
+    Returns
+    -------
+    volume : xarray.DataArray
+    particles : xarray.Dataset or None
+        Over ``particle`` (x, y, z [mm], intensity, ...); None for a method that fits no particles.
+    """
+    from lfstudy.reconstruct import ReconstructionInputs, reconstruct_particles
 
     cam = case_camera(ccfg)
     grid = case_grid(ccfg, cam)
     r = ccfg["reconstruct"]
     method = r["method"]
     inputs = ReconstructionInputs(stack=stack, lightfield=lightfield, centers=centers, camera=cam, grid=grid)
-    vol = reconstruct(inputs, method, progress=progress, **dict(r.get(method, {})))
+    vol, parts = reconstruct_particles(inputs, method, progress=progress, **dict(r.get(method, {})))
     vol.attrs.update({k: v for k, v in grid.attrs().items() if k not in vol.attrs})
-    return vol
+    return vol, parts
 
 
 def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False) -> xr.Dataset:
@@ -409,9 +431,17 @@ def render_volume(
         The stack (rendered once, persisted) and the volume are on the case's
         reconstruction grid.
     """
+    return render_frame(raw, centers, ccfg, progress=progress)[:3]
+
+
+def render_frame(
+    raw: xr.DataArray, centers: xr.Dataset, ccfg: Mapping[str, Any], *, progress: bool = False
+) -> tuple[xr.DataArray, xr.DataArray, xr.DataArray, xr.Dataset | None]:
+    """:func:`render_volume` and the particle list of a method that fits particles
+    (:func:`case_reconstruction`; None for the others)."""
     from lfstudy.lightfield.registration import register
 
     lf = register(raw, centers, case_camera(ccfg))
     # persist: the reconstruction and the caller's write both read the stack
     stack = case_stack(ccfg, lf).persist()
-    return lf, stack, case_volume(ccfg, stack, lf, centers, progress=progress)
+    return (lf, stack, *case_reconstruction(ccfg, stack, lf, centers, progress=progress))

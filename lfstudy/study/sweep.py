@@ -129,6 +129,8 @@ FILES: dict[str, str] = {
     **{f"lightfield_{f}.zarr": "register" for f in "ab"},
     **{f"stack_{f}.zarr": "refocus" for f in "ab"},
     **{f"volume_{f}.zarr": "reconstruct" for f in "ab"},
+    # the particle list of a method that fits particles (ipr), beside its volume; other methods have none
+    **{f"volume_{f}.particles.zarr": "reconstruct" for f in "ab"},
     "piv.zarr": "piv",
     "errors.zarr": "errors",
 }
