@@ -88,8 +88,17 @@ from lfstudy.simulate._render_common import (
 )
 from lfstudy.simulate.exact import _K, _ST_BIG, _ST_SIZE, _ST_SPILL, _render_particle, _scratch
 
-__all__ = ["IPR", "ipr", "ipr_particles", "calibrated_camera", "particle_patches", "render_particles"]
+__all__ = [
+    "IPR",
+    "ipr",
+    "ipr_particles",
+    "particle_volume",
+    "calibrated_camera",
+    "particle_patches",
+    "render_particles",
+]
 
+_PITCH_SNAP_PX = 0.01  # a fitted pitch moving no lenslet by more than this [px] from the configured one is it
 _MAX_ROTATION_PX = 0.05  # largest lenslet displacement [px] a calibrated rotation may cause and be ignored
 _MARGIN_PX = 3  # pixels added around each patch's layout bound (covers the ±δ trial positions)
 _MIN_SEPARATION = 0.5  # residual candidates nearer an existing particle [voxels, per-axis scaled] are not added
@@ -137,6 +146,12 @@ def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[Ple
     pitch = 0.5 * (math.hypot(ax1, ay1) + math.hypot(ax2, ay2))
     rot = math.atan2(ay1, ax1)
     span_px = 0.5 * max(cx.shape) * pitch / camera.pixel_pitch
+    # A pitch within the fit's precision of the configured one is the configured one: the model's lenslet
+    # count covers the sensor, and on a sensor of a whole number of configured pitches a fitted pitch a
+    # hair smaller adds a lenslet and leaves no offset on the calibrated lattice (tiny.yaml: 32 lenslets,
+    # fit 0.088798 for 0.0888 mm, 0.004 px at the array's edge).
+    if abs(pitch - camera.lenslet_pitch) * 0.5 * max(cx.shape) < _PITCH_SNAP_PX * camera.pixel_pitch:
+        pitch = camera.lenslet_pitch
     if abs(rot) * span_px > _MAX_ROTATION_PX:
         raise ReconstructionError(
             f"centers: the calibrated lenslet grid is rotated by {rot:.3g} rad ({abs(rot) * span_px:.2g} px at the "
@@ -839,6 +854,13 @@ def ipr(
         batch=batch,
         progress=progress,
     )
+    return particle_volume(parts, inputs, blob_sigma)
+
+
+def particle_volume(parts: xr.Dataset, inputs: ReconstructionInputs, blob_sigma: float = 0.0) -> xr.DataArray:
+    """The volume on ``inputs.grid`` of a particle list (:func:`ipr_particles`), by :func:`render_particles`,
+    with the list's attrs (``n_particles``, ``candidates``, ``removed_ghosts``, ``residual_norm``, the
+    calibrated grid) and ``blob_sigma_mm``."""
     vol, sig = render_particles(parts, inputs.grid, inputs.camera, blob_sigma)
     attrs = {k: v for k, v in parts.attrs.items() if k != "method"}
     return inputs.grid.volume(
@@ -856,6 +878,7 @@ class IPR(ReconstructionMethod):
     name = "ipr"
     description = "iterative particle reconstruction (Wieneke 2013) with shaking, fitted with the exact renderer"
     requires = ("lightfield", "centers", "camera", "grid")
+    particles = True
     parameters: ClassVar[dict[str, dict[str, Any]]] = {
         "iterations": {"type": "integer", "minimum": 0, "maximum": 100, "description": "outer iterations"},
         "peak_threshold": {
@@ -934,3 +957,11 @@ class IPR(ReconstructionMethod):
             blob_sigma=blob_sigma,
             progress=progress,
         )
+
+    def run_particles(
+        self, inputs: ReconstructionInputs, *, blob_sigma: float = 0.0, progress: bool = False, **params: Any
+    ) -> tuple[xr.DataArray, xr.Dataset]:
+        """The volume of :meth:`run` and the particle list (:func:`ipr_particles`) it was rendered from,
+        out of one fit; ``params`` as :meth:`run`'s."""
+        parts = ipr_particles(inputs, progress=progress, **params)
+        return particle_volume(parts, inputs, blob_sigma), parts

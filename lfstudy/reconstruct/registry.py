@@ -80,8 +80,7 @@ BUILTIN: dict[str, str] = {
     "none": "lfstudy.reconstruct.threshold:FocalStack",
     "mart": "lfstudy.reconstruct.mart:MART",
     "deconvolution": "lfstudy.reconstruct.deconvolution:RichardsonLucy",
-    # IPR with its particle list (run_particles), until lfstudy.reconstruct.ipr:IPR has its own
-    "ipr": "lfstudy.reconstruct._ipr_particles:IPR",
+    "ipr": "lfstudy.reconstruct.ipr:IPR",
 }
 
 #: Entry-point group of methods from other packages.
