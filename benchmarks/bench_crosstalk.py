@@ -332,7 +332,7 @@ def ipr_pair(ccfg: dict, pa, pb, lfs: dict, centers, mart_piv: xr.Dataset, oracl
 
     blob = float(ccfg["reconstruct"].get("ipr", {}).get("blob_sigma", 0.0))
     real = {}
-    for f, p in (("a", pa), ("b", pb)):
+    for f in ("a", "b"):
         near = m[f]["fit_found"]
         real[f] = grid.volume(render_particles(parts[f].isel(particle=near), grid, cam, blob)[0].astype(np.float32))
     show("IPR without its ghosts", summary(cl.case_piv(ccfg, real["a"], real["b"]), ccfg), lateral)
