@@ -16,7 +16,13 @@ each candidate cause:
   (the "pull toward lenslet centres" predicts a z error that follows the phase);
 - ``piv``: the case's volumes with other PIV settings (single level, no predictor filter,
   smaller windows);
-- ``mart``: other MART settings (no smoothing, init from the focal stack, more iterations).
+- ``mart``: other MART settings (no smoothing, init from the focal stack, more iterations);
+- ``ipr``: the pair mode of IPR against MART: both frames reconstructed by ``reconstruct.method: ipr``
+  (its ``reconstruct.ipr`` settings, from the same light fields) and PIV'd with the case's settings,
+  beside MART and the oracle; plus IPR's particles matched to the true ones (found / ghosts within half a
+  voxel, mean and rms z error per band of true |z|, and the mean z error of frame b minus frame a,
+  the particle-level crosstalk), the PIV on IPR's particles without its ghosts, and one ``PAIR`` line per
+  method for tables.
 
 Printed in mm and as fractions of the lateral shift: mean u, v, w, the crosstalk (mean w − w_true
 over |lateral shift|), RMS per component and total, and the valid fraction. Kept small (the demo
@@ -49,7 +55,7 @@ from lfstudy.study.config import case_config, sweep_of, validate_config
 from lfstudy.study.metrics import case_errors, render_truth
 
 ROOT = Path(__file__).resolve().parents[1]
-VARIANTS = ("elong", "shifta", "centroids", "piv", "mart", "phase")
+VARIANTS = ("elong", "shifta", "centroids", "piv", "mart", "phase", "ipr")
 
 
 def build_config(args: argparse.Namespace) -> dict:
@@ -244,6 +250,104 @@ def phase_scan(ccfg: dict, template: xr.Dataset, centers: xr.Dataset, model: boo
     print("    p-p      " + " ".join(f"{v:7.3f}" for v in np.ptp(rows, axis=0)))
 
 
+def ipr_frames(ccfg: dict, lfs: dict, centers: xr.Dataset) -> tuple[dict, dict]:
+    """Both frames by ``ipr`` with the case's ``reconstruct.ipr`` settings: the particle lists and the volumes.
+
+    The same two steps as the method (:func:`lfstudy.reconstruct.ipr.ipr`), kept apart to score the particles.
+    """
+    from lfstudy.reconstruct import ReconstructionInputs
+    from lfstudy.reconstruct.ipr import ipr_particles, render_particles
+
+    cam = cl.case_camera(ccfg)
+    grid = cl.case_grid(ccfg, cam)
+    kw = dict(ccfg["reconstruct"].get("ipr", {}))
+    blob = float(kw.pop("blob_sigma", 0.0))
+    parts, vols = {}, {}
+    for f in ("a", "b"):
+        inp = ReconstructionInputs(lightfield=lfs[f], centers=centers, camera=cam, grid=grid)
+        parts[f] = ipr_particles(inp, **kw)
+        vol, _ = render_particles(parts[f], grid, cam, blob)
+        vols[f] = grid.volume(vol.astype(np.float32))
+    return parts, vols
+
+
+def match_particles(true: xr.Dataset, fit: xr.Dataset, grid) -> dict[str, np.ndarray | float]:
+    """True particles inside the grid matched to the nearest fitted one (per-axis voxel units).
+
+    Returns found % and ghost % (within half a voxel), the true z and the z error of the found ones, and
+    the indices of the fitted particles that are no ghosts.
+    """
+    from scipy.spatial import cKDTree
+
+    dz, dy, dx = grid.voxel_size()
+    vox = np.array([dx, dy, dz])
+    t = np.column_stack([true[v].values for v in ("x", "y", "z")])
+    lo = np.array([grid.x[0], grid.y[0], grid.z[0]]) - vox / 2
+    hi = np.array([grid.x[-1], grid.y[-1], grid.z[-1]]) + vox / 2
+    t = t[np.all((t >= lo) & (t <= hi), axis=1)]
+    f = np.column_stack([fit[v].values for v in ("x", "y", "z")])
+    d_t, j = cKDTree(f / vox).query(t / vox)
+    d_f, _ = cKDTree(t / vox).query(f / vox)
+    ok = d_t < 0.5
+    return {
+        "found": 100.0 * ok.mean(),
+        "ghosts": 100.0 * (d_f >= 0.5).mean(),
+        "z": t[ok, 2],
+        "ez": f[j[ok], 2] - t[ok, 2],
+        "n_true": len(t),
+        "n_fit": len(f),
+        "fit_found": np.flatnonzero(d_f < 0.5),
+    }
+
+
+def ipr_pair(ccfg: dict, pa, pb, lfs: dict, centers, mart_piv: xr.Dataset, oracle_piv: xr.Dataset, tag: str) -> None:
+    """IPR against MART and the oracle on the same light fields (the ``ipr`` variant)."""
+    cam = cl.case_camera(ccfg)
+    grid = cl.case_grid(ccfg, cam)
+    disp = ccfg["flow"]["displacement"]
+    lateral = math.hypot(disp[0], disp[1])
+    t0 = time.perf_counter()
+    parts, vols = ipr_frames(ccfg, lfs, centers)
+    t_ipr = time.perf_counter() - t0
+    piv = cl.case_piv(ccfg, vols["a"], vols["b"])
+    s_ipr = summary(piv, ccfg)
+    show(f"IPR ({t_ipr:.0f} s, both frames)", s_ipr, lateral)
+    profile(piv, disp)
+    m = {}
+    for f, p in (("a", pa), ("b", pb)):
+        m[f] = mm = match_particles(p, parts[f], grid)
+        az = np.abs(mm["z"])
+        parts_txt = []
+        for lo, hi in ((0.0, 0.5), (0.5, 1.0), (1.0, np.inf)):
+            e = mm["ez"][(az >= lo) & (az < hi)]
+            mean, rms = (e.mean(), np.sqrt(np.mean(e**2))) if e.size else (np.nan, np.nan)
+            parts_txt.append(f"|z| {lo:g}-{hi:g}: n {e.size} mean {mean:+.4f} rms {rms:.4f}")
+        txt = ", ".join(parts_txt)
+        print(
+            f"    IPR frame {f}: {mm['n_true']} true in grid, {mm['n_fit']} fitted; found {mm['found']:.1f} %, "
+            f"ghosts {mm['ghosts']:.1f} %; z error [mm] {txt}"
+        )
+    # the PIV on the fitted particles that have a true one within half a voxel (the ghosts left out)
+    from lfstudy.reconstruct.ipr import render_particles
+
+    blob = float(ccfg["reconstruct"].get("ipr", {}).get("blob_sigma", 0.0))
+    real = {}
+    for f in ("a", "b"):
+        near = m[f]["fit_found"]
+        real[f] = grid.volume(render_particles(parts[f].isel(particle=near), grid, cam, blob)[0].astype(np.float32))
+    show("IPR without its ghosts", summary(cl.case_piv(ccfg, real["a"], real["b"]), ccfg), lateral)
+    dzm = m["b"]["ez"].mean() - m["a"]["ez"].mean()
+    print(f"    IPR particles: mean z error b - a {dzm:+.4f} mm ({dzm / lateral:+.3f} of the shift)")
+    fg = f" found {m['a']['found']:.0f}/{m['b']['found']:.0f} ghosts {m['a']['ghosts']:.0f}/{m['b']['ghosts']:.0f}"
+    for label, r in (("mart", summary(mart_piv, ccfg)), ("ipr", s_ipr), ("oracle", summary(oracle_piv, ccfg))):
+        print(
+            f"PAIR {tag} {label} u {r['mean_x_mm']:+.4f} v {r['mean_y_mm']:+.4f} w {r['mean_z_mm']:+.4f} "
+            f"w/s {r['crosstalk_z']:+.3f} rms {r['rms_total_mm']:.4f} valid {r['valid_percent']:.0f}"
+            + (fg if label == "ipr" else ""),
+            flush=True,
+        )
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--config", default=str(ROOT / "config" / "demo.yaml"), help="study config (demo or thesis)")
@@ -302,7 +406,11 @@ def main(argv: list[str] | None = None) -> None:
     show("case (MART)", case, lateral)
     profile(piv, disp)
     oa, ob = cl.oracle_volumes(ccfg, pa, pb)
-    show("oracle (true volumes)", summary(cl.case_piv(ccfg, oa, ob), ccfg), lateral)
+    opiv = cl.case_piv(ccfg, oa, ob)
+    show("oracle (true volumes)", summary(opiv, ccfg), lateral)
+    if "ipr" in args.variants:
+        tag = f"M{cam.magnification:g}/pl{cam.lenslet_pitch:g}/a{args.angle:g}/s{args.seed}"
+        ipr_pair(ccfg, pa, pb, lfs, centers, piv, opiv, tag)
 
     steps = (float(grid.voxel_size()[0]), grid.dy, grid.dx)
     if "elong" in args.variants:

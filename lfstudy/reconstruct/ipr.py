@@ -162,19 +162,27 @@ def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[Ple
     # the sensor): the offsets that put a lattice point on the fitted one (ax0, ay0) are a ladder of
     # half pitches, of which those whose own N keeps the phase are valid; of these, the pair whose
     # lattice holds every calibrated centre (an edge row may exist for one and not the other), then the smallest
+    # offset; among equal fits the pitch nearest the fitted one. Where the sensor is a whole number of
+    # lenslets (the demo's 640 x 480 px at pitch 0.1184 mm: 40 x 30), a fitted pitch a hair short needs one
+    # more lenslet, whose lattice has the other phase at every offset: the pitches that make the sensor whole
+    # (and the nominal one) are tried too, within the calibration's precision (the residual decides)
+    pitches = {pitch, camera.lenslet_pitch}
+    for size in (camera.sensor_width, camera.sensor_height):
+        pitches.add(size / max(1, round(size / pitch)))
     best = None
-    for ox in _lattice_offsets(camera, pitch, ax0, "x"):
-        for oy in _lattice_offsets(camera, pitch, ay0, "y"):
-            c = camera.with_(lenslet_pitch=pitch, lenslet_offset_x=ox, lenslet_offset_y=oy, lenslet_rotation=0.0)
-            key = (round(_grid_residual(c, cx[ok], cy[ok]), 3), math.hypot(ox, oy))
-            if best is None or key < best[0]:
-                best = key, c
+    for p in sorted(pitches, key=lambda v: abs(v - pitch)):
+        for ox in _lattice_offsets(camera, p, ax0, "x"):
+            for oy in _lattice_offsets(camera, p, ay0, "y"):
+                c = camera.with_(lenslet_pitch=p, lenslet_offset_x=ox, lenslet_offset_y=oy, lenslet_rotation=0.0)
+                key = (round(_grid_residual(c, cx[ok], cy[ok]), 3), abs(p - pitch), math.hypot(ox, oy))
+                if best is None or key < best[0]:
+                    best = key, c
     if best is None:
         raise ReconstructionError("centers: no lenslet offset reproduces the calibrated grid")
     cam = best[1]
     resid = _grid_residual(cam, cx[ok], cy[ok])
     return cam, {
-        "grid_pitch_mm": float(pitch),
+        "grid_pitch_mm": float(cam.lenslet_pitch),
         "grid_offset_x_mm": float(cam.lenslet_offset_x),
         "grid_offset_y_mm": float(cam.lenslet_offset_y),
         "grid_rotation_rad": float(rot),
