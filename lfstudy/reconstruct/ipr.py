@@ -98,7 +98,6 @@ __all__ = [
     "render_particles",
 ]
 
-_PITCH_SNAP_PX = 0.01  # a fitted pitch moving no lenslet by more than this [px] from the configured one is it
 _MAX_ROTATION_PX = 0.05  # largest lenslet displacement [px] a calibrated rotation may cause and be ignored
 _MARGIN_PX = 3  # pixels added around each patch's layout bound (covers the ±δ trial positions)
 _MIN_SEPARATION = 0.5  # residual candidates nearer an existing particle [voxels, per-axis scaled] are not added
@@ -146,12 +145,6 @@ def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[Ple
     pitch = 0.5 * (math.hypot(ax1, ay1) + math.hypot(ax2, ay2))
     rot = math.atan2(ay1, ax1)
     span_px = 0.5 * max(cx.shape) * pitch / camera.pixel_pitch
-    # A pitch within the fit's precision of the configured one is the configured one: the model's lenslet
-    # count covers the sensor, and on a sensor of a whole number of configured pitches a fitted pitch a
-    # hair smaller adds a lenslet and leaves no offset on the calibrated lattice (tiny.yaml: 32 lenslets,
-    # fit 0.088798 for 0.0888 mm, 0.004 px at the array's edge).
-    if abs(pitch - camera.lenslet_pitch) * 0.5 * max(cx.shape) < _PITCH_SNAP_PX * camera.pixel_pitch:
-        pitch = camera.lenslet_pitch
     if abs(rot) * span_px > _MAX_ROTATION_PX:
         raise ReconstructionError(
             f"centers: the calibrated lenslet grid is rotated by {rot:.3g} rad ({abs(rot) * span_px:.2g} px at the "
