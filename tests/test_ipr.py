@@ -158,3 +158,17 @@ def test_ipr_parameters_and_bad_input(scene):
         reconstruct(ReconstructionInputs(lightfield=inputs.lightfield, camera=CAM, grid=inputs.grid), "ipr")
     with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr\.batch = 0"):
         ipr_particles(inputs, batch=0)
+
+
+def test_ipr_particles_states_the_methods_defaults():
+    """ipr_particles (the fit) takes every parameter of ipr (the volume) but blob_sigma, with the same defaults, so
+    the schema's defaults (read from IPR.run, checked against ipr by test_reconstruct_methods) reach the fit."""
+    import inspect
+
+    from lfstudy.reconstruct.ipr import ipr, ipr_particles
+
+    def defaults(f):
+        return {p.name: p.default for p in inspect.signature(f).parameters.values() if p.default is not p.empty}
+
+    vol, fit = defaults(ipr), defaults(ipr_particles)
+    assert {k: v for k, v in vol.items() if k != "blob_sigma"} == fit
