@@ -12,6 +12,10 @@
 2. ``full``: a 32 x 193 x 289 voxel pair (the thesis' focal-stack size) with a
    known uniform shift, 3 grid levels, in both modes: seconds, peak memory, error.
 3. ``peak``: peak-locking index of a sub-voxel shift sweep per mode.
+4. ``uncertainty``: the same pair with the per-vector uncertainty off and on (correlation
+   statistics; ``moment`` too), runs alternated: seconds and their ratio (issue target: the
+   uncertainty adds <= 25 %), and per component the coverage (fraction of valid vectors with
+   |error| <= sigma, ideal 0.68) and RMS(error) / RMS(sigma) (ideal 1).
 
 Run: ``NUMBA_NUM_THREADS=1 python benchmarks/bench_piv.py [--sections compare] [--threads N]``.
 """
@@ -65,6 +69,32 @@ def bench_full(a, b, threads: int) -> None:
         )
         print(f"[{mode}]   valid {100 * float(ds.valid.mean()):.1f} %; {_errors(ds, SHIFT)}")
         print(f"[{mode}]   corrector RMS per pass: {np.round(ds.corrector_rms.values, 3).tolist()}")
+
+
+def bench_uncertainty(a, b, threads: int, repeats: int) -> None:
+    kw = {"window": (16, 48, 48), "spacing": (8, 24, 24), "levels": 3, "workers": threads}
+    times: dict[str | None, list[float]] = {None: [], "correlation": [], "moment": []}
+    last = {}
+    for _ in range(max(1, repeats)):
+        for method in times:  # alternated, so a load change on the machine hits every variant
+            t0 = time.perf_counter()
+            last[method] = widim(a, b, uncertainty=method, **kw)
+            times[method].append(time.perf_counter() - t0)
+    base = min(times[None])
+    for method, ts in times.items():
+        tag = f"[uncertainty {method or 'off'}]"
+        print(f"{tag} {min(ts):.2f} s best of {len(ts)} ({', '.join(f'{t:.2f}' for t in ts)}); x{min(ts) / base:.2f}")
+        if method is None:
+            continue
+        inner = last[method].isel({d: slice(1, -1) for d in last[method].u.dims})
+        ok = inner.valid.values
+        for c, s in zip(("w", "v", "u"), SHIFT):
+            e = inner[c].values[ok] - s
+            sig = inner[f"unc_{c}"].values[ok]
+            n = int(ok.sum())
+            cov = float(np.mean(np.abs(e) <= sig))
+            ratio = float(np.sqrt(np.mean(e**2)) / np.sqrt(np.mean(sig**2)))
+            print(f"{tag}   {c}: coverage {cov:.2f} (ideal 0.68), rms(error)/rms(sigma) {ratio:.2f} (ideal 1), n={n}")
 
 
 def bench_peak_locking(threads: int) -> None:
@@ -212,7 +242,7 @@ def bench_compare(a, b, repeats: int = REPEATS) -> None:
     numba.set_num_threads(threads)
 
 
-SECTIONS = ("compare", "full", "peak")
+SECTIONS = ("compare", "full", "peak", "uncertainty")
 
 
 def main() -> None:
@@ -235,6 +265,8 @@ def main() -> None:
         bench_full(a, b, args.threads)
     if "peak" in args.sections:
         bench_peak_locking(args.threads)
+    if "uncertainty" in args.sections:
+        bench_uncertainty(a, b, args.threads, args.repeats)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"process peak RSS {rss:.0f} MiB")
 
