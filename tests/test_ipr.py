@@ -19,6 +19,7 @@ from lfstudy.reconstruct import (
     make_grid,
     method_schemas,
     reconstruct,
+    reconstruct_particles,
 )
 from lfstudy.reconstruct.ipr import calibrated_camera, ipr_particles, particle_patches, render_particles
 from lfstudy.simulate import make_field, render
@@ -41,6 +42,12 @@ def scene():
     lf = register(apply_sensor(img, photons_per_particle=PHOTONS, seed=2), cen, CAM)
     grid = make_grid(CAM, CAM.focal_planes())
     return pts, ReconstructionInputs(lightfield=lf, centers=cen, camera=CAM, grid=grid)
+
+
+@pytest.fixture(scope="module")
+def fitted(scene):
+    """One IPR fit through the registry, shared: the volume and the particle list it was rendered from."""
+    return reconstruct_particles(scene[1], "ipr")
 
 
 def test_particle_patches_are_the_exact_render():
@@ -115,12 +122,12 @@ def test_calibrated_camera_when_the_sensor_is_a_whole_number_of_lenslets(scale):
     assert info["grid_residual_px"] < 0.01
 
 
-def test_ipr_finds_the_particles(scene):
+def test_ipr_finds_the_particles(scene, fitted):
     """Measured: 8 of 12 within half a voxel, those to <= 0.02 voxel; 2 ghosts. The four missed are a
     pair 1 voxel apart and two particles within a voxel of the focal plane, where a lenslet hides
     the lateral position."""
     pts, inputs = scene
-    parts = ipr_particles(inputs)
+    parts = fitted[1]
     vox = np.array(inputs.grid.voxel_size()[::-1])
     fit = np.column_stack([parts[v].values for v in ("x", "y", "z")])
     d = np.linalg.norm((fit[:, None, :] - pts[None]) / vox, axis=2)
@@ -136,12 +143,12 @@ def test_ipr_finds_the_particles(scene):
     assert parts.attrs["residual_norm"][-1] < parts.attrs["residual_norm"][0]
 
 
-def test_ipr_volume_beats_mart(scene):
+def test_ipr_volume_beats_mart(scene, fitted):
     """The ``ipr`` method's volume (the particles as the truth's Gaussians) has a higher Q than MART's."""
     pts, inputs = scene
     truth = make_field(*pts.T, np.ones(N))
     sig = render_particles(truth, inputs.grid, CAM)[1]
-    vol = reconstruct(inputs, "ipr")
+    vol = fitted[0]
     q_ipr = reconstruction_quality(vol, truth, sigma_mm=sig)
     q_mart = reconstruction_quality(reconstruct(inputs, "mart"), truth, sigma_mm=sig)
     assert vol.dims == ("z", "y", "x") and vol.attrs["n_particles"] >= 7
