@@ -1,0 +1,193 @@
+"""Per-vector uncertainty against the truth on study cases (issue 28): coverage and RMS ratio.
+
+Runs the cases of a config (default: the thesis camera, Table 4.3) through the same stage
+functions the Snakefile's rules call, in this process's workers (no Snakemake: this also runs
+on a machine with many cores and no Snakemake), each stage's distinct output once as in the
+workflow (shared images, calibration and depth calibration). Then prints, per case and
+component, the fraction of valid vectors whose |error| is within their standard uncertainty
+(``unc_coverage``; 0.68 where σ is right) and RMS(error)/RMS(σ) (``unc_ratio``; 1 where it is
+right), with the error and the oracle's beside them, the z row on its own.
+
+Targets (issue 28): coverage 0.55-0.80 and ratio 0.7-1.4 per component, on the thesis camera
+at 0.001 and 0.005 ppp (uniform, Hill and a new flow) and on a demo design.
+
+    python benchmarks/bench_uncertainty.py [--config config/thesis.yaml] [--flows uniform_x hill]
+        [--ppp 0.001 0.005] [--set depth_calibration.enabled=false ...] [--jobs 2] [--threads 1]
+        [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGET_COV, TARGET_RATIO = (0.55, 0.80), (0.7, 1.4)
+
+
+def _config(args: argparse.Namespace) -> dict[str, Any]:
+    from lfstudy.config import read_yaml
+    from lfstudy.study.config import validate_config
+
+    raw = read_yaml(args.config)
+    for item in args.set:
+        key, _, val = item.partition("=")
+        node = raw
+        *parents, leaf = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = yaml.safe_load(val)
+    sweep = raw.setdefault("sweep", {})
+    if args.flows:
+        sweep["flow"] = list(args.flows)
+    if args.ppp:
+        sweep["ppp"] = list(args.ppp)
+    if args.seed is not None:
+        raw["seed"] = args.seed
+    return validate_config(raw)
+
+
+def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[..., None], tuple]]]:
+    """The workflow's stages as waves of independent tasks: (label, function, args)."""
+    from lfstudy import workflow as wf
+    from lfstudy.study.config import stage_config
+    from lfstudy.study.sweep import Sweep
+
+    sw = Sweep(cfg)
+
+    def at(case, name: str) -> Path:
+        return out / sw.locate(case, name)
+
+    def each(stage: str):
+        return [(sid, case, stage_config(cfg, case, stage)) for sid, case in sw.stage_ids(stage).items()]
+
+    depth_on = cfg["depth_calibration"]["enabled"]
+    waves: list[list[tuple[str, Callable[..., None], tuple]]] = [[], [], [], [], [], [], [], []]
+    for sid, c, sc in each("camera"):
+        waves[0].append((f"camera {sid}", wf.run_optics, (sc, at(c, "camera.json"), at(c, "focal_planes.zarr"))))
+    for sid, c, sc in each("particles"):
+        waves[0].append((f"particles {sid}", wf.run_particles, (sc, at(c, "particles_a.zarr"))))
+    for sid, c, sc in each("pinhole"):
+        waves[0].append((f"pinhole {sid}", wf.run_pinhole, (sc, at(c, "pinhole.zarr"), at(c, "pinhole.tif"))))
+    for sid, c, sc in each("displace"):
+        args = (sc, at(c, "particles_a.zarr"), at(c, "particles_b.zarr"))
+        waves[1].append((f"displace {sid}", wf.run_displace, args))
+    for sid, c, sc in each("calibrate"):
+        waves[1].append((f"calibrate {sid}", wf.run_calibrate, (sc, at(c, "pinhole.zarr"), at(c, "centers.zarr"))))
+    for sid, c, sc in each("simulate"):
+        for f in "ab":
+            args = (sc, f, at(c, f"particles_{f}.zarr"), at(c, f"raw_{f}.zarr"), at(c, f"raw_{f}.tif"))
+            waves[2].append((f"simulate {f} {sid}", wf.run_simulate, args))
+    if depth_on:
+        for sid, c, sc in each("depthcal"):
+            args = (sc, at(c, "centers.zarr"), at(c, "depth_calibration.zarr"))
+            waves[2].append((f"depthcal {sid}", wf.run_depth_calibration, args))
+    for sid, c, sc in each("register"):
+        for f in "ab":
+            args = (sc, at(c, f"raw_{f}.zarr"), at(c, "centers.zarr"), at(c, f"lightfield_{f}.zarr"))
+            waves[3].append((f"register {f} {sid}", wf.run_register, args))
+    for sid, c, sc in each("refocus"):
+        for f in "ab":
+            args = (sc, at(c, f"lightfield_{f}.zarr"), at(c, f"stack_{f}.zarr"))
+            waves[4].append((f"refocus {f} {sid}", wf.run_refocus, args))
+    for sid, c, sc in each("reconstruct"):
+        for f in "ab":
+            args = (sc, at(c, f"stack_{f}.zarr"), at(c, f"lightfield_{f}.zarr"), at(c, "centers.zarr"))
+            args += (at(c, f"volume_{f}.zarr"),)
+            if sc["reconstruct"]["method"] == "ipr":
+                args += (at(c, f"volume_{f}.particles.zarr"),)
+            waves[5].append((f"reconstruct {f} {sid}", wf.run_reconstruct, args))
+    for sid, c, sc in each("piv"):
+        depth = at(c, "depth_calibration.zarr") if depth_on else None
+        args = (sc, at(c, "volume_a.zarr"), at(c, "volume_b.zarr"), at(c, "piv.zarr"), depth)
+        waves[6].append((f"piv {sid}", wf.run_piv, args))
+    for c in sw.cases():
+        sc = stage_config(cfg, c, "errors")
+        args = (sc, at(c, "piv.zarr"), at(c, "volume_a.zarr"), at(c, "particles_a.zarr"), at(c, "errors.zarr"))
+        waves[7].append((f"errors {c.case_id}", wf.run_errors, (*args, at(c, "particles_b.zarr"))))
+    return waves
+
+
+def _run(label: str, fn: Callable[..., None], args: tuple, threads: int) -> tuple[str, float]:
+    from lfstudy import workflow as wf
+
+    wf.set_threads(threads)
+    t0 = time.perf_counter()
+    fn(*args)
+    return label, time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", type=Path, default=ROOT / "config" / "thesis.yaml")
+    ap.add_argument("--flows", nargs="*", default=None, help="the sweep's flows (default: the config's)")
+    ap.add_argument("--ppp", nargs="*", type=float, default=None, help="the sweep's ppp (default: the config's)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="config overrides (YAML values)")
+    ap.add_argument("--seed", type=int, default=None, help="study seed (default: the config's)")
+    ap.add_argument("--jobs", type=int, default=1, help="tasks run side by side")
+    ap.add_argument("--threads", type=int, default=max(1, (os.cpu_count() or 1)), help="threads per task")
+    ap.add_argument("--out", type=Path, default=None, help="working directory (default: a temp dir)")
+    args = ap.parse_args()
+
+    cfg = _config(args)
+    out = args.out or Path(tempfile.mkdtemp(prefix="lfstudy-bench-unc-"))
+    waves = _tasks(cfg, out)
+    print(f"{args.config.name}: {sum(map(len, waves))} tasks, {args.jobs} jobs x {args.threads} threads, in {out}")
+    t_all = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        for wave in waves:
+            futs = [pool.submit(_run, label, fn, a, args.threads) for label, fn, a in wave]
+            for f in futs:
+                label, secs = f.result()
+                print(f"  {secs:8.1f} s  {label}", flush=True)
+    print(f"all stages {time.perf_counter() - t_all:.0f} s")
+    _table(cfg, out)
+
+
+def _table(cfg: dict[str, Any], out: Path) -> None:
+    from lfstudy import io
+    from lfstudy.study.sweep import Sweep
+
+    sw = Sweep(cfg)
+    rows = []
+    for c in sw.cases():
+        e = io.open_zarr(out / sw.locate(c, "errors.zarr")).load()
+        rows.append((c, e))
+    keys = [s.key for s in sw.swept]
+    print("\ncase" + " " * 34 + "ax  coverage  ratio   rms_mm  oracle_mm  valid%")
+    zrows = []
+    for c, e in rows:
+        name = " ".join(f"{k}={c[k]}" for k in keys) or c.case_id
+        for ax in "xyz":
+            line = (
+                f"{name[:37]:<38}{ax:>2}  {float(e[f'unc_coverage_{ax}']):8.3f}  {float(e[f'unc_ratio_{ax}']):5.2f}"
+                f"  {float(e[f'rms_{ax}_mm']):7.4f}  {float(e.get(f'oracle_rms_{ax}_mm', np.nan)):9.4f}"
+                f"  {float(e['valid_percent']):6.1f}"
+            )
+            (zrows if ax == "z" else []).append(line)
+            if ax != "z":
+                print(line)
+    print("z (on its own):")
+    for line in zrows:
+        print(line)
+    cov = np.array([[float(e[f"unc_coverage_{ax}"]) for ax in "xyz"] for _, e in rows])
+    rat = np.array([[float(e[f"unc_ratio_{ax}"]) for ax in "xyz"] for _, e in rows])
+    inside = (cov >= TARGET_COV[0]) & (cov <= TARGET_COV[1]) & (rat >= TARGET_RATIO[0]) & (rat <= TARGET_RATIO[1])
+    print(
+        f"\nin the target band (coverage {TARGET_COV}, ratio {TARGET_RATIO}): {inside.sum()} of {inside.size}"
+        f" case-components; per component x/y/z: {' / '.join(str(int(v)) for v in inside.sum(axis=0))}"
+        f" of {len(rows)}"
+    )
+
+
+if __name__ == "__main__":
+    main()
