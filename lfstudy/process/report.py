@@ -139,8 +139,8 @@ def _pair_blocks(
             yield _try(
                 "pairs",
                 "uncertainty_maps",
-                "Standard uncertainty σ of each component per vector: middle x–y slice (top), middle x–z slice "
-                "(bottom); blank: invalid or replaced vector.",
+                "Standard uncertainty σ of each component per vector, middle x–y slice (colour scales over the "
+                "whole field); blank: invalid or replaced vector.",
                 "uncertainty maps",
                 lambda one=one: rf.uncertainty_maps(one),
                 case=name,

@@ -591,9 +591,10 @@ def _sigma_of(piv: xr.Dataset, c: str) -> tuple[xr.DataArray | None, str]:
 
 
 def uncertainty_maps(piv: xr.Dataset) -> Figure:
-    """Maps of the per-vector standard uncertainty σ of u, v, w: the middle x–y slice (top) and
-    the middle x–z slice (bottom), one colour scale per component; blank: no σ (invalid or
-    replaced vector). A measurement without a known flow sees where it can trust its vectors.
+    """Maps of the per-vector standard uncertainty σ of u, v, w on the middle x–y slice, one colour
+    scale per component (over the whole field, so the slice reads against every depth); blank: no σ
+    (invalid or replaced vector). A measurement without a known flow sees where it can trust its
+    vectors.
 
     Raises
     ------
@@ -603,35 +604,26 @@ def uncertainty_maps(piv: xr.Dataset) -> Figure:
     comps = [(ax, c) for ax, c in _COMP.items() if _sigma_of(piv, c)[0] is not None]
     if not comps:
         raise ValueError("the PIV result holds no per-vector uncertainty (unc_u, unc_v, unc_w)")
-    three_d = "z" in piv.dims and "y" in piv.dims
-    rows = 2 if three_d else 1
-    fig = _fig(4.2 * len(comps), 3.4 * rows, left=0.07, right=0.96, top=0.9, bottom=0.1, wspace=0.35)
-    axes = fig.subplots(rows, len(comps), squeeze=False)
-    x = piv["x"].values
-    for k, (axn, c) in enumerate(comps):
+    fig = _fig(4.2 * len(comps), 3.6, left=0.07, right=0.96, top=0.84, bottom=0.14, wspace=0.35)
+    axes = fig.subplots(1, len(comps), squeeze=False)[0]
+    sel = {"z": piv.sizes["z"] // 2} if "z" in piv.dims else {}
+    where = "".join(f" at {d} = {float(piv[d][i]):+.2f} mm" for d, i in sel.items())
+    for a, (axn, c) in zip(axes, comps):
         sigma, unit = _sigma_of(piv, c)
         assert sigma is not None
         finite = np.asarray(sigma.values, float)
         finite = finite[np.isfinite(finite)]
         lim = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-        slices = [({"z": piv.sizes["z"] // 2}, "y")] if three_d else [({}, "y")]
-        if three_d:
-            slices.append(({"y": piv.sizes["y"] // 2}, "z"))
-        for r, (sel, vert) in enumerate(slices):
-            a = axes[r][k]
-            sl = sigma.isel(sel).transpose(vert, "x")
-            im = a.pcolormesh(
-                x, piv[vert].values, sl.values, shading="nearest", cmap="viridis", vmin=lim[0], vmax=lim[1]
-            )
-            cb = fig.colorbar(im, ax=a)
-            cb.set_label(f"σ_{c} [{unit}]", fontsize=8)
-            where = "".join(f" at {d} = {float(piv[d][i]):+.2f} mm" for d, i in sel.items())
-            a.set_title(f"σ of {c} ({axn}){where}", fontsize=9)
-            a.set_xlabel("x [mm]")
-            a.set_ylabel(f"{vert} [mm]" + (" (+ away from camera)" if vert == "z" else ""))
-            if vert == "y":
-                a.set_aspect("equal")
-    fig.suptitle("Per-vector standard uncertainty (blank: invalid or replaced vector)")
+        sl = sigma.isel(sel).transpose("y", "x")
+        im = a.pcolormesh(
+            piv["x"].values, piv["y"].values, sl.values, shading="nearest", cmap="viridis", vmin=lim[0], vmax=lim[1]
+        )
+        fig.colorbar(im, ax=a).set_label(f"σ_{c} [{unit}]", fontsize=8)
+        a.set_title(f"σ of {c} ({axn})", fontsize=9)
+        a.set_xlabel("x [mm]")
+        a.set_aspect("equal")
+    axes[0].set_ylabel("y [mm]")
+    fig.suptitle(f"Per-vector standard uncertainty{where} (blank: invalid or replaced vector)")
     return fig
 
 
