@@ -17,6 +17,12 @@
 
 Axis order is kept as stored (index 0 = smallest coordinate, after sorting): ImageJ draws row 0
 at the top, so its calibrated y (pointing down) equals ours.
+
+Per-vector uncertainty: a PIV result's standard uncertainties ``unc_u``, ``unc_v``, ``unc_w``
+(voxels) and ``unc_u_mm``, ``unc_v_mm``, ``unc_w_mm`` (:mod:`lfstudy.piv.uncertainty`; NaN for an
+invalid or replaced vector) are VTK point data like every (z, y, x) variable. A TIFF of one PIV
+component gets its uncertainty as a second channel (``u_mm`` and ``unc_u_mm``). A store written
+before the uncertainty existed has no ``unc_*`` variable and exports as before, without them.
 """
 
 from __future__ import annotations
@@ -25,13 +31,14 @@ import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import xarray as xr
 
 from lfstudy import io
 
-__all__ = ["to_vtk", "to_imagej", "export_store", "FORMATS"]
+__all__ = ["to_vtk", "to_imagej", "export_store", "uncertainty_of", "FORMATS"]
 
 GRID_DIMS = ("z", "y", "x")
 FORMATS = {".vtr": "vtk", ".tif": "tiff", ".tiff": "tiff"}
@@ -146,46 +153,27 @@ def to_vtk(obj: xr.Dataset | xr.DataArray, path: str | Path, *, variables: Seque
     return path
 
 
-def to_imagej(array: xr.DataArray, path: str | Path, *, resample_z: bool = False) -> Path:
-    """Write a volume or focal stack as an ImageJ/Fiji hyperstack TIFF with its voxel size, atomically.
+def uncertainty_of(name: str, available: Sequence[str]) -> str | None:
+    """The name of the standard-uncertainty variable of PIV component ``name`` among ``available``.
 
-    Parameters
-    ----------
-    array
-        Data over (z, y, x) with 1-D coordinates in mm; x and y evenly spaced.
-    path
-        Output TIFF file.
-    resample_z
-        ImageJ has a single z spacing. With False (default) a non-uniform z axis is an error;
-        with True the planes are interpolated linearly onto as many evenly spaced planes over
-        the same z range (recorded in the file's Info).
-
-    Returns
-    -------
-    Path
-        ``path``.
-
-    Notes
-    -----
-    float64 is stored as float32 (ImageJ has no 64-bit images) and bool as uint8; uint8 and
-    uint16 are kept. The display range (``min``/``max``) is the data range. The DataArray's
-    attributes go into the ImageJ Info (Image > Show Info) as JSON.
-
-    Raises
-    ------
-    ValueError
-        Not a (z, y, x) grid with coordinates; x or y not evenly spaced; z not evenly spaced and
-        ``resample_z`` False.
+    ``u`` → ``unc_u``, ``w_mm`` → ``unc_w_mm`` (:func:`lfstudy.piv.widim`'s names), or None when the
+    variable is not a displacement component or the store holds no uncertainty for it (a store
+    written before the per-vector uncertainty, or ``piv.uncertainty: none``).
     """
-    import tifffile
+    base = name[: -len("_mm")] if name.endswith("_mm") else name
+    if base not in ("u", "v", "w"):
+        return None
+    unc = f"unc_{name}"
+    return unc if unc in available else None
 
-    if not isinstance(array, xr.DataArray):
-        raise ValueError("TIFF export writes one variable (a DataArray)")
-    da = _grid(array, "TIFF export")
+
+def _imagej_stack(da: xr.DataArray, resample_z: bool) -> tuple[xr.DataArray, dict[str, float], dict[str, Any]]:
+    """``da`` on (z, y, x) ready for ImageJ: its spacing per axis and the Info entries it adds."""
+    da = _grid(da, "TIFF export")
     if set(da.dims) != set(GRID_DIMS):
         raise ValueError(f"TIFF export needs exactly (z, y, x); {da.name!r} has ({', '.join(map(str, da.dims))})")
     da = da.transpose(*GRID_DIMS)
-    info = {k: v for k, v in da.attrs.items() if isinstance(v, (str, int, float, bool, list))}
+    info: dict[str, Any] = {k: v for k, v in da.attrs.items() if isinstance(v, (str, int, float, bool, list))}
     spacing = {d: _spacing(da[d]) for d in GRID_DIMS}
     for d in ("x", "y"):
         if spacing[d] is None:
@@ -205,16 +193,86 @@ def to_imagej(array: xr.DataArray, path: str | Path, *, resample_z: bool = False
             f"linear interpolation from {z.size} planes (steps {dz.min():.6g} .. {dz.max():.6g} mm) "
             f"onto {z.size} evenly spaced planes"
         )
+    return da, spacing, info  # type: ignore[return-value]
 
-    data = np.asarray(da.values)
+
+def _imagej_dtype(data: np.ndarray) -> np.ndarray:
     if data.dtype == bool:
-        data = data.astype(np.uint8)
-    elif data.dtype not in (np.uint8, np.uint16, np.float32):
-        data = data.astype(np.float32)
+        return data.astype(np.uint8)
+    if data.dtype not in (np.uint8, np.uint16, np.float32):
+        return data.astype(np.float32)
+    return data
+
+
+def _data_range(data: np.ndarray) -> tuple[float, float] | None:
+    finite = data[np.isfinite(data)] if data.dtype.kind == "f" else data.ravel()
+    return (float(finite.min()), float(finite.max())) if finite.size else None
+
+
+def to_imagej(array: xr.DataArray | Sequence[xr.DataArray], path: str | Path, *, resample_z: bool = False) -> Path:
+    """Write a volume or focal stack as an ImageJ/Fiji hyperstack TIFF with its voxel size, atomically.
+
+    Parameters
+    ----------
+    array
+        Data over (z, y, x) with 1-D coordinates in mm; x and y evenly spaced. A sequence of
+        DataArrays on the same grid becomes the channels of one hyperstack (axes ZCYX): a PIV
+        component and its standard uncertainty, say.
+    path
+        Output TIFF file.
+    resample_z
+        ImageJ has a single z spacing. With False (default) a non-uniform z axis is an error;
+        with True the planes are interpolated linearly onto as many evenly spaced planes over
+        the same z range (recorded in the file's Info).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Notes
+    -----
+    float64 is stored as float32 (ImageJ has no 64-bit images) and bool as uint8; uint8 and
+    uint16 are kept (channels share the dtype that holds all of them). The display range
+    (``min``/``max``; per channel ``Ranges``) is the data range, NaN left out. The DataArray's
+    attributes go into the ImageJ Info (Image > Show Info) as JSON; with channels, each under
+    its name, with ``channels`` listing the names in order, which are also every plane's label.
+
+    Raises
+    ------
+    ValueError
+        Not a (z, y, x) grid with coordinates; x or y not evenly spaced; z not evenly spaced and
+        ``resample_z`` False; channels on different grids.
+    """
+    import tifffile
+
+    arrays = [array] if isinstance(array, xr.DataArray) else list(array)
+    if not arrays or not all(isinstance(a, xr.DataArray) for a in arrays):
+        raise ValueError("TIFF export writes DataArrays: one variable, or a sequence of them as channels")
+    prepared = [_imagej_stack(a, resample_z) for a in arrays]
+    da, spacing, info = prepared[0]
+    for other, _, _ in prepared[1:]:
+        for d in GRID_DIMS:
+            if other.sizes[d] != da.sizes[d] or not np.allclose(other[d].values, da[d].values, rtol=1e-9, atol=0):
+                raise ValueError(
+                    f"TIFF export: channel {other.name!r} is not on the grid of {da.name!r} (coordinate {d!r}); "
+                    "the channels of one hyperstack share their voxels"
+                )
+    if len(arrays) == 1:
+        data = _imagej_dtype(np.asarray(da.values))
+        axes = "ZYX"
+    else:
+        names = [str(a.name) for a, _, _ in prepared]
+        info = {"channels": names, **{n: inf for n, (_, _, inf) in zip(names, prepared)}}
+        chans = [_imagej_dtype(np.asarray(a.values)) for a, _, _ in prepared]
+        dtype = np.result_type(*chans)
+        if dtype not in (np.uint8, np.uint16, np.float32):
+            dtype = np.float32
+        data = np.stack([c.astype(dtype, copy=False) for c in chans], axis=1)  # (z, c, y, x)
+        axes = "ZCYX"
     origin = {d: float(da[d].values[0]) for d in GRID_DIMS}
-    finite = data[np.isfinite(data)] if data.dtype.kind == "f" else data
-    metadata = {
-        "axes": "ZYX",
+    metadata: dict[str, Any] = {
+        "axes": axes,
         "spacing": spacing["z"],
         "unit": "mm",
         # ImageJ's calibrated position is (index - origin) * pixel size: origin in voxels.
@@ -223,8 +281,19 @@ def to_imagej(array: xr.DataArray, path: str | Path, *, resample_z: bool = False
         "zorigin": -origin["z"] / spacing["z"],
         "Info": json.dumps(info, sort_keys=True, default=str),
     }
-    if finite.size:
-        metadata.update(min=float(finite.min()), max=float(finite.max()))
+    if axes == "ZYX":
+        rng = _data_range(data)
+        if rng is not None:
+            metadata.update(min=rng[0], max=rng[1])
+    else:
+        ranges = [_data_range(data[:, k]) or (0.0, 1.0) for k in range(data.shape[1])]
+        metadata.update(
+            mode="grayscale",
+            min=ranges[0][0],
+            max=ranges[0][1],
+            Ranges=[v for r in ranges for v in r],
+            Labels=[n for _ in range(data.shape[0]) for n in info["channels"]],  # one per plane, z then c
+        )
     path = Path(path)
     with io.atomic_path(path) as tmp:
         tifffile.imwrite(
@@ -244,6 +313,7 @@ def export_store(
     fmt: str | None = None,
     variables: Sequence[str] | None = None,
     resample_z: bool = False,
+    uncertainty: bool = True,
 ) -> Path:
     """Export a zarr store (PIV result, volume, focal stack) to VTK or ImageJ TIFF.
 
@@ -256,11 +326,16 @@ def export_store(
     fmt
         ``"vtk"`` or ``"tiff"``; default from the extension of ``out`` (which must agree).
     variables
-        Data variables to write. VTK: default every (z, y, x) variable. TIFF writes exactly
-        one: default the store's only variable, else name one.
+        Data variables to write. VTK: default every (z, y, x) variable (a PIV result's
+        ``unc_*`` uncertainties among them). TIFF: default the store's only variable, else name
+        one; several become the channels of one hyperstack.
     resample_z
         TIFF only: interpolate a non-uniform z axis onto evenly spaced planes (see
         :func:`to_imagej`).
+    uncertainty
+        TIFF of one PIV component (``u``, ``w_mm`` ...): add its standard uncertainty
+        (:func:`uncertainty_of`) as a second channel when the store holds it. A store without
+        one (written before the per-vector uncertainty) gives the single channel.
 
     Returns
     -------
@@ -292,15 +367,18 @@ def export_store(
             raise ValueError(f"store {str(store)!r} has no variable {v!r}; it has {', '.join(map(str, ds.data_vars))}")
     if fmt == "vtk":
         return to_vtk(ds, out, variables=variables)
-    if variables is not None and len(variables) != 1:
-        raise ValueError("TIFF export writes one variable: name exactly one")
-    name = variables[0] if variables else None
-    if name is None:
+    names = list(dict.fromkeys(variables)) if variables else []
+    if not names:
         names = list(ds.data_vars)
         if len(names) != 1:
             raise ValueError(
                 f"store {str(store)!r} holds {len(names)} variables ({', '.join(map(str, names))}); "
                 "name the one to write as TIFF (lfstudy export --var NAME)"
             )
-        name = names[0]
-    return to_imagej(ds[name], out, resample_z=resample_z)
+    if uncertainty and len(names) == 1:
+        unc = uncertainty_of(str(names[0]), [str(v) for v in ds.data_vars])
+        if unc is not None:
+            names.append(unc)
+    if len(names) == 1:
+        return to_imagej(ds[names[0]], out, resample_z=resample_z)
+    return to_imagej([ds[n] for n in names], out, resample_z=resample_z)

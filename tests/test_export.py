@@ -33,6 +33,18 @@ def _piv() -> xr.Dataset:
     return xr.Dataset(data, coords={**coords, "pass": [1, 2]})
 
 
+def _piv_unc() -> xr.Dataset:
+    """The PIV result with per-vector standard uncertainties (widim's names), NaN for invalid vectors."""
+    ds = _piv()
+    rng = np.random.default_rng(3)
+    valid = ds["valid"].values
+    for n in "uvw":
+        sigma = np.where(valid, rng.uniform(0.02, 0.3, valid.shape), np.nan)
+        ds[f"unc_{n}"] = (("z", "y", "x"), sigma)
+        ds[f"unc_{n}_mm"] = (("z", "y", "x"), 0.0888 * sigma)
+    return ds
+
+
 def _volume(z: np.ndarray) -> xr.DataArray:
     rng = np.random.default_rng(2)
     return xr.DataArray(
@@ -79,6 +91,18 @@ def test_piv_to_vtk_reads_back_with_coordinates(tmp_path):
     np.testing.assert_array_equal(arrays["valid"], ds["valid"].values.astype(np.uint8))
     np.testing.assert_array_equal(arrays["peak"], ds["peak"].values)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["piv.vtr"]  # no temporary file left
+
+
+def test_piv_uncertainty_to_vtk_as_point_data(tmp_path):
+    """σ of every component is a scalar of its own, NaN (invalid vectors) kept: ParaView thresholds on it."""
+    ds = _piv_unc()
+    _, arrays = _read_vtr(to_vtk(ds, tmp_path / "piv.vtr"))
+    unc = {f"unc_{n}{s}" for n in "uvw" for s in ("", "_mm")}
+    assert set(arrays) == {"displacement", "displacement_mm", "valid", "peak"} | unc
+    for name in unc:
+        np.testing.assert_array_equal(arrays[name], ds[name].values)  # NaN where NaN (equal_nan)
+    assert np.isnan(arrays["unc_w_mm"][~ds["valid"].values]).all()
+    assert np.isfinite(arrays["unc_w_mm"][ds["valid"].values]).all()
 
 
 def test_volume_to_vtk_descending_axis_sorted(tmp_path):
@@ -162,3 +186,45 @@ def test_export_store_and_cli(tmp_path, capsys):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("lfstudy export: error:") and message in err and err.count("\n") == 1, err
+
+
+def test_tiff_of_a_component_carries_its_uncertainty_channel(tmp_path, capsys):
+    """One PIV component as TIFF: a two-channel hyperstack (value, σ) that tifffile and Pillow read, with
+    channel names and per-channel display ranges; --no-uncertainty and a store without σ give one channel."""
+    ds = _piv_unc().assign_coords(z=-1.0 + 0.25 * np.arange(5))  # evenly spaced: no resampling
+    io.write_zarr(ds, tmp_path / "piv.zarr")
+    assert main(["export", str(tmp_path / "piv.zarr"), "--out", str(tmp_path / "w.tif"), "--var", "w_mm"]) == 0
+    with tifffile.TiffFile(tmp_path / "w.tif") as tf:
+        assert tf.is_imagej and tf.series[0].axes == "ZCYX"
+        data, ij = tf.asarray(), tf.imagej_metadata
+    assert data.shape == (5, 2, 6, 7) and ij["channels"] == 2
+    np.testing.assert_array_equal(data[:, 0], ds["w_mm"].values.astype(np.float32))
+    np.testing.assert_array_equal(data[:, 1], ds["unc_w_mm"].values.astype(np.float32))  # NaN kept
+    assert json.loads(ij["Info"])["channels"] == ["w_mm", "unc_w_mm"]
+    assert list(ij["Labels"][:4]) == ["w_mm", "unc_w_mm", "w_mm", "unc_w_mm"]
+    sig = ds["unc_w_mm"].values
+    np.testing.assert_allclose(ij["Ranges"][2:], [np.nanmin(sig), np.nanmax(sig)], rtol=1e-6)
+    with Image.open(tmp_path / "w.tif") as im:
+        assert im.n_frames == 10 and im.size == (7, 6)
+        im.seek(1)  # plane z=0, channel 2
+        np.testing.assert_array_equal(np.asarray(im), data[0, 1])
+    # the voxel-unit component pairs with the voxel-unit σ; --no-uncertainty writes one channel
+    export_store(tmp_path / "piv.zarr", tmp_path / "u.tif", variables=["u"])
+    assert json.loads(tifffile.TiffFile(tmp_path / "u.tif").imagej_metadata["Info"])["channels"] == ["u", "unc_u"]
+    argv = ["export", str(tmp_path / "piv.zarr"), "--out", str(tmp_path / "u1.tif"), "--var", "u", "--no-uncertainty"]
+    assert main(argv) == 0
+    assert tifffile.imread(tmp_path / "u1.tif").shape == (5, 6, 7)
+    # several --var: channels in the order given
+    export_store(tmp_path / "piv.zarr", tmp_path / "uv.tif", variables=["u_mm", "v_mm", "peak"])
+    assert tifffile.imread(tmp_path / "uv.tif").shape == (5, 3, 6, 7)
+    # a store written before the uncertainty existed: the component alone, no error
+    old = ds[[v for v in ds.data_vars if not str(v).startswith("unc_")]]
+    io.write_zarr(old, tmp_path / "old.zarr")
+    export_store(tmp_path / "old.zarr", tmp_path / "old.tif", variables=["w_mm"])
+    assert tifffile.imread(tmp_path / "old.tif").shape == (5, 6, 7)
+    _, arrays = _read_vtr(export_store(tmp_path / "old.zarr", tmp_path / "old.vtr"))
+    assert "displacement_mm" in arrays and not any(k.startswith("unc_") for k in arrays)
+    # channels must share the grid
+    with pytest.raises(ValueError, match="not on the grid"):
+        to_imagej([ds["u_mm"], ds["v_mm"].isel(x=slice(1, None))], tmp_path / "bad.tif")
+    capsys.readouterr()

@@ -140,8 +140,23 @@ def test_series_metrics_and_report(series, recording):
     assert metrics["valid_percent"].attrs["units"] == "percent"
     piv = io.open_zarr(series / "piv.zarr")
     assert piv["divergence"].attrs["units"] == "1/s" and "peak_ratio" in piv
+    # the median standard uncertainty per component and pair: metrics.csv against piv.zarr's unc_<c>
+    piv = piv.load()
+    for c in "uvw":
+        for t in range(2):
+            one = piv.isel(time=t)
+            sigma = one[f"unc_{c}"].values[one["valid"].values]
+            assert np.isfinite(sigma).all()  # every valid vector has its σ
+            assert m[f"unc_median_{c}"].iloc[t] == pytest.approx(np.median(sigma), rel=1e-12)
+            assert m[f"unc_median_{c}_mm"].iloc[t] == pytest.approx(
+                np.median(one[f"unc_{c}_mm"].values[one["valid"].values])
+            )
+            assert 0 < m[f"unc_median_{c}"].iloc[t] < 1.0  # voxel: a clear uniform shift
+    assert metrics["unc_median_w_mm"].attrs["units"] == "mm"
     html = (series / "report.html").read_text()
-    assert html.count("data:image/png;base64,") >= 6
+    assert html.count("data:image/png;base64,") >= 10  # 4 of them the σ maps and histograms of the 2 pairs
+    assert html.count("<figcaption>Standard uncertainty σ of each component per vector") == 2  # one per pair
+    assert "<figcaption>Standard uncertainty σ per component over the valid vectors" in html and "unc_median_w" in html
     assert 'src="http' not in html and "<script src" not in html
     assert "peak_ratio_median" in html and "Q" not in re.findall(r"<th>(\w+)</th>", html)
 
@@ -152,7 +167,8 @@ def test_saturation_warns_with_the_fraction(recording, tmp_path, capsys):
     cfg = _config(recording, "pairs", {"dark": "dark_*.tif", "frames": pairs, "max_saturated": 0.0})
     out = tmp_path / "pairs"
     assert main(["process", str(cfg), "--out", str(out), "--quiet"]) == 0
-    text = capsys.readouterr().err
+    captured = capsys.readouterr()
+    text = captured.err
     err = [ln for ln in text.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith("lfstudy process: warning: "), text  # nothing else (zarr...)
     worst = 100 * max(recording["sat"][:2])
@@ -160,6 +176,14 @@ def test_saturation_warns_with_the_fraction(recording, tmp_path, capsys):
     assert float(re.search(r"up to ([\d.]+) %", err[0]).group(1)) == pytest.approx(worst, rel=1e-2)
     pair = io.open_zarr(out / "piv.zarr")
     assert pair.sizes["pair"] == 1 and list(pair["pair"].values) == [0]
+    # the summary prints the median σ per component, in mm and voxels, over the valid vectors
+    pair = pair.load()
+    valid = pair["valid"].values
+    med = {k: np.median(pair[f"unc_{k}"].values[valid]) for k in ("u", "v", "w", "u_mm", "v_mm", "w_mm")}
+    want = ", ".join(f"{c} {med[c + '_mm']:.3g} mm ({med[c]:.3g} voxel)" for c in "uvw")
+    lines = captured.out.splitlines()
+    assert f"uncertainty: median σ of the {int(valid.sum())} valid vectors of all pairs: {want}" in lines, captured.out
+    assert re.search(r"^pair 1/1 .*, median σ \[voxel\] u [\d.e-]+, v [\d.e-]+, w [\d.e-]+$", lines[-3]), lines[-3]
 
 
 def test_16bit_stack_gives_the_same_vectors(recording, series, tmp_path):
@@ -595,3 +619,28 @@ def test_ipr_writes_each_frames_particle_list(tmp_path):
         vox = np.array(grid.voxel_size()[::-1])
         assert np.linalg.norm((fit - true) / vox, axis=1).min() < 1.0
     assert io.open_zarr(out / "piv.zarr").sizes["pair"] == 1
+
+
+def test_median_uncertainty_and_summary_without_sigma():
+    """The median σ leaves out invalid vectors and NaN σ (replaced vectors); a result without unc_* (an
+    older store, piv.uncertainty none) has no summary line and no unc_median metric, and no error."""
+    import xarray as xr
+
+    from lfstudy.process.metrics import median_uncertainty, pair_metrics
+    from lfstudy.process.pipeline import uncertainty_summary
+
+    sigma = np.array([[0.1, np.nan, 0.3], [5.0, 0.2, 0.4]])
+    valid = np.array([[True, True, True], [False, True, True]])
+    assert median_uncertainty(sigma, valid) == pytest.approx(0.25)  # of 0.1, 0.3, 0.2, 0.4
+    assert np.isnan(median_uncertainty(sigma, np.zeros_like(valid)))
+    coords = {"z": [0.0], "y": [0.0, 1.0], "x": [0.0, 1.0, 2.0]}
+    ds = xr.Dataset(
+        {c: (("z", "y", "x"), np.ones((1, 2, 3))) for c in ("u", "v", "w", "peak")}
+        | {"valid": (("z", "y", "x"), valid[None])},
+        coords=coords,
+    )
+    assert uncertainty_summary(ds) is None
+    assert not any(k.startswith("unc_") for k in pair_metrics(ds).data_vars)
+    ds["unc_w"] = (("z", "y", "x"), sigma[None])
+    assert uncertainty_summary(ds) == "uncertainty: median σ of the 5 valid vectors of all pairs: w 0.25 voxel"
+    assert float(pair_metrics(ds)["unc_median_w"]) == pytest.approx(0.25)

@@ -20,8 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 VOX = 0.0888  # demo lenslet pitch at M = -1
 
 
-def fake_piv(shift_vox: float, noise: float, seed: int, shape=(3, 4, 5)) -> xr.Dataset:
-    """A WIDIM-like result (contract of lfstudy.piv.widim) with Gaussian noise."""
+def fake_piv(shift_vox: float, noise: float, seed: int, shape=(3, 4, 5), unc: bool = True) -> xr.Dataset:
+    """A WIDIM-like result (contract of lfstudy.piv.widim) with Gaussian noise; with ``unc`` the per-vector
+    standard uncertainty ``unc_<c>[_mm]`` is the noise's σ (NaN for the invalid vector)."""
     rng = np.random.default_rng(seed)
     idx = {d: (np.arange(n) + 0.5) * 8 for d, n in zip("zyx", shape)}
     coords = {d: (d, (idx[d] - idx[d].mean()) * VOX, {"units": "mm"}) for d in "zyx"}
@@ -34,6 +35,11 @@ def fake_piv(shift_vox: float, noise: float, seed: int, shape=(3, 4, 5)) -> xr.D
     valid = np.ones(shape, bool)
     valid[0, 0, 0] = False
     data["valid"] = (("z", "y", "x"), valid)
+    if unc:
+        for c in "uvw":
+            sigma = np.where(valid, noise, np.nan)
+            data[f"unc_{c}"] = (("z", "y", "x"), sigma, {"units": "voxel"})
+            data[f"unc_{c}_mm"] = (("z", "y", "x"), sigma * VOX, {"units": "mm"})
     data["peak"] = (("z", "y", "x"), np.full(shape, 0.7))
     data["corrector_rms"] = ("pass", [2.0, 0.3, 0.05, 0.02])
     data["valid_percent"] = ("pass", [88.0, 95.0, 98.0, 98.5])
@@ -83,7 +89,7 @@ def study_dirs(tmp_path_factory):
             continue  # directory without any artefact
         spec = cfg["flows"][case.flow]
         shift = spec["displacement"][0] / VOX
-        piv = fake_piv(shift - 0.02 * i, 0.02 + 0.1 * case.ppp * 100, seed=i)
+        piv = fake_piv(shift - 0.02 * i, 0.02 + 0.1 * case.ppp * 100, seed=i, unc=i != 0)  # 0: no σ (old store)
         io.write_zarr(piv, d / "piv.zarr")
         err = case_errors(piv, flow_from_config(spec))
         err["Q"] = ((), 0.8 - case.ppp * 50, {"units": "1", "long_name": "reconstruction quality Q"})
@@ -365,3 +371,60 @@ def test_the_recommendation_says_what_limits_the_error(tmp_path):
     answer = answer[answer.index('id="answer"') : answer.index('id="overview"')]
     assert "Error budget" in answer and "recon_<wbr>added_<wbr>rms_<wbr>total_<wbr>mm" in answer
     assert "<td>the reconstruction</td>" in answer
+
+
+def test_binned_uncertainty_lies_on_the_1to1_line_where_sigma_is_right():
+    """Errors drawn with the σ each vector predicts: every bin's RMS error is its RMS σ (to the
+    sampling error of ~2500 vectors a bin, 1.4 %: 5 % allowed) and the coverage 0.68; a σ half the
+    truth lies a factor 2 off the line."""
+    from lfstudy.study.metrics import binned_uncertainty
+
+    rng = np.random.default_rng(0)
+    sigma = 10 ** rng.uniform(-2, -1, 20000)
+    err = sigma * rng.normal(size=sigma.size)
+    err[:50] = np.nan  # no error: left out
+    b = binned_uncertainty(err, sigma, n_bins=8)
+    assert len(b["count"]) == 8 and b["count"].sum() == 19950
+    assert np.all(np.diff(b["sigma_rms"]) > 0)  # bins ordered by σ, spanning its decade
+    assert b["sigma_rms"][0] < 0.02 and b["sigma_rms"][-1] > 0.07
+    np.testing.assert_allclose(b["error_rms"] / b["sigma_rms"], 1.0, atol=0.05)
+    np.testing.assert_allclose(b["coverage"], 0.6827, atol=0.04)
+    small = binned_uncertainty(err, sigma / 2, n_bins=8)
+    np.testing.assert_allclose(small["error_rms"] / small["sigma_rms"], 2.0, atol=0.1)
+    assert len(binned_uncertainty(np.full(3, np.nan), np.ones(3))["count"]) == 0
+    assert len(binned_uncertainty(np.ones(4), np.full(4, 0.5))["count"]) == 1  # one σ: one bin
+
+
+def test_report_shows_the_uncertainty_per_design(study_dirs, tmp_path):
+    """The uncertainty section: coverage and ratio per design and flow (the study's values), and the
+    error-against-σ figure pooled per design from the errors stores; the case without σ shows a dash."""
+    from lfstudy.study import report as rp
+
+    study, dirs, _ = study_dirs
+    with_errors = [c for c, d in dirs.items() if (d / "errors.zarr").exists()]
+    assert "unc_u_mm" in io.open_zarr(dirs[with_errors[1]] / "errors.zarr")  # the errors stage keeps σ per vector
+    assert "unc_u_mm" not in io.open_zarr(dirs[with_errors[0]] / "errors.zarr")  # case 0: a PIV without σ
+    # the section alone, as the report renders it (the whole report lists it: test_write_report_self_contained)
+    blocks = list(rp._uncertainty_blocks(study, dirs))
+    assert [b.name for b in blocks] == ["table", "error_vs_sigma"] and blocks[1].figure is not None
+    section = {"uncertainty": SECTIONS["uncertainty"]}
+    sec = rp.write_html(blocks, section, "t", "t", "", tmp_path / "u.html").read_text()
+    assert sec.count("data:image/png;base64,") == 1 and "not available" not in sec
+    for col in ("unc_coverage_x", "unc_ratio_z"):
+        assert col.replace("_", "_<wbr>") in sec
+        vals = study[col].values[np.isfinite(study[col].values)]
+        assert vals.size >= 4 and f"{vals[0]:.3g}" in sec
+    assert np.isnan(study["unc_coverage_x"].values.ravel()[0])  # case 0 has no σ
+    # the curves: each design's cases pooled, per axis; a case's σ from its errors store
+    groups = {"one": with_errors}
+    curves = rp._uncertainty_curves(groups, dirs)["one"]
+    assert set(curves) == {"x", "y", "z"}
+    n_valid = sum(int(io.open_zarr(dirs[c] / "piv.zarr")["valid"].sum()) for c in groups["one"][1:])
+    assert curves["x"]["count"].sum() == n_valid  # every valid vector with σ, case 0 (no σ) left out
+    # no files on disk: a note, not a failed figure
+    gone = list(rp._uncertainty_blocks(study, {}))
+    assert [b.name for b in gone] == ["table", "error_vs_sigma"] and "not available" in gone[1].note
+    # a study without any σ says so instead of drawing
+    bare = study.drop_vars([v for v in study.data_vars if str(v).startswith("unc_")])
+    none = list(rp._uncertainty_blocks(bare, {}))
+    assert len(none) == 1 and "not available" in none[0].note

@@ -26,7 +26,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         dest="variables",
         metavar="NAME",
-        help="data variable to write (repeatable); VTK: default all (z, y, x) variables, TIFF: exactly one",
+        help="data variable to write (repeatable); VTK: default all (z, y, x) variables (a PIV result's "
+        "uncertainties unc_u_mm ... among them); TIFF: default the store's only variable, several become channels",
+    )
+    p.add_argument(
+        "--no-uncertainty",
+        dest="uncertainty",
+        action="store_false",
+        help="TIFF of one PIV component: leave out the channel of its standard uncertainty (unc_u_mm for u_mm ...), "
+        "which is added when the store holds it",
     )
     p.add_argument(
         "--resample-z",
@@ -48,6 +56,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {args.out!r} is a directory; name the file to write")
     if out.exists() and not args.overwrite:
         raise ValueError(f"--out {args.out!r} exists; give --overwrite to replace it, or choose another --out")
-    out = export_store(args.store, args.out, fmt=args.format, variables=args.variables, resample_z=args.resample_z)
+    out = export_store(
+        args.store,
+        args.out,
+        fmt=args.format,
+        variables=args.variables,
+        resample_z=args.resample_z,
+        uncertainty=args.uncertainty,
+    )
     print(f"wrote {out}")
     return 0

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-__all__ = ["peak_ratio", "divergence", "pair_metrics"]
+__all__ = ["peak_ratio", "divergence", "pair_metrics", "median_uncertainty"]
 
 _DIMS = ("z", "y", "x")
 _COMP = {"z": "w", "y": "v", "x": "u"}
@@ -158,6 +158,27 @@ def divergence(piv: xr.Dataset, dt: float | None = None) -> xr.DataArray:
     )
 
 
+def median_uncertainty(sigma: np.ndarray, valid: np.ndarray) -> float:
+    """The median standard uncertainty of the valid vectors that have one.
+
+    Parameters
+    ----------
+    sigma : ndarray
+        Per-vector standard uncertainty of one component (``unc_<c>`` of
+        :func:`lfstudy.piv.widim`: NaN for an invalid or replaced vector).
+    valid : ndarray of bool
+        The vectors' validity (same shape).
+
+    Returns
+    -------
+    float
+        The median over the valid vectors with a finite σ; NaN when there is none.
+    """
+    s = np.asarray(sigma, dtype=float)[np.asarray(valid, dtype=bool)]
+    s = s[np.isfinite(s)]
+    return float(np.median(s)) if s.size else float("nan")
+
+
 def _scalar(value: float, units: str, long_name: str) -> tuple[tuple, float, dict[str, str]]:
     return ((), float(value), {"units": units, "long_name": long_name})
 
@@ -180,7 +201,9 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
         ``n_vectors``, ``valid_percent``, ``peak_median`` (correlation peak
         height), ``peak_ratio_median`` and ``peak_ratio_p10`` (valid vectors),
         ``mean_<c>``/``std_<c>`` [voxel] and ``mean_<c>_mm`` [mm] per component of valid
-        vectors, ``divergence_rms``, ``divergence_mean`` (valid vectors),
+        vectors, ``unc_median_<c>`` [voxel] and ``unc_median_<c>_mm`` [mm] (median standard
+        uncertainty of the valid vectors, :func:`median_uncertainty`; only where the result holds
+        ``unc_<c>``), ``divergence_rms``, ``divergence_mean`` (valid vectors),
         ``divergence_norm`` (RMS divergence over √3 times the RMS of the
         full displacement gradient: 0 for a solenoidal field, 1 for a pure
         isotropic expansion).
@@ -211,6 +234,13 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
         if f"{c}_mm" in piv:
             mm = piv[f"{c}_mm"].values[ok]
             out[f"mean_{c}_mm"] = _scalar(mm.mean() if mm.size else np.nan, "mm", f"mean {d} displacement")
+        for sfx, units in (("", "voxel"), ("_mm", "mm")):
+            if f"unc_{c}{sfx}" in piv:
+                out[f"unc_median_{c}{sfx}"] = _scalar(
+                    median_uncertainty(piv[f"unc_{c}{sfx}"].values, valid),
+                    units,
+                    f"median standard uncertainty of the {d} displacement (valid vectors)",
+                )
     try:
         div = divergence(piv, dt)
     except ValueError:

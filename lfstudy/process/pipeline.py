@@ -26,7 +26,7 @@ Output directory::
     frames/<k>/lightfield.zarr, stack.zarr, volume.zarr
     frames/<k>/particles.zarr                     the particle list (a method that fits particles: ipr)
     piv.zarr        every pair's vector field along ``time`` (series) or ``pair``
-    metrics.zarr, metrics.csv                     measurement metrics per pair
+    metrics.zarr, metrics.csv                     measurement metrics per pair (unc_median_<c>: median σ)
     report.html     self-contained
 """
 
@@ -41,7 +41,7 @@ import numpy as np
 import xarray as xr
 
 from lfstudy import io
-from lfstudy.process.metrics import divergence, pair_metrics, peak_ratio
+from lfstudy.process.metrics import divergence, median_uncertainty, pair_metrics, peak_ratio
 from lfstudy.process.recording import (
     Recording,
     frame_dir,
@@ -53,7 +53,7 @@ from lfstudy.process.recording import (
 )
 from lfstudy.study import case as cl
 
-__all__ = ["calibrate_recording", "process_recording", "open_result"]
+__all__ = ["calibrate_recording", "process_recording", "open_result", "uncertainty_summary"]
 
 
 def calibrate_recording(image: xr.DataArray, camera: Any, kind: str = "pinhole") -> xr.Dataset:
@@ -212,6 +212,9 @@ def process_recording(
         piv = xr.concat(results, dim=dim, join="outer", combine_attrs="drop_conflicts").assign_coords(coords)
         piv.attrs.update(prov, title="WIDIM PIV of a recording", **_recording_attrs(rec))
         io.write_zarr(piv, tmp / "piv.zarr")
+        summary = uncertainty_summary(piv)
+        if summary:
+            say(summary)
         table = xr.concat(metrics, dim=dim, combine_attrs="drop_conflicts").assign_coords(coords)
         table.attrs.update(prov, **_recording_attrs(rec))
         io.write_zarr(table, tmp / "metrics.zarr")
@@ -306,7 +309,31 @@ def _pair_line(p: int, rec: Recording, m: xr.Dataset) -> str:
         line += f", peak ratio {float(m['peak_ratio_median']):.3g}"
     if "divergence_rms" in m:
         line += f", divergence {float(m['divergence_rms']):.3g} {m['divergence_rms'].attrs['units']} RMS"
+    sig = ", ".join(f"{c} {float(m[f'unc_median_{c}']):.3g}" for c in ("u", "v", "w") if f"unc_median_{c}" in m)
+    if sig:
+        line += f", median σ [voxel] {sig}"
     return line
+
+
+def uncertainty_summary(piv: xr.Dataset) -> str | None:
+    """One line: the median standard uncertainty per component over every pair's valid vectors,
+    in mm and voxels (:func:`~lfstudy.process.metrics.median_uncertainty`); None for a result
+    without ``unc_*`` (``piv.uncertainty: none``)."""
+    parts = []
+    valid = piv["valid"].values.astype(bool)
+    for c in ("u", "v", "w"):
+        if f"unc_{c}" not in piv:
+            continue
+        vox = median_uncertainty(piv[f"unc_{c}"].values, valid)
+        if f"unc_{c}_mm" in piv:
+            mm = median_uncertainty(piv[f"unc_{c}_mm"].values, valid)
+            parts.append(f"{c} {mm:.3g} mm ({vox:.3g} voxel)")
+        else:  # volumes without coordinates in mm
+            parts.append(f"{c} {vox:.3g} voxel")
+    if not parts:
+        return None
+    n = int(valid.sum())
+    return f"uncertainty: median σ of the {n} valid vectors of all pairs: " + ", ".join(parts)
 
 
 def open_result(out: str | Path) -> xr.Dataset:
@@ -315,7 +342,8 @@ def open_result(out: str | Path) -> xr.Dataset:
     Returns
     -------
     xarray.Dataset
-        ``piv.zarr`` (``u, v, w`` [voxel], ``u_mm…``, ``valid``, ``peak``,
+        ``piv.zarr`` (``u, v, w`` [voxel], ``u_mm…``, ``unc_u…``, ``unc_u_mm…`` (standard
+        uncertainty), ``valid``, ``peak``,
         ``peak_ratio``, ``divergence`` over (``time`` | ``pair``, z, y, x)) with
         the scalar metrics of ``metrics.zarr`` as variables along the pair
         dimension, prefixed ``metric_``.

@@ -3,7 +3,8 @@
 The study report's building blocks (:mod:`lfstudy.study.report`: blocks, the
 HTML page; :mod:`lfstudy.study.figures`: the figures) without its truth-based
 parts: no errors against a known flow and no reconstruction quality Q, but
-what a measurement can say about itself (:mod:`lfstudy.process.metrics`).
+what a measurement can say about itself (:mod:`lfstudy.process.metrics`),
+with maps and histograms of the per-vector standard uncertainty σ.
 """
 
 from __future__ import annotations
@@ -44,6 +45,9 @@ METRICS = (
     "std_u",
     "std_v",
     "std_w",
+    "unc_median_u",
+    "unc_median_v",
+    "unc_median_w",
     "divergence_rms",
     "divergence_norm",
     "saturated_percent",
@@ -131,6 +135,25 @@ def _pair_blocks(
         if "corrector_rms" in one:
             one = one.dropna("pass", subset=["corrector_rms"])
         yield from piv_figure_blocks("pairs", one, case=name)
+        if any(f"unc_{c}" in one for c in ("u", "v", "w")):  # a result with per-vector uncertainty
+            yield _try(
+                "pairs",
+                "uncertainty_maps",
+                "Standard uncertainty σ of each component per vector, middle x–y slice (colour scales over the "
+                "whole field); blank: invalid or replaced vector.",
+                "uncertainty maps",
+                lambda one=one: rf.uncertainty_maps(one),
+                case=name,
+            )
+            yield _try(
+                "pairs",
+                "uncertainty_histograms",
+                "Standard uncertainty σ per component over the valid vectors; dashed: the median (the metrics "
+                "table's unc_median_*).",
+                "uncertainty histograms",
+                lambda one=one: rf.uncertainty_histograms(one),
+                case=name,
+            )
         stack = root / frame_dir(i) / "stack.zarr"
         yield _try(
             "pairs",
@@ -198,7 +221,8 @@ def write_process_report(
     intro = (
         f"Generated {time.strftime('%Y-%m-%d %H:%M')} by lfstudy {__version__} from {len(rec.frames)} recorded "
         f"frames ({len(rec.pairs)} {'pairs of a time series' if rec.series else 'pairs'}). No flow is known: "
-        "the metrics are what a measurement says about itself (valid vectors, correlation-peak ratio, divergence). "
+        "the metrics are what a measurement says about itself (valid vectors, correlation-peak ratio, divergence, "
+        "the per-vector standard uncertainty). "
         "Method: Lynch (2011), Development of a 3-D Fluid Velocimetry Technique based on Light Field Imaging."
     )
     heading = f"Light-field PIV of the recording <code>{html.escape(name)}</code>"

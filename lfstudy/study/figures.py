@@ -33,6 +33,9 @@ __all__ = [
     "vector_slices",
     "series_metrics",
     "metrics_vs_parameter",
+    "uncertainty_maps",
+    "uncertainty_histograms",
+    "error_vs_uncertainty",
 ]
 
 _COMP = {"x": "u", "y": "v", "z": "w"}
@@ -574,4 +577,145 @@ def vector_error_slice(piv: xr.Dataset, err: xr.Dataset | None) -> Figure:
     else:
         ax2.set_axis_off()
         ax2.text(0.5, 0.5, "no error field (no truth)", ha="center", transform=ax2.transAxes)
+    return fig
+
+
+# ------------------------------------------------------------------ uncertainty
+def _sigma_of(piv: xr.Dataset, c: str) -> tuple[xr.DataArray | None, str]:
+    """The standard uncertainty of component ``c`` (mm if stored, else voxels) and its unit."""
+    if f"unc_{c}_mm" in piv:
+        return piv[f"unc_{c}_mm"], "mm"
+    if f"unc_{c}" in piv:
+        return piv[f"unc_{c}"], "voxel"
+    return None, ""
+
+
+def uncertainty_maps(piv: xr.Dataset) -> Figure:
+    """Maps of the per-vector standard uncertainty σ of u, v, w on the middle x–y slice, one colour
+    scale per component (over the whole field, so the slice reads against every depth); blank: no σ
+    (invalid or replaced vector). A measurement without a known flow sees where it can trust its
+    vectors.
+
+    Raises
+    ------
+    ValueError
+        The result holds no ``unc_*`` variable (``piv.uncertainty: none`` or an older store).
+    """
+    comps = [(ax, c) for ax, c in _COMP.items() if _sigma_of(piv, c)[0] is not None]
+    if not comps:
+        raise ValueError("the PIV result holds no per-vector uncertainty (unc_u, unc_v, unc_w)")
+    fig = _fig(4.2 * len(comps), 3.6, left=0.07, right=0.96, top=0.84, bottom=0.14, wspace=0.35)
+    axes = fig.subplots(1, len(comps), squeeze=False)[0]
+    sel = {"z": piv.sizes["z"] // 2} if "z" in piv.dims else {}
+    where = "".join(f" at {d} = {float(piv[d][i]):+.2f} mm" for d, i in sel.items())
+    for a, (axn, c) in zip(axes, comps):
+        sigma, unit = _sigma_of(piv, c)
+        assert sigma is not None
+        finite = np.asarray(sigma.values, float)
+        finite = finite[np.isfinite(finite)]
+        lim = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+        sl = sigma.isel(sel).transpose("y", "x")
+        im = a.pcolormesh(
+            piv["x"].values, piv["y"].values, sl.values, shading="nearest", cmap="viridis", vmin=lim[0], vmax=lim[1]
+        )
+        fig.colorbar(im, ax=a).set_label(f"σ_{c} [{unit}]", fontsize=8)
+        a.set_title(f"σ of {c} ({axn})", fontsize=9)
+        a.set_xlabel("x [mm]")
+        a.set_aspect("equal")
+    axes[0].set_ylabel("y [mm]")
+    fig.suptitle(f"Per-vector standard uncertainty{where} (blank: invalid or replaced vector)")
+    return fig
+
+
+def uncertainty_histograms(piv: xr.Dataset, *, bins: int = 40) -> Figure:
+    """Histograms of the per-vector standard uncertainty σ of u, v, w over the valid vectors, with
+    the median (dashed) and the 10th–90th percentiles in the legend box.
+
+    Raises
+    ------
+    ValueError
+        The result holds no ``unc_*`` variable.
+    """
+    comps = [(ax, c) for ax, c in _COMP.items() if _sigma_of(piv, c)[0] is not None]
+    if not comps:
+        raise ValueError("the PIV result holds no per-vector uncertainty (unc_u, unc_v, unc_w)")
+    fig = _fig(4.0 * len(comps), 3.3, left=0.07, top=0.84, bottom=0.16)
+    axes = fig.subplots(1, len(comps), squeeze=False)[0]
+    valid = piv["valid"].values.astype(bool) if "valid" in piv else None
+    for a, (axn, c) in zip(axes, comps):
+        sigma, unit = _sigma_of(piv, c)
+        assert sigma is not None
+        s = np.asarray(sigma.values, float)
+        s = s[valid & np.isfinite(s)] if valid is not None else s[np.isfinite(s)]
+        if s.size:
+            a.hist(s, bins=int(min(bins, max(10, 2 * math.sqrt(s.size)))), color="C2", alpha=0.8)
+            med = float(np.median(s))
+            a.axvline(med, color="k", ls="--", lw=1)
+            p10, p90 = np.percentile(s, [10, 90])
+            a.text(
+                0.97,
+                0.95,
+                f"median {med:.3g} {unit}\n10–90 %: {p10:.3g}–{p90:.3g}\nn = {s.size}",
+                transform=a.transAxes,
+                ha="right",
+                va="top",
+                fontsize=8,
+                bbox={"fc": "white", "alpha": 0.8, "lw": 0},
+            )
+        else:
+            a.text(0.5, 0.5, "no valid vector with σ", ha="center", transform=a.transAxes)
+        a.set_xlabel(f"σ of {c} ({axn}) [{unit}]")
+    axes[0].set_ylabel("count")
+    fig.suptitle("Per-vector standard uncertainty, valid vectors")
+    return fig
+
+
+def error_vs_uncertainty(curves: Mapping[str, Mapping[str, Mapping[str, np.ndarray]]], *, unit: str = "mm") -> Figure:
+    """RMS error against the predicted standard uncertainty σ, binned, per component: x and y
+    beside each other, z on a panel of its own (its σ is several times larger); the 1:1 line is
+    where σ is right (above it σ is too small, below too large).
+
+    Parameters
+    ----------
+    curves : mapping label -> axis (``x``, ``y``, ``z``) -> bins
+        Per line (a design, pooled over its cases): per axis the bins of
+        :func:`lfstudy.study.metrics.binned_uncertainty` (``sigma_rms``, ``error_rms``,
+        ``coverage``, ``count``).
+    unit : str
+        Of σ and the error.
+
+    Raises
+    ------
+    ValueError
+        No curve holds a bin.
+    """
+    axes_names = [ax for ax in ("x", "y", "z") if any(len(c.get(ax, {}).get("count", ())) for c in curves.values())]
+    if not axes_names:
+        raise ValueError("no vector with both an error and an uncertainty")
+    fig = _fig(4.3 * len(axes_names) + 1.8, 4.0, left=0.06, right=0.84, top=0.86, bottom=0.14, wspace=0.32)
+    axes = fig.subplots(1, len(axes_names), squeeze=False)[0]
+    for a, axn in zip(axes, axes_names):
+        lo, hi = np.inf, 0.0
+        for k, (label, per_axis) in enumerate(curves.items()):
+            b = per_axis.get(axn)
+            if b is None or not len(b["count"]):
+                continue
+            s, e = np.asarray(b["sigma_rms"]), np.asarray(b["error_rms"])
+            pos = (s > 0) & (e > 0)
+            a.plot(s[pos], e[pos], "o-", ms=3.5, lw=1.2, color=f"C{k % 10}", label=label)
+            if pos.any():
+                lo = min(lo, float(s[pos].min()), float(e[pos].min()))
+                hi = max(hi, float(s[pos].max()), float(e[pos].max()))
+        if np.isfinite(lo) and hi > 0:
+            line = np.array([lo / 1.5, hi * 1.5])
+            a.plot(line, line, "k--", lw=1, label="1:1")
+            a.set_xscale("log")
+            a.set_yscale("log")
+        a.set_xlabel(f"predicted σ of {_COMP[axn]} ({axn}), RMS in bin [{unit}]")
+        a.set_title(f"{axn}" + (" (depth)" if axn == "z" else ""), fontsize=9)
+        a.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel(f"RMS error in bin [{unit}]")
+    handles, labels = axes[-1].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="center right", fontsize=7, frameon=False)
+    fig.suptitle("Error against the predicted uncertainty (binned by σ; on the 1:1 line where σ is right)")
     return fig

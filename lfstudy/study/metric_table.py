@@ -9,7 +9,8 @@ design comparison it appears in. Everything else reads this table at call time:
 - the leading columns of the study table (place ``summary``);
 - the report's case tables, panels and overview map (``headline``, ``panel``, ``overview``);
 - the best-design rows (``criterion``), the Pareto objectives (``pareto``) and the report's
-  Pareto-front, resolution and error-budget tables (``front``, ``resolution``, ``budget``).
+  Pareto-front, resolution and error-budget tables (``front``, ``resolution``, ``budget``);
+- the report's uncertainty table (``uncertainty``).
 
 Two name prefixes carry a meaning of their own: ``oracle_<stat>`` is the statistic ``<stat>`` of
 :func:`~lfstudy.study.metrics.case_errors` on the *oracle* (the case's PIV run on the true particle
@@ -44,6 +45,8 @@ PLACES: dict[str, str] = {
     "resolution": "a column of the report's resolution and field-of-view table (and of the design table)",
     "budget": "a column of the report's error-budget table: per design, what the PIV windows give on the true "
     "particles (the oracle) beside what the reconstruction adds (and of the design table)",
+    "uncertainty": "a column of the report's uncertainty table: per design and flow, how well the PIV's per-vector "
+    "standard uncertainty measures the error against the truth",
 }
 
 
@@ -167,6 +170,9 @@ _LOCKING = (
     "about the truth"
 )
 
+# The per-axis uncertainty metrics: in the report's uncertainty table, every axis.
+_UNC_SHOWN = dict.fromkeys("xyz", ("uncertainty",))
+
 #: Every per-case metric, in order: the ``summary`` ones lead the study table in this order, and every
 #: report table and figure lists its metrics in this order.
 METRICS: tuple[Metric, ...] = (
@@ -268,10 +274,11 @@ METRICS: tuple[Metric, ...] = (
                description="mean measured displacement " + _ORACLE),
     *_per_axis("recon_added_rms_{ax}_mm", "mm", "RMS error {ax} added by the reconstruction", lower_is_better=True,
                group="error", description="RMS " + _ADDED.format(case="rms_{ax}_mm", oracle="oracle_rms_{ax}_mm")),
-    *_per_axis("unc_coverage_{ax}", "1", "uncertainty coverage {ax}", group="error",
+    *_per_axis("unc_coverage_{ax}", "1", "uncertainty coverage {ax}", shown=_UNC_SHOWN, group="error",
                description="fraction of the valid vectors whose |error| in {ax} is within their standard uncertainty "
                "(unc_* of the PIV; 0.68 where the uncertainty is right)"),
-    *_per_axis("unc_ratio_{ax}", "1", "RMS error / RMS uncertainty {ax}", group="error",
+    *_per_axis("unc_ratio_{ax}", "1", "RMS error / RMS uncertainty {ax}", shown=_UNC_SHOWN,
+               group="error",
                description="RMS of the {ax} error over RMS of the PIV's standard uncertainty, over the valid vectors "
                "(1 where the uncertainty is right)"),
     Metric("true_mag_mm", "mm", "mean magnitude of the true displacement", None, (), "displacement"),

@@ -50,6 +50,7 @@ __all__ = [
     "field_of_view",
     "depth_gain",
     "crosstalk_z",
+    "binned_uncertainty",
     "oracle_metrics",
     "quadrature_excess",
     "error_budget",
@@ -250,9 +251,10 @@ def case_errors(
         Fields over the PIV grid: ``<c>_true`` / ``<c>_true_mm`` (true
         displacement at the window centre, midpoint reference, i.e. the path
         of the particle centred on the window), ``<c>_err`` / ``<c>_err_mm``
-        (measured − true, NaN where invalid) for c in u, v, w, and
-        ``voxel_<ax>``. Scalars, over valid vectors with finite values, for
-        ax in x, y, z (``_mm`` suffix: in mm, else voxels):
+        (measured − true, NaN where invalid) for c in u, v, w, ``unc_<c>`` /
+        ``unc_<c>_mm`` (the PIV's standard uncertainty of the same vectors, NaN where
+        the error is; only where the PIV result holds one) and ``voxel_<ax>``. Scalars,
+        over valid vectors with finite values, for ax in x, y, z (``_mm`` suffix: in mm, else voxels):
 
         - ``bias_<ax>``: mean error; ``rms_<ax>``: RMS error; ``std_<ax>``:
           standard deviation of the error (ddof 0, rms² = bias² + std²);
@@ -344,7 +346,13 @@ def case_errors(
         # C1 (peak_locking_c1) reads ~1 for any uniform displacement, so the study keeps the
         # truth-aware excess near-integer fraction instead
         out[f"locking_excess_{ax}"] = _scalar(locking_excess(mv, t_vx[fin]))
-        cov, ratio = uncertainty_calibration(e_mm, _uncertainty_mm(piv, c, dims, step_b[ax]), fin)
+        sigma_mm = _uncertainty_mm(piv, c, dims, step_b[ax])
+        if sigma_mm is not None:  # per vector beside its error (the report's error-against-σ figure)
+            s_mm = np.where(fin, sigma_mm, np.nan)
+            desc = f"standard uncertainty of the {ax} displacement (unc_{c} of the PIV; NaN where the error is)"
+            out[f"unc_{c}"] = (dims, s_mm / np.abs(step_b[ax]), _attrs("voxel", desc))
+            out[f"unc_{c}_mm"] = (dims, s_mm, _attrs("mm", desc))
+        cov, ratio = uncertainty_calibration(e_mm, sigma_mm, fin)
         out[f"unc_coverage_{ax}"] = _scalar(cov)
         out[f"unc_ratio_{ax}"] = _scalar(ratio)
     rt = math.sqrt(sum(float(out[f"rms_{ax}"]) ** 2 for ax in axes)) if n_valid else math.nan
@@ -409,6 +417,45 @@ def uncertainty_calibration(error: np.ndarray, sigma: np.ndarray | None, mask: n
     rms_s = float(np.sqrt(np.mean(s**2)))
     ratio = float(np.sqrt(np.mean(e**2))) / rms_s if rms_s > 0 else math.nan
     return float(np.mean(e <= s)), ratio
+
+
+def binned_uncertainty(error: np.ndarray, sigma: np.ndarray, n_bins: int = 8) -> dict[str, np.ndarray]:
+    """RMS error against the predicted uncertainty, in bins of σ (the calibration curve of an
+    uncertainty estimate: on the 1:1 line where σ is right, cf. Wieneke 2015, Fig. 9).
+
+    Parameters
+    ----------
+    error : ndarray
+        Measured − true, per vector (any shape; NaN: no error).
+    sigma : ndarray
+        Predicted standard uncertainty of the same vectors, same units (NaN: none).
+    n_bins : int
+        Bins of about equal count between the quantiles of σ (fewer when σ repeats or
+        there are fewer vectors than bins).
+
+    Returns
+    -------
+    dict of ndarray
+        Per bin: ``sigma_rms`` (RMS σ), ``error_rms`` (RMS error), ``coverage`` (fraction with
+        ``|error| <= σ``) and ``count``; empty arrays without a vector that has both.
+    """
+    e = np.asarray(error, float).ravel()
+    s = np.asarray(sigma, float).ravel()
+    ok = np.isfinite(e) & np.isfinite(s)
+    e, s = e[ok], s[ok]
+    keys = ("sigma_rms", "error_rms", "coverage", "count")
+    if not e.size:
+        return {k: np.empty(0) for k in keys}
+    edges = np.unique(np.quantile(s, np.linspace(0.0, 1.0, max(1, min(int(n_bins), e.size)) + 1)))
+    idx = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, max(0, edges.size - 2))
+    out: dict[str, list[float]] = {k: [] for k in keys}
+    for b in np.unique(idx):
+        m = idx == b
+        out["sigma_rms"].append(float(np.sqrt(np.mean(s[m] ** 2))))
+        out["error_rms"].append(float(np.sqrt(np.mean(e[m] ** 2))))
+        out["coverage"].append(float(np.mean(np.abs(e[m]) <= s[m])))
+        out["count"].append(float(m.sum()))
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def crosstalk_z(measured_mm: Mapping[str, np.ndarray], true_mm: Mapping[str, Any], mask: np.ndarray) -> float:

@@ -55,6 +55,7 @@ SECTIONS: dict[str, str] = {
     "overview": "Overview",
     "comparison": "Comparison across the sweep",
     "designs": "Camera designs",
+    "uncertainty": "Per-vector uncertainty against the truth",
     "thesis": "Comparison with the thesis (ch. 7)",
     "representative": "Representative case",
     "cases": "Per-case results",
@@ -318,6 +319,7 @@ def report_blocks(
     yield from _overview_blocks(study, case_dirs)
     yield from _comparison_blocks(study)
     yield from _design_blocks(study, cfg)
+    yield from _uncertainty_blocks(study, case_dirs)
     yield from _thesis_blocks(study, cfg)
     yield from _representative_blocks(study, case_dirs)
     yield from _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
@@ -493,6 +495,117 @@ def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
         "focal-plane diamonds",
         diamonds,
     )
+
+
+#: At most this many designs get a line of their own in the error-against-σ figure; more are pooled.
+MAX_UNCERTAINTY_LINES = 10
+
+
+def _uncertainty_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> Iterator[Block]:
+    """Per design and flow: the metric table's ``uncertainty`` metrics (coverage, RMS ratio per
+    component), and the binned RMS error against the predicted σ, pooled over each design's cases."""
+    from lfstudy.study import figures as rf
+    from lfstudy.study.designs import design_label
+
+    cols = [c for c in mt.names("uncertainty") if c in study and bool(study[c].notnull().any())]
+    if not cols:
+        yield Block(
+            "uncertainty",
+            "none",
+            note="Uncertainty: not available (no computed case has a PIV result with per-vector uncertainties "
+            "unc_*: piv.uncertainty none, or results computed before they existed).",
+        )
+        return
+    extra = [v for v in ("computed", "case_id") if v in study]
+    df = study[cols + extra].to_dataframe().reset_index()
+    if "computed" in df:
+        df = df[df["computed"].astype(bool)].drop(columns="computed")
+    dims = [str(d) for d in study.dims]
+    df.insert(0, "design", [design_label(r, dims) for _, r in df.iterrows()])
+    show = [c for c in ("design", "flow", *cols) if c in df]
+    yield Block(
+        "uncertainty",
+        "table",
+        html="<p>How well the PIV's per-vector standard uncertainty σ (<code>unc_u_mm</code>, ... in "
+        "<code>piv.zarr</code>) measures its actual error against the known flow, over the valid vectors: the "
+        "<i>coverage</i> is the fraction with |error| ≤ σ (0.68 for a right σ and Gaussian errors), the "
+        "<i>ratio</i> RMS(error) / RMS(σ) (1 for a right σ; above 1 σ is too small). z, the depth, is measured "
+        "through the parallax of the sub-apertures and has a σ of its own scale.</p>"
+        + _table(df[show].sort_values(["design", "flow"] if "flow" in df else ["design"]), index=False),
+    )
+    groups: dict[str, list[str]] = {}
+    if "case_id" in df:
+        for label, cid in zip(df["design"], df["case_id"]):
+            if cid and str(cid) in case_dirs:
+                groups.setdefault(str(label), []).append(str(cid))
+    pooled = len(groups) > MAX_UNCERTAINTY_LINES
+    if pooled:
+        groups = {"all designs": [c for ids in groups.values() for c in ids]}
+    curves = _uncertainty_curves(groups, case_dirs)
+    if not any(len(b["count"]) for per_axis in curves.values() for b in per_axis.values()):
+        yield _na(
+            "uncertainty",
+            "error_vs_sigma",
+            "Error against the predicted uncertainty",
+            "no case's errors store on disk holds errors with their σ",
+        )
+        return
+    yield _try(
+        "uncertainty",
+        "error_vs_sigma",
+        "RMS error against the predicted σ in bins of σ (about equal counts), valid vectors of "
+        + ("all cases pooled" if pooled else "each design's cases pooled (all flows)")
+        + "; dashed: 1:1, where σ is right. Above the line σ is too small, below too large.",
+        "error against uncertainty",
+        lambda: rf.error_vs_uncertainty(curves),
+    )
+
+
+def _case_error_sigma(files: CaseFiles) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per axis, a case's per-vector error and σ [mm] from its errors store (σ from ``piv.zarr``
+    where an errors store written before the per-vector σ lacks it)."""
+    from lfstudy.study.metrics import AXES
+
+    err = _open(files, "errors.zarr")
+    piv = None
+    out = {}
+    for ax, c in AXES.items():
+        if f"{c}_err_mm" not in err:
+            continue
+        if f"unc_{c}_mm" in err:
+            sigma = err[f"unc_{c}_mm"]
+        else:
+            piv = _open(files, "piv.zarr") if piv is None else piv
+            if f"unc_{c}_mm" not in piv:
+                continue
+            sigma = piv[f"unc_{c}_mm"]
+        e = err[f"{c}_err_mm"]
+        out[ax] = (np.asarray(e.values, float).ravel(), np.asarray(sigma.transpose(*e.dims).values, float).ravel())
+    return out
+
+
+def _uncertainty_curves(
+    groups: Mapping[str, Sequence[str]], case_dirs: Mapping[str, CaseFiles]
+) -> dict[str, dict[str, dict[str, np.ndarray]]]:
+    """Per group (design) and axis, :func:`~lfstudy.study.metrics.binned_uncertainty` of its cases'
+    pooled errors and σ; a case without files is left out."""
+    from lfstudy.study.metrics import binned_uncertainty
+
+    curves: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+    for label, ids in groups.items():
+        pooled: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+        for cid in ids:
+            try:
+                per_axis = _case_error_sigma(case_dirs[cid])
+            except (OSError, FileNotFoundError, KeyError, ValueError):
+                continue
+            for ax, pair in per_axis.items():
+                pooled.setdefault(ax, []).append(pair)
+        curves[label] = {
+            ax: binned_uncertainty(np.concatenate([e for e, _ in v]), np.concatenate([s for _, s in v]))
+            for ax, v in pooled.items()
+        }
+    return curves
 
 
 def _thesis_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]:
