@@ -73,7 +73,7 @@ def bench_full(a, b, threads: int) -> None:
 
 def bench_uncertainty(a, b, threads: int, repeats: int) -> None:
     kw = {"window": (16, 48, 48), "spacing": (8, 24, 24), "levels": 3, "workers": threads}
-    times: dict[str | None, list[float]] = {None: [], "correlation": [], "moment": []}
+    times: dict[str | None, list[float]] = {None: [], "correlation": [], "independent": [], "moment": []}
     last = {}
     for _ in range(max(1, repeats)):
         for method in times:  # alternated, so a load change on the machine hits every variant

@@ -13,6 +13,7 @@ at 0.001 and 0.005 ppp (uniform, Hill and a new flow) and on a demo design.
 
     python benchmarks/bench_uncertainty.py [--config config/thesis.yaml] [--flows uniform_x hill]
         [--ppp 0.001 0.005] [--set depth_calibration.enabled=false ...] [--jobs 2] [--threads 1]
+        [--sweep piv.uncertainty=[correlation,independent,moment]]
         [--out DIR]
 """
 
@@ -47,6 +48,9 @@ def _config(args: argparse.Namespace) -> dict[str, Any]:
             node = node.setdefault(p, {})
         node[leaf] = yaml.safe_load(val)
     sweep = raw.setdefault("sweep", {})
+    for item in args.sweep:
+        key, _, vals = item.partition("=")
+        sweep[key] = yaml.safe_load(vals)
     if args.flows:
         sweep["flow"] = list(args.flows)
     if args.ppp:
@@ -132,6 +136,13 @@ def main() -> None:
     ap.add_argument("--flows", nargs="*", default=None, help="the sweep's flows (default: the config's)")
     ap.add_argument("--ppp", nargs="*", type=float, default=None, help="the sweep's ppp (default: the config's)")
     ap.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="config overrides (YAML values)")
+    ap.add_argument(
+        "--sweep",
+        nargs="*",
+        default=[],
+        metavar="KEY=[V1,V2]",
+        help="swept settings added (YAML list), e.g. piv.uncertainty=[correlation,independent,moment]",
+    )
     ap.add_argument("--seed", type=int, default=None, help="study seed (default: the config's)")
     ap.add_argument("--jobs", type=int, default=1, help="tasks run side by side")
     ap.add_argument("--threads", type=int, default=max(1, (os.cpu_count() or 1)), help="threads per task")

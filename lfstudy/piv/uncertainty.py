@@ -37,7 +37,10 @@ import numpy as np
 __all__ = ["window_uncertainty", "METHODS"]
 
 #: Uncertainty estimators of :func:`window_uncertainty`.
-METHODS = ("correlation", "moment")
+METHODS = ("correlation", "moment", "independent")
+
+#: Largest lag (voxels) over which neighbouring contributions ΔC_i are summed as correlated.
+_MAX_LAG = 4
 
 
 @numba.njit(parallel=True, cache=True)
@@ -93,6 +96,66 @@ def _sums(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover - com
     return out
 
 
+@numba.njit(parallel=True, cache=True)
+def _dc_factor(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:  # pragma: no cover - compiled
+    """Per window (n, Z, Y, X) and axis k: Var(Σ ΔC_i) / Σ (ΔC_i − mean)², from the correlation of
+    neighbouring contributions (separable: the product over the axes j of 1 + 2 Σ_l ρ_j(l), the sum
+    of each positive lag's autocorrelation ρ_j(l) up to the first that is <= 0, at most ``max_lag``)."""
+    n, nz, ny, nx = a.shape
+    out = np.ones((n, 3))
+    dims = (nz, ny, nx)
+    for w in numba.prange(n):
+        ma = a[w].mean()
+        mb = b[w].mean()
+        for k in range(3):
+            ez = 1 if k == 0 else 0
+            ey = 1 if k == 1 else 0
+            ex = 1 if k == 2 else 0
+            mz, my, mx = nz - ez, ny - ey, nx - ex
+            if mz < 1 or my < 1 or mx < 1:
+                continue
+            d = np.empty((mz, my, mx))
+            for i in range(mz):
+                for j in range(my):
+                    for q in range(mx):
+                        a0 = a[w, i, j, q] - ma
+                        b0 = b[w, i, j, q] - mb
+                        a1 = a[w, i + ez, j + ey, q + ex] - ma
+                        b1 = b[w, i + ez, j + ey, q + ex] - mb
+                        d[i, j, q] = a0 * b1 - a1 * b0
+            d -= d.mean()
+            v0 = (d * d).sum() / d.size
+            if v0 <= 0.0:
+                continue
+            f = 1.0
+            msz = (mz, my, mx)
+            for ax in range(3):
+                acc = 0.0
+                for lag in range(1, min(max_lag, msz[ax] - 1) + 1):
+                    c = 0.0
+                    cnt = 0
+                    for i in range(mz - (lag if ax == 0 else 0)):
+                        for j in range(my - (lag if ax == 1 else 0)):
+                            for q in range(mx - (lag if ax == 2 else 0)):
+                                c += (
+                                    d[i, j, q]
+                                    * d[
+                                        i + (lag if ax == 0 else 0),
+                                        j + (lag if ax == 1 else 0),
+                                        q + (lag if ax == 2 else 0),
+                                    ]
+                                )
+                                cnt += 1
+                    rho = c / cnt / v0
+                    if rho <= 0.0:
+                        break
+                    acc += rho
+                f *= 1.0 + 2.0 * acc
+            out[w, k] = f
+    _ = dims
+    return out
+
+
 def _gauss_offset(c0: np.ndarray, cp: np.ndarray, cm: np.ndarray) -> np.ndarray:
     """|offset| of the three-point Gaussian (eq. 6.2), parabolic where a log is undefined; NaN without a peak."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -128,14 +191,17 @@ def window_uncertainty(a: np.ndarray, b: np.ndarray, method: str = "correlation"
     a4 = np.ascontiguousarray(a, dtype=np.float32).reshape((a.shape[0],) + (1,) * (3 - nd) + a.shape[1:])
     b4 = np.ascontiguousarray(b, dtype=np.float32).reshape(a4.shape)
     s = _sums(a4, b4)
+    fac = _dc_factor(a4, b4, _MAX_LAG) if method == "correlation" else None
     saa, sbb, c0 = s[:, 0], s[:, 1], s[:, 2]
     out = np.empty((a.shape[0], nd))
     for k in range(nd):  # array axis k of the window is axis 3 - nd + k of the kernel
         o = 3 + 5 * (3 - nd + k)
         cp, cm, s1, s2, cnt = (s[:, o + j] for j in range(5))
         with np.errstate(divide="ignore", invalid="ignore"):
-            if method == "correlation":
+            if method in ("correlation", "independent"):
                 sig_dc = np.sqrt(np.maximum(s2 - s1 * s1 / np.maximum(cnt, 1.0), 0.0))
+                if method == "correlation":
+                    sig_dc = sig_dc * np.sqrt(fac[:, 3 - nd + k])
                 cbar = 0.5 * (cp + cm)
                 sig = _gauss_offset(c0, cbar + 0.5 * sig_dc, cbar - 0.5 * sig_dc)
             else:
