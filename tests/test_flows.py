@@ -487,3 +487,78 @@ def test_the_flows_page_lists_every_kind_and_parameter():
             assert f"`{p}`" in page, (kind, p)
     assert registry.ENTRY_POINT_GROUP in page
     assert "flows" in (ROOT / "docs" / "index.md").read_text()
+
+
+# ------------------------------------------------------------------ a study case with a new kind
+def test_a_study_case_with_a_lamb_oseen_flow_runs_through_its_errors_stage(tmp_path):
+    """The tiny study's first case with a Lamb–Oseen vortex: the workflow's displace and errors stages
+    (their stage configs, as Snakemake passes them) on the true volumes of both frames."""
+    from lfstudy import io
+    from lfstudy import workflow as wf
+    from lfstudy.simulate.flows import true_displacement
+    from lfstudy.study import case as cl
+    from lfstudy.study.config import case_config, expand_cases, stage_config
+
+    raw = _tiny()
+    spec = {"kind": "lamb_oseen", "circulation": 3.0, "core_radius": 3.0, "center": [0.3, -0.2, 0.0]}
+    raw["flows"] = {"vortex": spec}
+    raw["sweep"] = {"ppp": [0.004], "flow": ["vortex"]}
+    cfg = validate_config(raw)
+    cid = expand_cases(cfg)[0].case_id
+    ccfg = case_config(cfg, cid)
+    a = cl.case_particles(ccfg)
+    io.write_zarr(a, tmp_path / "particles_a.zarr")
+    wf.run_displace(stage_config(cfg, cid, "displace"), tmp_path / "particles_a.zarr", tmp_path / "particles_b.zarr")
+    b = io.open_zarr(tmp_path / "particles_b.zarr").load()
+    vortex = LambOseenVortex(circulation=3.0, core_radius=3.0, center=(0.3, -0.2, 0.0))  # as the config says
+    moved = integrate(vortex, a["x"].values, a["y"].values, a["z"].values, 1.0, 100)
+    for c, m in zip("xyz", moved):
+        np.testing.assert_array_equal(b[c].values, m)
+    va, vb = cl.oracle_volumes(ccfg, a, b)  # a perfect reconstruction stands in for the case's
+    io.write_zarr(va, tmp_path / "volume_a.zarr")
+    io.write_zarr(cl.case_piv(ccfg, va, vb), tmp_path / "piv.zarr")
+    paths = [tmp_path / n for n in ("piv.zarr", "volume_a.zarr", "particles_a.zarr", "errors.zarr")]
+    wf.run_errors(stage_config(cfg, cid, "errors"), *paths, particles_b=tmp_path / "particles_b.zarr")
+    err = io.open_zarr(tmp_path / "errors.zarr").load()
+    assert err.attrs["case_id"] == cid and "flow~vortex" in cid
+    grid = {d: g.values for d, g in zip("zyx", xr.broadcast(err["z"], err["y"], err["x"]))}
+    truth = true_displacement(vortex, grid["x"], grid["y"], grid["z"])
+    for c, t in zip("uvw", truth):
+        np.testing.assert_allclose(err[f"{c}_true_mm"].values, t, rtol=1e-12, atol=1e-15)
+    # the PIV on the true volumes follows the rotation: its error is a fraction of the displacement
+    # the PIV on the true volumes follows the rotation where it keeps its vectors (the tiny grid's 3 x 3
+    # in-plane windows reject most of a rotation's outer vectors): its error is a fraction of the truth
+    valid = np.isfinite(err["u_err_mm"].values)
+    assert valid.sum() >= 2
+    for c in "uv":
+        true_rms = np.sqrt(np.mean(err[f"{c}_true_mm"].values[valid] ** 2))
+        assert np.sqrt(np.nanmean(err[f"{c}_err_mm"].values ** 2)) < 0.3 * true_rms, c
+
+
+@pytest.mark.slow  # a Snakemake dry run (seconds)
+def test_the_workflow_reads_a_file_flow_relative_to_its_config_and_makes_it_an_input(tmp_path):
+    """A file flow's path is relative to the config file; its zarr store's files are inputs of the rules
+    that use the flow (displace, errors) and of no other, so editing the snapshot reruns exactly those."""
+    import subprocess
+    import sys
+
+    (tmp_path / "cfg" / "dns").mkdir(parents=True)
+    _field_dataset().to_zarr(tmp_path / "cfg" / "dns" / "snap.zarr", consolidated=False)
+    raw = _tiny()
+    raw["flows"] = {"dns": {"kind": "file", "path": "dns/snap.zarr", "outside": "nearest"}}
+    raw["sweep"] = {"ppp": [0.004], "flow": ["dns"]}
+    cfg_path = tmp_path / "cfg" / "study.yaml"
+    cfg_path.write_text(yaml.safe_dump(raw))
+    work = tmp_path / "work"
+    work.mkdir()
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work), "-n", "--cores", "1"]
+    r = subprocess.run([*cmd, "--configfile", str(cfg_path)], capture_output=True, text=True, timeout=300, cwd=work)
+    assert r.returncode == 0, r.stderr[-3000:]
+    store = str(tmp_path / "cfg" / "dns" / "snap.zarr")
+    jobs = {}
+    for block in (r.stdout + r.stderr).split("\nrule ")[1:]:
+        name = block.split(":", 1)[0].strip()
+        line = next((ln for ln in block.splitlines() if ln.strip().startswith("input:")), "")
+        jobs[name] = store + "/zarr.json" in line
+    assert jobs["displace"] and jobs["errors"], jobs
+    assert not any(v for k, v in jobs.items() if k not in ("displace", "errors")), jobs
