@@ -26,6 +26,7 @@ import sys
 from snakemake.exceptions import WorkflowError
 
 from lfstudy.reconstruct import gives_particles
+from lfstudy.simulate.flows import flow_input_files
 from lfstudy.study.config import stage_config, validate_config
 from lfstudy.study.resources import job_mem_mb, machine_memory
 from lfstudy.study.sweep import SHARED, STAGES, Sweep
@@ -41,7 +42,11 @@ if not workflow.overwrite_configfiles:
 # `--config process=RECORDING.yaml` names a recording for the optional `process` target (end of
 # this file); it is no study setting, so it leaves the config before the study is validated.
 PROCESS = config.pop("process", None)
-CFG = validate_config(config)           # one clear error on a bad config, defaults filled
+# A file flow's relative path is relative to the config file's folder (the last --configfile, made
+# absolute by Snakemake; else the Snakefile's own config/demo.yaml); validate_config makes it absolute.
+_CONFIG_FILES = list(workflow.overwrite_configfiles) or list(workflow.configfiles)
+CONFIG_DIR = os.path.dirname(os.path.abspath(_CONFIG_FILES[-1])) if _CONFIG_FILES else os.getcwd()
+CFG = validate_config(config, base=CONFIG_DIR)  # one clear error on a bad config, defaults filled
 NAME = CFG["name"]
 SWEEP = Sweep(CFG)
 CASES = [c.case_id for c in SWEEP.cases()]
@@ -125,6 +130,14 @@ def at(name, of):
     return path
 
 
+def flow_files(stage):
+    """Input function: the files the case's flow reads (a file flow's zarr store or netCDF file;
+    none for an analytic flow), so that editing them reruns the rules that use the flow."""
+    def files(wildcards):
+        return flow_input_files(SWEEP.apply(_case(stage, wildcards))["flow"])
+    return files
+
+
 localrules: all
 
 
@@ -178,13 +191,15 @@ rule particles:
 
 
 rule displace:
-    input: at("particles_a.zarr", "displace")
+    input:
+        particles=at("particles_a.zarr", "displace"),
+        flow=flow_files("displace"),
     output: directory(f"{OUT}/{{sid}}/particles_b.zarr")
     log: f"{LOG}/displace/{{sid}}.log"
     benchmark: f"{BENCH}/displace/{{sid}}.tsv"
     threads: 1
     params: cfg=stage_params("displace")
-    shell: STAGE + " displace {input[0]:q} {output[0]:q}"
+    shell: STAGE + " displace {input.particles:q} {output[0]:q}"
 
 
 rule simulate:
@@ -328,6 +343,7 @@ rule errors:
         particles=at("particles_a.zarr", "errors"),
         # the oracle (the case's PIV on the true volumes of both frames) runs here: seconds
         particles_b=at("particles_b.zarr", "errors"),
+        flow=flow_files("errors"),  # the truth: a file flow's field
     output: directory(f"{OUT}/{{sid}}/errors.zarr")
     log: f"{LOG}/errors/{{sid}}.log"
     benchmark: f"{BENCH}/errors/{{sid}}.tsv"

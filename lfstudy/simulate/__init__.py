@@ -1,7 +1,8 @@
 """Simulation (thesis ch. 4): seeded particle fields, known flows and the plenoptic ray tracer.
 
 Modules: :mod:`~lfstudy.simulate.particles` (sec. 4.3.2, 5.1),
-:mod:`~lfstudy.simulate.flows` (sec. 4.4), :mod:`~lfstudy.simulate.raytrace`
+:mod:`~lfstudy.simulate.flows` (sec. 4.4; analytic flows, a gridded field from a
+file, kinds of other packages), :mod:`~lfstudy.simulate.raytrace`
 (sec. 4.1–4.3, App. A; the Monte-Carlo reference), :mod:`~lfstudy.simulate.exact`
 (the expected image of the same model, without rays), :mod:`~lfstudy.simulate.sensor`
 (photons, shot and read noise, full well, ADC) and the 1-D teaching simulator
@@ -13,10 +14,16 @@ from __future__ import annotations
 
 from lfstudy.simulate.exact import exact_memory_estimate, render_exact, render_pinhole_exact
 from lfstudy.simulate.flows import (
+    BlasiusBoundaryLayer,
+    ChannelFlow,
     Flow,
     FlowError,
+    GriddedFlow,
     HillVortex,
+    LambOseenVortex,
     UniformFlow,
+    VortexRing,
+    available_kinds,
     displace,
     flow_from_config,
     integrate,
@@ -48,6 +55,12 @@ __all__ = [
     "Flow",
     "UniformFlow",
     "HillVortex",
+    "LambOseenVortex",
+    "VortexRing",
+    "ChannelFlow",
+    "BlasiusBoundaryLayer",
+    "GriddedFlow",
+    "available_kinds",
     "flow_from_config",
     "integrate",
     "displace",

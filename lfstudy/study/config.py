@@ -17,6 +17,7 @@ from typing import Any
 from lfstudy.config import ConfigError, read_yaml, validate_section
 from lfstudy.optics import OpticsError, PlenopticCamera
 from lfstudy.reconstruct.grid import GridError
+from lfstudy.simulate.flows import check_flow_config, resolve_flow_paths
 from lfstudy.study.case import case_grid
 from lfstudy.study.resources import check_memory
 from lfstudy.study.schema import load_schema
@@ -34,12 +35,21 @@ __all__ = [
 ]
 
 
-def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
+def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> dict[str, Any]:
     """Validate a config mapping, returning a deep copy with defaults filled in.
 
     Besides the schema, checks what a schema cannot: that the camera can be
     built (f-number reachable, pitch vs pixel) for every swept combination,
-    and that swept flows are defined.
+    that swept flows are defined, and that each flow can be built (a file
+    flow's file: its variables, coordinates and units).
+
+    Parameters
+    ----------
+    cfg : Mapping
+        The config as read from YAML.
+    base : str or Path, optional
+        The config file's folder: a file flow's relative ``path`` is taken
+        relative to it (and made absolute). Default: the working directory.
 
     Raises
     ------
@@ -56,11 +66,10 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
                 f"config key 'sweep.flow' = {name!r}: unknown flow; allowed values are "
                 + ", ".join(repr(k) for k in cfg["flows"])
             )
-    for name, spec in cfg["flows"].items():
-        if spec["kind"] == "uniform" and "displacement" not in spec:
-            raise ConfigError(f"config key 'flows.{name}.displacement': required for kind 'uniform' ([dx, dy, dz] mm)")
-        if spec["kind"] == "hill" and ("radius" not in spec or "u0" not in spec):
-            raise ConfigError(f"config key 'flows.{name}': kind 'hill' needs radius (> 0 mm) and u0")
+    root = Path(base) if base is not None else Path.cwd()
+    for name, spec in cfg["flows"].items():  # the schema checked each kind's parameters
+        cfg["flows"][name] = spec = resolve_flow_paths(spec, root)
+        check_flow_config(spec, f"flows.{name}")
     count = cfg["particles"].get("count")
     if count is not None and len(cfg["sweep"].get("ppp", [])) > 1:
         raise ConfigError(
@@ -99,8 +108,9 @@ def validate_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
-    """Read a YAML config file and validate it (defaults filled in)."""
-    return validate_config(read_yaml(path))
+    """Read a YAML config file and validate it (defaults filled in); a file flow's path is
+    relative to the config file's folder."""
+    return validate_config(read_yaml(path), base=Path(path).resolve().parent)
 
 
 def sweep_of(cfg: Mapping[str, Any]) -> Sweep:

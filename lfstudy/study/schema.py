@@ -1,9 +1,10 @@
-"""The study config's JSON schema: ``lfstudy/schema.yaml`` plus every reconstruction method's parameters.
+"""The study config's JSON schema: ``lfstudy/schema.yaml``, every reconstruction method's and flow kind's parameters.
 
 The schema file (``config/schema.yaml`` links to it) states the sections; each
 reconstruction method declares its own parameters (``reconstruct.<name>``,
-from :mod:`lfstudy.reconstruct`), so the full schema is assembled here, above
-both the config plumbing (:mod:`lfstudy.config`) and the method registry.
+from :mod:`lfstudy.reconstruct`) and each flow kind its own (``flows.<name>``,
+from :mod:`lfstudy.simulate.flows`), so the full schema is assembled here, above
+the config plumbing (:mod:`lfstudy.config`) and both registries.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any
 
 from lfstudy.config import read_schema
 from lfstudy.reconstruct.registry import available_methods, method_schemas
+from lfstudy.simulate.flows import flow_schema
 
 __all__ = ["load_schema"]
 
@@ -30,5 +32,12 @@ def _schema() -> dict[str, Any]:
 
 def load_schema() -> dict[str, Any]:
     """The JSON schema of a study config: ``schema.yaml`` plus every reconstruction
-    method's parameters (``reconstruct.<method>``, from the method registry)."""
-    return copy.deepcopy(_schema())
+    method's parameters (``reconstruct.<method>``, from the method registry) and every
+    flow kind's (``flows.<name>``: the kind's parameters by ``if``/``then``, from the flow
+    registry, :func:`lfstudy.simulate.flows.flow_schema`)."""
+    schema = copy.deepcopy(_schema())
+    flows = schema["properties"]["flows"]["additionalProperties"]
+    sub = flow_schema()
+    flows["properties"]["kind"]["enum"] = sub["properties"]["kind"]["enum"]
+    flows["allOf"] = sub["allOf"]
+    return schema
