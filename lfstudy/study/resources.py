@@ -46,7 +46,10 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
 
     cam = PlenopticCamera.from_config(ccfg)
     npx = cam.n_pixels_x * cam.n_pixels_y
-    n_part = ccfg["particles"].get("count") or math.ceil(ccfg["particles"]["ppp"] * npx)
+    par = ccfg["particles"]
+    n_part = par.get("count") or math.ceil(par["ppp"] * npx)
+    if par.get("depth_margin", 0.0) > 0 and par["z_span"] > 0:  # the margin's particles, at the slab's density
+        n_part += math.ceil(n_part * 2 * par["depth_margin"] / par["z_span"])
     # montecarlo: 8 float32 chunk buffers + the float64 image + particles (raytrace.memory_estimate);
     # exact: the float64 image + particles; then the sensor model's float64 copies (signal, electrons, noise)
     rt_method = (ccfg.get("raytrace", {}) or {}).get("method", "exact")
