@@ -16,6 +16,7 @@ so cases that differ only in processing share their images.
 
 from __future__ import annotations
 
+import functools
 import zlib
 from collections.abc import Mapping
 from typing import Any
@@ -142,6 +143,30 @@ def case_illuminated(ccfg: Mapping[str, Any], field: xr.Dataset) -> xr.Dataset:
     )
 
 
+@functools.lru_cache(maxsize=2)
+def _white(camera: PlenopticCamera, fnumber: float, diffraction: bool, max_image_bytes: float) -> np.ndarray:
+    """The exact white image of a uniform field at ``fnumber``, mean 1 (read-only; cached for the
+    depth calibration's many images of one camera). One Gauss–Legendre node per lenslet: the
+    lenslet's disc moves by a few hundredths of a pixel across its square, and 3 x 3 nodes (the
+    pinhole image's) change the normalised image by < 5e-4 (demo and tiny designs) at 9x the cost."""
+    from lfstudy.simulate.raytrace import render_pinhole
+    from lfstudy.simulate.sensor import lenslet_background
+
+    img = render_pinhole(
+        camera,
+        fnumber=fnumber,
+        count=1,
+        rays_per_point=1,
+        method="exact",
+        nodes=1,
+        diffraction=diffraction,
+        max_image_bytes=max_image_bytes,
+    )
+    out = lenslet_background(img)
+    out.flags.writeable = False
+    return out
+
+
 def _background(ccfg: Mapping[str, Any], image: xr.DataArray, fnumber: float | None) -> float | np.ndarray:
     """The case's background light [photons/pixel] for ``image`` (``sensor.background``): the uniform
     level plus the lenslet-structured one, the exact white image at ``fnumber`` (the working
@@ -149,22 +174,16 @@ def _background(ccfg: Mapping[str, Any], image: xr.DataArray, fnumber: float | N
     bg = ccfg["sensor"].get("background", {})
     level: float | np.ndarray = float(bg.get("uniform", 0.0))
     if bg.get("lenslet", 0.0) > 0:
-        from lfstudy.simulate.raytrace import render_pinhole
-        from lfstudy.simulate.sensor import lenslet_background
-
         cam = case_camera(ccfg)
-        white = render_pinhole(
-            cam,
-            fnumber=cam.main_fnumber if fnumber is None else fnumber,
-            count=1,
-            rays_per_point=1,
-            method="exact",
-            diffraction=ccfg["raytrace"]["diffraction"],
-            max_image_bytes=ccfg["raytrace"]["max_image_bytes"],
-        )
+        rt = ccfg["raytrace"]
+        args = (cam, float(cam.main_fnumber if fnumber is None else fnumber), bool(rt["diffraction"]))
+        try:
+            white = _white(*args, float(rt["max_image_bytes"]))
+        except TypeError:  # a camera that cannot be hashed (e.g. array-valued fields): no cache
+            white = _white.__wrapped__(*args, float(rt["max_image_bytes"]))
         if white.shape != image.shape:
             raise ValueError(f"lenslet background: white image {white.shape} differs from the image {image.shape}")
-        level = level + float(bg["lenslet"]) * lenslet_background(white)
+        level = level + float(bg["lenslet"]) * white
     return level
 
 

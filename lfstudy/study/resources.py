@@ -55,6 +55,8 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
     rt_method = (ccfg.get("raytrace", {}) or {}).get("method", "exact")
     render = (8 * npx * 4 if rt_method == "montecarlo" else 0) + npx * 8 + n_part * 8 * 8
     simulate = render + 3 * npx * 8
+    if ((ccfg.get("sensor", {}) or {}).get("background", {}) or {}).get("lenslet", 0.0) > 0:
+        simulate += 3 * npx * 8  # the white image, its cached normalised copy and the background
     n = int(cam.pixels_per_lenslet * (cam.si + cam.lenslet_focal_length) / cam.si)
     lf = cam.n_lenslets_x * cam.n_lenslets_y * n * n * 4
     register = npx * 8 + 3 * lf  # the raw image, the light field and its working copies
