@@ -234,7 +234,7 @@ def run_errors(
         flow_from_config(spec),
         cam,
         io.open_array(volume),
-        parts,
+        cl.case_illuminated(ccfg, parts),  # Q against the particles as lit in the image
         sigma_mm=cl.truth_sigma(cam),
         dt=spec.get("dt", 1.0),
         n_steps=spec.get("n_steps", 100),

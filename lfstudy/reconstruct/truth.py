@@ -53,6 +53,8 @@ def render_truth(
         Each particle's intensity spread over the voxels by the integral of its
         Gaussian over each voxel (exact for separable Gaussians), so the result
         does not depend on where the particle sits relative to the voxel centres.
+        A particle off the grid adds the part of its Gaussian that lies on it; one
+        more than ``truncate`` sigmas beyond the grid's edge adds nothing.
     """
     dims = ("z", "y", "x")
     shape = tuple(len(coords[d]) for d in dims)
@@ -64,10 +66,21 @@ def render_truth(
     if n == 0:
         return out
     amp = np.asarray(particles["intensity"].values, float) if "intensity" in particles else np.ones(n)
+    pos = [np.asarray(particles[d].values, float) for d in dims]
+    # a particle whose truncated Gaussian misses the grid (e.g. one of a depth margin seeded beyond
+    # it) adds nothing; the stencil clipped at the grid's ends would leak its far tail into the edge
+    reach = np.ones(n, dtype=bool)
+    for a, d in enumerate(dims):
+        edges = voxel_edges(coords[d])
+        reach &= (pos[a] + truncate * sig[a] > edges[0]) & (pos[a] - truncate * sig[a] < edges[-1])
+    if not reach.all():
+        amp, pos, n = amp[reach], [p[reach] for p in pos], int(reach.sum())
+        if n == 0:
+            return out
     idx, wts = [], []
     for a, d in enumerate(dims):
         edges = voxel_edges(coords[d])
-        p = np.asarray(particles[d].values, float)
+        p = pos[a]
         lo = np.clip(np.searchsorted(edges, p - truncate * sig[a]) - 1, 0, shape[a] - 1)
         hi = np.clip(np.searchsorted(edges, p + truncate * sig[a]), 1, shape[a])
         span = int(max(1, (hi - lo).max()))

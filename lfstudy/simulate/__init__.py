@@ -1,11 +1,11 @@
 """Simulation (thesis ch. 4): seeded particle fields, known flows and the plenoptic ray tracer.
 
-Modules: :mod:`~lfstudy.simulate.particles` (sec. 4.3.2, 5.1),
+Modules: :mod:`~lfstudy.simulate.particles` (sec. 4.3.2, 5.1; diameters, depth margin, illumination),
 :mod:`~lfstudy.simulate.flows` (sec. 4.4; analytic flows, a gridded field from a
 file, kinds of other packages), :mod:`~lfstudy.simulate.raytrace`
 (sec. 4.1–4.3, App. A; the Monte-Carlo reference), :mod:`~lfstudy.simulate.exact`
 (the expected image of the same model, without rays), :mod:`~lfstudy.simulate.sensor`
-(photons, shot and read noise, full well, ADC) and the 1-D teaching simulator
+(photons, background light, shot and read noise, hot pixels, full well, ADC) and the 1-D teaching simulator
 :mod:`~lfstudy.simulate.raytrace1d` (sec. 4.2). Import from this package:
 the modules behind it may move.
 """
@@ -29,7 +29,16 @@ from lfstudy.simulate.flows import (
     integrate,
     true_displacement,
 )
-from lfstudy.simulate.particles import ParticleError, make_field, particle_count, pinhole_field, seed_particles
+from lfstudy.simulate.particles import (
+    ParticleError,
+    illuminate,
+    illumination_profile,
+    make_field,
+    particle_count,
+    particle_diameters,
+    pinhole_field,
+    seed_particles,
+)
 from lfstudy.simulate.raytrace import (
     DEFAULT_CHUNKS,
     RaytraceError,
@@ -43,7 +52,7 @@ from lfstudy.simulate.raytrace import (
     solid_angle,
     write_image,
 )
-from lfstudy.simulate.sensor import SensorError, apply_sensor, sensor_noise_variance
+from lfstudy.simulate.sensor import SensorError, apply_sensor, hot_pixel_mask, lenslet_background, sensor_noise_variance
 
 __all__ = [
     "ParticleError",
@@ -51,6 +60,9 @@ __all__ = [
     "seed_particles",
     "pinhole_field",
     "make_field",
+    "particle_diameters",
+    "illumination_profile",
+    "illuminate",
     "FlowError",
     "Flow",
     "UniformFlow",
@@ -82,4 +94,6 @@ __all__ = [
     "SensorError",
     "apply_sensor",
     "sensor_noise_variance",
+    "hot_pixel_mask",
+    "lenslet_background",
 ]

@@ -6,13 +6,17 @@ camera records. For every pixel, in this order:
 
 1. **photons**: the image scaled so that a particle of intensity 1 at the
    reference solid angle (eq. 4.14) delivers ``photons_per_particle`` photons
-   in total (``photons = image · photons_per_particle / rays_per_particle``);
+   in total (``photons = image · photons_per_particle / rays_per_particle``),
+   plus the expected ``background`` light [photons/pixel] (a constant, or an
+   image such as :func:`lenslet_background`: stray light through the lenslets);
 2. **photo-electrons**: ``quantum_efficiency · photons`` expected, drawn from
    a Poisson distribution when ``shot_noise`` is on (photon shot noise; the
    quantum efficiency thins the photon stream, so the electrons are Poisson too);
 3. **dark level**: a constant pedestal of ``dark_level`` electrons (the dark
    signal and black level of the pixel; it occupies the well, it is noise-free
-   here: add its shot noise through ``read_noise`` if wanted);
+   here: add its shot noise through ``read_noise`` if wanted), and on the hot
+   pixels (:func:`hot_pixel_mask`: a seeded fraction of the pixels, the same in
+   every image of one sensor) ``hot_pixel_level`` electrons more;
 4. **full well**: the well holds at most ``full_well`` electrons (saturation);
 5. **read noise**: additive Gaussian noise of ``read_noise`` electrons rms;
 6. **ADC**: with ``bit_depth``, counts = round(electrons / gain), clipped to
@@ -23,7 +27,9 @@ Without ``bit_depth`` the result stays in electrons (float64, not clipped at
 zero, so the read noise stays unbiased). The variance of a pixel before the
 ADC is ``quantum_efficiency · photons + read_noise²`` (Poisson + Gaussian); the
 tests check it. Random numbers come from ``numpy.random.default_rng(seed)``
-(Poisson first, then normal, whole image at once), so one seed gives one image.
+(Poisson first, then normal, whole image at once), so one seed gives one image;
+the hot pixels' positions come from their own seed. With no background and no
+hot pixels (the defaults) the image is the ideal photon counter's, bit for bit.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-__all__ = ["SensorError", "apply_sensor", "sensor_noise_variance"]
+__all__ = ["SensorError", "apply_sensor", "sensor_noise_variance", "hot_pixel_mask", "lenslet_background"]
 
 
 class SensorError(ValueError):
@@ -94,9 +100,67 @@ def _check(
     return out
 
 
+def _background(background: Any, shape: tuple[int, ...]) -> np.ndarray | float | None:
+    """The checked background [photons/pixel]: None when it is 0 everywhere."""
+    if isinstance(background, (np.ndarray, xr.DataArray)):
+        bg = np.asarray(background, dtype=np.float64)
+        if bg.shape != shape:
+            raise SensorError(f"background: shape {bg.shape} differs from the image's {shape}")
+        if not np.all(np.isfinite(bg)) or np.any(bg < 0):
+            raise SensorError("background: must be finite and >= 0 photons/pixel")
+        return bg if np.any(bg > 0) else None
+    v = _number("background", background, low=0.0)
+    return v if v > 0 else None
+
+
 def sensor_noise_variance(expected_photons: np.ndarray | float, quantum_efficiency: float, read_noise: float) -> Any:
     """Variance [e⁻²] of a pixel before saturation and the ADC: Poisson (QE·photons) + read noise²."""
     return quantum_efficiency * np.asarray(expected_photons, dtype=np.float64) + read_noise**2
+
+
+def hot_pixel_mask(shape: tuple[int, int], fraction: float, seed: int) -> np.ndarray:
+    """The hot pixels of a sensor: ``round(fraction · pixels)`` distinct pixels drawn by ``seed``.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        The image shape (rows, cols).
+    fraction : float
+        Fraction of hot pixels, in [0, 1].
+    seed : int
+        Seed of ``numpy.random.default_rng`` (>= 0): one seed, one set of positions, so a
+        sensor's frames (and its calibration image) share them.
+
+    Returns
+    -------
+    numpy.ndarray of bool, ``shape``
+    """
+    f = _number("hot_pixels.fraction", fraction, low=0.0)
+    if f > 1.0:
+        raise SensorError(f"hot_pixels.fraction = {fraction!r}: allowed range is [0, 1]")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise SensorError(f"hot_pixels.seed = {seed!r}: must be an integer >= 0")
+    mask = np.zeros(shape, dtype=bool)
+    count = round(f * mask.size)
+    if count:
+        mask.flat[np.random.default_rng(int(seed)).choice(mask.size, size=count, replace=False)] = True
+    return mask
+
+
+def lenslet_background(white: xr.DataArray | np.ndarray) -> np.ndarray:
+    """A lenslet-structured background of mean 1 per pixel: a white image divided by its mean.
+
+    ``white`` is the expected image of a uniform field at the image's f-number (e.g.
+    :func:`lfstudy.simulate.render_pinhole` at the working f-number, exact: every
+    lenslet's image of the main-lens aperture, the gaps between them dark). Times a level
+    [photons/pixel], it is the ``background`` of :func:`apply_sensor`: diffuse stray light
+    reaching the sensor through the main lens and the lenslets.
+    """
+    w = np.asarray(getattr(white, "values", white), dtype=np.float64)
+    mean = float(w.mean()) if w.size else 0.0
+    if not (np.all(np.isfinite(w)) and np.all(w >= 0) and mean > 0):
+        raise SensorError("lenslet background: the white image must be finite, >= 0 and not all zero")
+    return w / mean
 
 
 def apply_sensor(
@@ -112,6 +176,10 @@ def apply_sensor(
     gain: float | None = None,
     seed: int = 0,
     rays_per_particle: int | None = None,
+    background: float | np.ndarray = 0.0,
+    hot_pixel_fraction: float = 0.0,
+    hot_pixel_level: float = 0.0,
+    hot_pixel_seed: int = 0,
 ) -> xr.DataArray:
     """Record a rendered raw image with a physical sensor (photons → electrons → counts).
 
@@ -143,6 +211,15 @@ def apply_sensor(
         Seed of ``numpy.random.default_rng`` (>= 0).
     rays_per_particle : int, optional
         Overrides ``image.attrs['rays_per_particle']``.
+    background : float or numpy.ndarray
+        Expected background light [photons/pixel], >= 0: a constant or an image of the
+        image's shape (e.g. ``level · lenslet_background(white)``), added to the photons
+        before the quantum efficiency and the shot noise. 0: none.
+    hot_pixel_fraction, hot_pixel_level, hot_pixel_seed : float, float, int
+        Hot pixels (:func:`hot_pixel_mask`): the fraction of pixels in [0, 1] that get
+        ``hot_pixel_level`` [e⁻, >= 0] on top of the dark level (before the full well, so they
+        may saturate), at positions drawn by ``hot_pixel_seed`` (not ``seed``: one sensor's
+        hot pixels stay put from image to image). Fraction or level 0: none.
 
     Returns
     -------
@@ -166,12 +243,20 @@ def apply_sensor(
     signal = np.asarray(image.values, dtype=np.float64)
     if not np.all(np.isfinite(signal)) or np.any(signal < 0):
         raise SensorError("image: values must be finite and >= 0 (an expected or ray-traced intensity image)")
+    bg = _background(background, signal.shape)
+    level = _number("hot_pixels.level", hot_pixel_level, low=0.0)
+    hot = hot_pixel_mask(signal.shape, hot_pixel_fraction, hot_pixel_seed)  # checked even when unused
+    hot = hot if level > 0 and hot.any() else None
     scale = p["photons_per_particle"] / int(n)
     electrons = p["quantum_efficiency"] * scale * signal  # expected photo-electrons
+    if bg is not None:  # (skipped when off: the ideal image stays bit-identical)
+        electrons += p["quantum_efficiency"] * bg
     rng = np.random.default_rng(p["seed"])
     if p["shot_noise"]:
         electrons = rng.poisson(electrons).astype(np.float64)
     electrons += p["dark_level"]
+    if hot is not None:
+        electrons[hot] += level
     saturated = np.zeros(signal.shape, dtype=bool)
     if p["full_well"] is not None:
         saturated = electrons >= p["full_well"]
@@ -191,6 +276,12 @@ def apply_sensor(
         photons_per_unit_intensity=scale,
         long_name="recorded plenoptic raw image",
     )
+    if bg is not None:
+        attrs.update(sensor_background_mean=float(np.mean(bg)))
+    if hot is not None:
+        attrs.update(
+            sensor_hot_pixels=int(hot.sum()), sensor_hot_pixel_level=level, sensor_hot_pixel_seed=int(hot_pixel_seed)
+        )
     if p["bit_depth"] is None:
         attrs.update(units="e-", saturated_pixels=int(saturated.sum()), saturated_fraction=float(saturated.mean()))
         return image.copy(data=electrons).assign_attrs(attrs)

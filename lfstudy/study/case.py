@@ -16,6 +16,7 @@ so cases that differ only in processing share their images.
 
 from __future__ import annotations
 
+import functools
 import zlib
 from collections.abc import Mapping
 from typing import Any
@@ -33,6 +34,7 @@ __all__ = [
     "truth_sigma",
     "case_particles",
     "case_displaced",
+    "case_illuminated",
     "case_sensor",
     "case_image",
     "case_pinhole",
@@ -99,6 +101,7 @@ def case_particles(ccfg: Mapping[str, Any], *, seed: int | None = None) -> xr.Da
     if seed is None:
         seed = derive_seed(ccfg["seed"], "particles", float(ccfg["camera"]["magnification"]), float(p["ppp"]))
     kw: dict[str, Any] = {"count": p["count"]} if p.get("count") else {"ppp": p["ppp"]}
+    d = p.get("diameter", {})
     field = seed_particles(
         cam,
         **kw,
@@ -107,6 +110,10 @@ def case_particles(ccfg: Mapping[str, Any], *, seed: int | None = None) -> xr.Da
         z_span=p["z_span"],
         intensity=tuple(p["intensity"]),
         seed=seed,
+        depth_margin=p.get("depth_margin", 0.0),
+        diameter=d.get("distribution", "fixed"),
+        diameter_mean_um=d.get("mean_um"),
+        diameter_sd_um=d.get("sd_um", 0.0),
     )
     field.attrs.update(io.provenance(ccfg, seed))
     return field
@@ -122,16 +129,81 @@ def case_displaced(ccfg: Mapping[str, Any], field: xr.Dataset) -> xr.Dataset:
     return moved
 
 
-def case_sensor(ccfg: Mapping[str, Any], image: xr.DataArray, seed: int, photons_default: int) -> xr.DataArray:
+def case_illuminated(ccfg: Mapping[str, Any], field: xr.Dataset) -> xr.Dataset:
+    """``field`` as the case's light volume lights it (``illumination`` section;
+    :func:`lfstudy.simulate.particles.illuminate`): each intensity times the profile at the
+    particle's own depth. With ``profile: none`` (the default) ``field`` itself."""
+    from lfstudy.simulate.particles import illuminate
+
+    il = ccfg["illumination"]  # a stage given no illumination section must fail loudly
+    if il["profile"] == "none":
+        return field
+    return illuminate(
+        field, profile=il["profile"], center=il["center"], thickness=il["thickness"], edge_width=il["edge_width"]
+    )
+
+
+@functools.lru_cache(maxsize=2)
+def _white(camera: PlenopticCamera, fnumber: float, diffraction: bool, max_image_bytes: float) -> np.ndarray:
+    """The exact white image of a uniform field at ``fnumber``, mean 1 (read-only; cached for the
+    depth calibration's many images of one camera). One Gauss–Legendre node per lenslet: the
+    lenslet's disc moves by a few hundredths of a pixel across its square, and 3 x 3 nodes (the
+    pinhole image's) change the normalised image by < 5e-4 (demo and tiny designs) at 9x the cost."""
+    from lfstudy.simulate.raytrace import render_pinhole
+    from lfstudy.simulate.sensor import lenslet_background
+
+    img = render_pinhole(
+        camera,
+        fnumber=fnumber,
+        count=1,
+        rays_per_point=1,
+        method="exact",
+        nodes=1,
+        diffraction=diffraction,
+        max_image_bytes=max_image_bytes,
+    )
+    out = lenslet_background(img)
+    out.flags.writeable = False
+    return out
+
+
+def _background(ccfg: Mapping[str, Any], image: xr.DataArray, fnumber: float | None) -> float | np.ndarray:
+    """The case's background light [photons/pixel] for ``image`` (``sensor.background``): the uniform
+    level plus the lenslet-structured one, the exact white image at ``fnumber`` (the working
+    f-number when None) scaled to its mean (:func:`lfstudy.simulate.sensor.lenslet_background`)."""
+    bg = ccfg["sensor"].get("background", {})
+    level: float | np.ndarray = float(bg.get("uniform", 0.0))
+    if bg.get("lenslet", 0.0) > 0:
+        cam = case_camera(ccfg)
+        rt = ccfg["raytrace"]
+        args = (cam, float(cam.main_fnumber if fnumber is None else fnumber), bool(rt["diffraction"]))
+        try:
+            white = _white(*args, float(rt["max_image_bytes"]))
+        except TypeError:  # a camera that cannot be hashed (e.g. array-valued fields): no cache
+            white = _white.__wrapped__(*args, float(rt["max_image_bytes"]))
+        if white.shape != image.shape:
+            raise ValueError(f"lenslet background: white image {white.shape} differs from the image {image.shape}")
+        level = level + float(bg["lenslet"]) * white
+    return level
+
+
+def case_sensor(
+    ccfg: Mapping[str, Any], image: xr.DataArray, seed: int, photons_default: int, *, fnumber: float | None = None
+) -> xr.DataArray:
     """Record a rendered image with the case's sensor (``sensor`` section; :mod:`lfstudy.simulate.sensor`).
 
     ``photons_default`` stands in for a null ``sensor.photons_per_particle`` (one
-    photon per ray: the image's ray count).
+    photon per ray: the image's ray count). The background light (``sensor.background``;
+    its lenslet structure at ``fnumber``, the image's f-number, default the working one)
+    and the hot pixels (``sensor.hot_pixels``; positions from their seed, or the study seed:
+    the same in every image) are the same for every renderer: they act here.
     """
     from lfstudy.simulate.sensor import apply_sensor
 
     s = ccfg["sensor"]  # a stage given no sensor section must fail loudly, not use defaults
     photons = s["photons_per_particle"]
+    hot = s.get("hot_pixels", {})
+    hot_seed = hot.get("seed")
     return apply_sensor(
         image,
         photons_per_particle=photons_default if photons is None else photons,
@@ -143,16 +215,24 @@ def case_sensor(ccfg: Mapping[str, Any], image: xr.DataArray, seed: int, photons
         bit_depth=s["bit_depth"],
         gain=s["gain"],
         seed=seed,
+        background=_background(ccfg, image, fnumber),
+        hot_pixel_fraction=hot.get("fraction", 0.0),
+        hot_pixel_level=hot.get("level", 0.0),
+        hot_pixel_seed=derive_seed(ccfg["seed"], "hot-pixels") if hot_seed is None else hot_seed,
     )
 
 
-def case_image(ccfg: Mapping[str, Any], field: xr.Dataset, frame: str, *, progress: bool = False) -> xr.DataArray:
+def case_image(
+    ccfg: Mapping[str, Any], field: xr.Dataset, frame: str, *, progress: bool = False, illuminate: bool = True
+) -> xr.DataArray:
     """The recorded raw image of exposure ``frame`` ("a" or "b") of a case.
 
-    Rendered with ``raytrace.method`` (exact: the expected image; montecarlo: ray
+    The field is lit by the case's light volume (:func:`case_illuminated`; ``illuminate=False``:
+    it already is), rendered with ``raytrace.method`` (exact: the expected image; montecarlo: ray
     traced), then recorded by the case's sensor; both seeds derive from the
     study seed, the simulate stage's location and the frame, so one config gives
-    one image, byte for byte.
+    one image, byte for byte. Every particle setting acts on the particle list (intensities,
+    positions) and every sensor setting in :func:`case_sensor`: both renderers honour all.
     """
     from lfstudy.simulate.raytrace import render
 
@@ -161,7 +241,7 @@ def case_image(ccfg: Mapping[str, Any], field: xr.Dataset, frame: str, *, progre
     seed = derive_seed(ccfg["seed"], "raytrace", sid, frame)
     img = render(
         case_camera(ccfg),
-        field,
+        case_illuminated(ccfg, field) if illuminate else field,
         rt["rays_per_particle"],
         seed,
         diffraction=rt["diffraction"],
@@ -178,7 +258,9 @@ def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> xr.DataA
     """The calibration pinhole image (sec. 5.1), shared by the case's calibration group.
 
     Rendered with ``raytrace.method`` and recorded by the case's sensor (a null
-    ``sensor.photons_per_particle`` is ``pinhole.rays_per_point`` here).
+    ``sensor.photons_per_particle`` is ``pinhole.rays_per_point`` here; its background light and
+    hot pixels too, the lenslet background at the pinhole's f-number). The particle settings
+    (light volume, diameters, depth margin) are the flow's seeding's, not the calibration field's.
     """
     from lfstudy.simulate.raytrace import render_pinhole
 
@@ -194,7 +276,13 @@ def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> xr.DataA
         progress=progress,
         method=ccfg["raytrace"]["method"],
     )
-    img = case_sensor(ccfg, img, derive_seed(ccfg["seed"], "sensor", "pinhole", ccfg["calib_id"]), ph["rays_per_point"])
+    img = case_sensor(
+        ccfg,
+        img,
+        derive_seed(ccfg["seed"], "sensor", "pinhole", ccfg["calib_id"]),
+        ph["rays_per_point"],
+        fnumber=ph["fnumber"],
+    )
     img.attrs.update(io.provenance(ccfg, seed))
     return img
 
@@ -339,6 +427,11 @@ def oracle_volumes(
     Each particle is the Gaussian Q uses (:func:`truth_sigma`), integrated over the voxels of the
     grid (:func:`lfstudy.study.metrics.render_truth`): what a perfect reconstruction would hand to
     the PIV. DataArrays like a reconstructed volume (float32, the grid's coords and attrs).
+
+    The particles are lit as in the images (:func:`case_illuminated`; their diameters are in their
+    intensities already): a perfect reconstruction returns the light each particle sent. A particle
+    counts only with the part of its Gaussian that lies on the grid, so the depth margin's
+    particles (``particles.depth_margin``), imaged but beyond the grid, are not in the truth.
     """
     from lfstudy.study.metrics import render_truth
 
@@ -348,7 +441,7 @@ def oracle_volumes(
     coords = {"z": grid.z, "y": grid.y, "x": grid.x}
 
     def volume(p: xr.Dataset) -> xr.DataArray:
-        data = render_truth(coords, p, sigma_mm=sigma).astype(np.float32)
+        data = render_truth(coords, case_illuminated(ccfg, p), sigma_mm=sigma).astype(np.float32)
         return grid.volume(data, method="truth", truth_sigma_mm=list(sigma))
 
     return volume(particles_a), volume(particles_b)
@@ -407,8 +500,11 @@ def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, prog
         sim = where if rep == 0 else f"{where}/repeat~{rep}"
         imaging = {**ccfg, "stage_ids": {**ccfg.get("stage_ids", {}), "simulate": sim}}
 
-        def volume(frame: str, shift: float, imaging=imaging, field=field) -> xr.DataArray:
-            img = case_image(imaging, field.assign(z=field["z"] + shift), frame, progress=progress)
+        # the camera traverses: the light volume stays with the particles, lit before the shift
+        lit = case_illuminated(ccfg, field)
+
+        def volume(frame: str, shift: float, imaging=imaging, lit=lit) -> xr.DataArray:
+            img = case_image(imaging, lit.assign(z=lit["z"] + shift), frame, progress=progress, illuminate=False)
             return render_volume(img, centers, ccfg, progress=progress)[2].load()
 
         ref = volume("calibration_0", 0.0)

@@ -99,6 +99,17 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
                 f"config key 'sensor.full_well' = {sen['full_well']!r} (case {case.case_id}): must exceed "
                 f"sensor.dark_level = {sen['dark_level']!r} e- (the pedestal would fill the well)"
             )
+        il, par = ccfg["illumination"], ccfg["particles"]
+        if il["profile"] != "none" and il["thickness"] is None:
+            raise ConfigError(
+                f"config key 'illumination.thickness' = null (case {case.case_id}): required with "
+                f"illumination.profile {il['profile']!r} (the light volume's full width at half maximum, > 0 mm)"
+            )
+        if par["depth_margin"] > 0 and par["z_span"] == 0:
+            raise ConfigError(
+                f"config key 'particles.depth_margin' = {par['depth_margin']!r} (case {case.case_id}): needs "
+                "particles.z_span > 0 (the margin is seeded at the slab's number density)"
+            )
         try:  # the grid a case reconstructs on (grid.z_range, voxel sizes, its memory cap)
             case_grid(ccfg)
         except GridError as exc:

@@ -46,12 +46,17 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
 
     cam = PlenopticCamera.from_config(ccfg)
     npx = cam.n_pixels_x * cam.n_pixels_y
-    n_part = ccfg["particles"].get("count") or math.ceil(ccfg["particles"]["ppp"] * npx)
+    par = ccfg["particles"]
+    n_part = par.get("count") or math.ceil(par["ppp"] * npx)
+    if par.get("depth_margin", 0.0) > 0 and par["z_span"] > 0:  # the margin's particles, at the slab's density
+        n_part += math.ceil(n_part * 2 * par["depth_margin"] / par["z_span"])
     # montecarlo: 8 float32 chunk buffers + the float64 image + particles (raytrace.memory_estimate);
     # exact: the float64 image + particles; then the sensor model's float64 copies (signal, electrons, noise)
     rt_method = (ccfg.get("raytrace", {}) or {}).get("method", "exact")
     render = (8 * npx * 4 if rt_method == "montecarlo" else 0) + npx * 8 + n_part * 8 * 8
     simulate = render + 3 * npx * 8
+    if ((ccfg.get("sensor", {}) or {}).get("background", {}) or {}).get("lenslet", 0.0) > 0:
+        simulate += 3 * npx * 8  # the white image, its cached normalised copy and the background
     n = int(cam.pixels_per_lenslet * (cam.si + cam.lenslet_focal_length) / cam.si)
     lf = cam.n_lenslets_x * cam.n_lenslets_y * n * n * 4
     register = npx * 8 + 3 * lf  # the raw image, the light field and its working copies

@@ -55,6 +55,7 @@ SECTION_ORDER: tuple[str, ...] = (
     "particles",
     "flow",
     "flows",
+    "illumination",
     "raytrace",
     "sensor",
     "pinhole",
@@ -80,7 +81,8 @@ STAGES: dict[str, _Stage] = {
     "camera": _Stage(("camera", "refocus"), ()),
     "particles": _Stage(("seed", "camera", "particles"), ()),
     "displace": _Stage(("flow",), ("particles",)),
-    "simulate": _Stage(("seed", "camera", "raytrace", "sensor"), ("particles", "displace")),
+    # the light volume dims each exposure's particles at their own depth
+    "simulate": _Stage(("seed", "camera", "illumination", "raytrace", "sensor"), ("particles", "displace")),
     # the pinhole image is taken at its own f-number whatever the working one (sec. 5.1)
     "pinhole": _Stage(("seed", "camera", "pinhole", "raytrace", "sensor"), (), ("camera.main_lens.fnumber",)),
     "calibrate": _Stage(("camera",), ("pinhole",), ("camera.main_lens.fnumber",)),
@@ -94,6 +96,7 @@ STAGES: dict[str, _Stage] = {
             "seed",
             "camera",
             "particles",
+            "illumination",
             "raytrace",
             "sensor",
             "refocus",
@@ -107,7 +110,10 @@ STAGES: dict[str, _Stage] = {
     ),
     "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "depthcal")),
     # the errors stage also runs the oracle: the case's PIV on the true volumes, on the case's grid
-    "errors": _Stage(("flow", "camera", "refocus", "grid", "piv"), ("piv", "reconstruct", "particles", "displace")),
+    # (the true particles lit as in the images)
+    "errors": _Stage(
+        ("flow", "camera", "illumination", "refocus", "grid", "piv"), ("piv", "reconstruct", "particles", "displace")
+    ),
 }
 
 
