@@ -121,6 +121,28 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
     return waves
 
 
+#: The argument that is a task's output, per stage function (the rest are its inputs and settings).
+_OUTPUT_ARG = {
+    "run_optics": 2,
+    "run_particles": 1,
+    "run_pinhole": 1,
+    "run_displace": 2,
+    "run_calibrate": 2,
+    "run_simulate": 3,
+    "run_depth_calibration": 2,
+    "run_register": 3,
+    "run_refocus": 2,
+    "run_reconstruct": 4,
+    "run_piv": 3,
+    "run_errors": 4,
+}
+
+
+def _written(label: str, fn: Callable[..., None], args: tuple) -> bool:
+    """Whether a task's output is there already (an earlier run into the same --out): it is kept."""
+    return Path(args[_OUTPUT_ARG[fn.__name__]]).exists()
+
+
 def _run(label: str, fn: Callable[..., None], args: tuple, threads: int) -> tuple[str, float]:
     from lfstudy import workflow as wf
 
@@ -156,7 +178,9 @@ def main() -> None:
     t_all = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         for wave in waves:
-            futs = [pool.submit(_run, label, fn, a, args.threads) for label, fn, a in wave]
+            # an output already there (an earlier run into the same --out) is kept: stages rerun only where missing
+            todo = [(label, fn, a) for label, fn, a in wave if not _written(label, fn, a)]
+            futs = [pool.submit(_run, label, fn, a, args.threads) for label, fn, a in todo]
             for f in futs:
                 label, secs = f.result()
                 print(f"  {secs:8.1f} s  {label}", flush=True)
