@@ -475,3 +475,26 @@ def test_uncertainty_is_nan_for_invalid_vectors_and_absent_when_off():
     assert "unc_u" not in widim(a, b, window=16, spacing=8, uncertainty=None)
     with pytest.raises(ValueError, match="uncertainty"):
         widim(a, b, window=16, uncertainty="bogus")
+
+
+def test_correlation_uncertainty_counts_correlated_contributions():
+    """The ΔC_i of neighbouring voxels are correlated where the mismatch between the windows is
+    smooth (blobs several voxels wide): 'correlation' scales the independent sum by the summed
+    autocorrelation; for a mismatch of independent voxel noise it stays the published estimator."""
+    from scipy import ndimage
+
+    from lfstudy.piv.uncertainty import window_uncertainty
+
+    rng = np.random.default_rng(4)
+    a = rng.random((40, 8, 16, 16))
+    white_b = a + 0.05 * rng.standard_normal(a.shape)  # independent per voxel
+    smooth_a = np.stack([ndimage.gaussian_filter(w, 1.5) for w in a])
+    noise = np.stack([ndimage.gaussian_filter(w, 1.5) for w in rng.standard_normal(a.shape)])
+    smooth_b = smooth_a + 0.05 * noise  # the same mismatch, correlated over ~3 voxels
+    ratio_white = window_uncertainty(a, white_b, "correlation") / window_uncertainty(a, white_b, "independent")
+    ratio_smooth = window_uncertainty(smooth_a, smooth_b, "correlation") / window_uncertainty(
+        smooth_a, smooth_b, "independent"
+    )
+    assert np.nanmedian(ratio_white) < 1.3
+    assert np.nanmedian(ratio_smooth) > 2.0
+    assert np.all(ratio_white[np.isfinite(ratio_white)] >= 1.0 - 1e-9)
