@@ -313,6 +313,8 @@ def test_sweep_over_dotted_settings_shares_the_upstream_stages(tmp_path):
         "piv.spacing": [[4, 8, 8], [4, 6, 6]],
     }
     raw["reconstruct"] = {"method": "threshold", "mart": {"iterations": 2}}
+    # what is checked is the sharing and the study's layout: a smaller sensor (the suite's time)
+    raw["camera"]["sensor"].update(n_pixels_x=256, n_pixels_y=256)
     cfg_path = tmp_path / "dotted.yaml"
     cfg_path.write_text(yaml.safe_dump(raw))
     work = tmp_path / "work"
