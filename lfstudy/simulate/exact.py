@@ -227,9 +227,10 @@ _DENS = 1.5
 _NG_MIN = 4
 _NGN = 16  # Gauss–Legendre nodes per ≤ _PANEL σ panel of the numeric (corner) antiderivatives (8e-11·σ)
 _PANEL = 8.0  # longest panel, in units of the narrowest blur active on it
-#: Largest |sin θ| of a rotated lenslet grid rendered out of focus (to first order in θ; see
-#: "Rotated grids out of focus" in the module docstring); beyond it those particles are refused.
-_ROT_APPROX = 0.02
+#: Largest |sin θ| of a rotated lenslet grid rendered out of focus (in sub-squares, see
+#: :func:`_lenslet_axes`); beyond it those particles are refused (use the Monte-Carlo tracer).
+_ROT_APPROX = 0.005
+_ROT_STEP = 5e-4  # out of focus a grid rotated by θ is cut into ceil(θ/_ROT_STEP)² sub-squares per lenslet
 _PINHOLE_NODES = 3  # Gauss–Legendre nodes per axis and lenslet of the pinhole image (error: see the tests)
 _EPS_FOCUS = 1e-9  # spot radius / σm (/ lenslet pitch without σm) below which M_k is a constant over the aperture image
 _TWO_PI = 2.0 * math.pi
@@ -1596,15 +1597,18 @@ def _scatter_offset(geo, li, lj):  # pragma: no cover - jitted
 
 
 @njit(inline="always", cache=True)
-def _lenslet_axes(geo, sc, li, lj, spot, curx, cury, tmp):  # pragma: no cover - jitted
-    """Step 4a', per-lenslet grid out of focus: lenslet (li, lj)'s descriptors, tables and circle
-    crossings on its own (its disc centre is its own when the centres scatter). Returns (status,
-    crossings x, crossings y); status 1: set up, 0: the spot misses the lenslet, −1: a patch is too big.
+def _lenslet_axes(geo, sc, li, lj, sa, sb, nsub, spot, curx, cury, tmp):  # pragma: no cover - jitted
+    """Step 4a', per-lenslet grid out of focus: the descriptors, tables and circle crossings of
+    sub-square (sa, sb) of lenslet (li, lj) (``nsub`` x ``nsub`` of them; its disc centre is the
+    lenslet's own when the centres scatter). Returns (status, crossings x, crossings y); status 1:
+    set up, 0: the spot misses it, −1: a patch is too big.
 
-    A rotated grid (rotation θ) is taken in the frame of the sensor's axes through the lenslet's
-    centre: the map from the sensor to the lenslet plane is exact along the lines through that
-    centre and the lenslet's edges turn by θ about it (they move by at most θ·pl/√2 in the lenslet
-    plane, first order in θ; see the module docstring). Unrotated, the result is exact.
+    The window of a lenslet is the sum of its sub-squares' windows (P(L + σm·Z ∈ square) is
+    additive over a tiling). A rotated grid (rotation θ) is taken, per sub-square, in the frame of
+    the sensor's axes through the sub-square's centre: the map from the sensor to the lenslet plane
+    is exact at that centre and the sub-square's edges turn by θ about it, so they move by at most
+    θ·pl/(√2·nsub) in the lenslet plane; the sub-squares still tile the lenslet to O(θ²). Unrotated
+    (nsub = 1) the result is exact.
     """
     g0x, g0y, t0x, t0y = spot[0], spot[1], spot[2], spot[3]
     reach, bh, heff, shx, shy = spot[5], spot[7], spot[8], spot[9], spot[10]
@@ -1613,17 +1617,23 @@ def _lenslet_axes(geo, sc, li, lj, spot, curx, cury, tmp):  # pragma: no cover -
     pl, cr, sr = geo[_G_PL], geo[_G_COS], geo[_G_SIN]
     gr = geo[_G_GAP] / geo[_G_FL]
     cx0, cy0 = 0.5 * (geo[_G_NLX] - 1.0), 0.5 * (geo[_G_NLY] - 1.0)
-    u1 = (lj - cx0 - 0.5) * pl
-    v1 = (cy0 - li - 0.5) * pl
     gcx = (lj - cx0) * pl
     gcy = (cy0 - li) * pl
+    if nsub == 1:
+        u1 = (lj - cx0 - 0.5) * pl
+        v1 = (cy0 - li - 0.5) * pl
+        u2, v2 = u1 + pl, v1 + pl
+    else:
+        u1 = (lj - cx0 - 0.5 + sa / nsub) * pl
+        u2 = (lj - cx0 - 0.5 + (sa + 1) / nsub) * pl
+        v1 = (cy0 - li - 0.5 + sb / nsub) * pl
+        v2 = (cy0 - li - 0.5 + (sb + 1) / nsub) * pl
     if sr == 0.0 and cr == 1.0:
         gex, gey = g0x, g0y
-    else:  # the spot centre in the lenslet's sensor-aligned frame: exact at the lenslet's centre
-        du, dv = gcx - g0x, gcy - g0y
-        gex = gcx - cr * du + sr * dv
-        gey = gcy - sr * du - cr * dv
-    u2, v2 = u1 + pl, v1 + pl
+    else:  # the spot centre in the sub-square's sensor-aligned frame: exact at its centre
+        du, dv = 0.5 * (u1 + u2) - g0x, 0.5 * (v1 + v2) - g0y
+        gex = 0.5 * (u1 + u2) - cr * du + sr * dv
+        gey = 0.5 * (v1 + v2) - sr * du - cr * dv
     a1x, a2x = abs(u1 - gex) < reach, abs(u2 - gex) < reach
     a1y, a2y = abs(v1 - gey) < reach, abs(v2 - gey) < reach
     if (not a1x and u1 > gex) or (not a2x and u2 < gex) or (not a1y and v1 > gey) or (not a2y and v2 < gey):
@@ -1768,7 +1778,8 @@ def _render_particle(geo, rotated, x, y, z, w, scr, chunk, cnt):  # pragma: no c
     g0x, g0y, reach, focus = spot[0], spot[1], spot[5], spot[6]
     # Lenslets set up one by one: a rotated grid, or scattered centres (per-lenslet discs).
     perlens = rotated or geo[_G_SCAT] != 0.0
-    approx = abs(geo[_G_SIN]) <= _ROT_APPROX  # out of focus, a rotated grid to first order in θ
+    approx = abs(geo[_G_SIN]) <= _ROT_APPROX  # out of focus, a rotated grid in sub-squares (_lenslet_axes)
+    nsub = max(1, math.ceil(abs(geo[_G_SIN]) / _ROT_STEP - 1e-9))
     j0, j1 = _lenslet_span(geo, g0x, reach, True)
     i0, i1 = _lenslet_span(geo, g0y, reach, False)
     if j1 < j0 or i1 < i0:
@@ -1808,11 +1819,15 @@ def _render_particle(geo, rotated, x, y, z, w, scr, chunk, cnt):  # pragma: no c
                 if not approx:
                     cnt[_ST_REFUSED] += 1.0
                     continue
-                status, nax, nay = _lenslet_axes(geo, sc, li, lj, spot, curx, cury, tmp)
-                if status < 0:
-                    cnt[_ST_BIG] += 1.0
-                if status <= 0:
-                    continue
+                fac = fac0 * facx[sx] * facy[sy]
+                for sa in range(nsub):  # the lenslet's nsub x nsub sub-squares, one image each
+                    for sb in range(nsub):
+                        status, nax, nay = _lenslet_axes(geo, sc, li, lj, sa, sb, nsub, spot, curx, cury, tmp)
+                        if status < 0:
+                            cnt[_ST_BIG] += 1.0
+                        if status > 0:
+                            _lenslet_image(geo, sc, spot, fac, curx, nax, cury, nay, work, chunk, cnt)
+                continue
             else:
                 _load(curx, cols, sx)
                 nax, nay = cols[4][sx], rows[4][sy]
@@ -1983,7 +1998,7 @@ def render_exact(
     Parameters
     ----------
     camera : PlenopticCamera
-        The camera. A lenslet grid rotated by more than ``_ROT_APPROX`` (0.02 rad) is
+        The camera. A lenslet grid rotated by more than ``_ROT_APPROX`` (0.005 rad) is
         supported for in-focus particles only (e.g. the pinhole image); otherwise a
         :class:`RaytraceError` is raised. Smaller rotations out of focus are rendered to
         first order in the angle (module docstring).
