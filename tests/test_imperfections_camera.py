@@ -8,6 +8,7 @@ must agree under each (the z-test of tests/test_exact_render.py).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -267,3 +268,35 @@ def test_pinhole_image_exact_matches_monte_carlo_with_imperfections():
     assert 0.5 < ratio < 1.3, ratio  # a bias adds to it (seeds 0-7: 1.12; 32 seeds of other fields: 0.91)
     ideal = rt.render_pinhole(CAM, seed=1, count=3000, rays_per_point=40).values
     assert np.abs(expected - ideal).sum() > 0.1 * ideal.sum()
+
+
+# ------------------------------------------------------------------ a study sweeps them
+def test_a_study_sweeps_an_imperfection_by_its_dotted_path():
+    """camera.imperfections.* is a config setting like any other: validated, swept, passed to the
+    images and the pinhole only (the camera file and the particle fields are shared by every level)."""
+    import yaml
+
+    from lfstudy.config import ConfigError
+    from lfstudy.study.case import case_camera, case_imperfections
+    from lfstudy.study.config import case_config, expand_cases, sweep_of, validate_config
+
+    raw = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "demo.yaml").read_text())
+    raw["sweep"] = {"camera.imperfections.lenslet_rotation": [0.0, 2.0], "camera.imperfections.lenslet_scatter": [0.02]}
+    cfg = validate_config(raw)
+    assert cfg["camera"]["imperfections"]["lenslet_gap_error"] == 0.0  # defaults filled in
+    cases = expand_cases(cfg)
+    assert len(cases) == 2
+    sw = sweep_of(cfg)
+    for stage in ("camera", "particles"):  # (the particles' location is a case-id prefix; their seed is not)
+        assert not [st for st in sw.depends_on(stage) if st.path.startswith("camera.imperfections")]
+    assert len(sw.stage_ids("camera")) == 1
+    assert len(sw.stage_ids("simulate")) == 2 and len(sw.stage_ids("pinhole")) == 2
+    assert len(sw.stage_ids("reconstruct")) == 2 and len({sw.calib_id(c) for c in cases}) == 2
+    one = case_config(cfg, cases[1])
+    imp = case_imperfections(one)
+    assert imp.lenslet_rotation == 2.0 and imp.lenslet_scatter == 0.02
+    assert case_camera(one) == case_camera(case_config(cfg, cases[0]))  # the processing's camera: nominal
+    assert imp.scatter_seed == case_imperfections(case_config(cfg, cases[0])).scatter_seed  # one array
+    raw["sweep"] = {"camera.imperfections.lenslet_rotation": [0.0, 25.0]}
+    with pytest.raises(ConfigError, match="lenslet_rotation"):
+        validate_config(raw)
