@@ -67,7 +67,29 @@ sensor, to ~1e-9.
 
 Lenslet grids rotated against the sensor break the separability. In focus
 (``M_k`` constant, which includes the calibration pinhole image) they are
-handled exactly; out of focus they are refused (use the Monte-Carlo tracer).
+handled exactly. Out of focus, a grid rotated by θ (up to ``_ROT_APPROX`` =
+5 mrad; beyond, those particles are refused: use the Monte-Carlo tracer) is
+cut into n x n sub-squares per lenslet, n = ceil(θ / 0.5 mrad): ``M_k`` is
+the sum of its sub-squares' windows (the blurred membership is additive over
+a tiling), and each sub-square is taken in the sensor-aligned frame through
+its centre, where the map from the sensor to the lenslet plane is exact; its
+edges then turn by θ about that centre, i.e. move by at most θ·pl/(√2·n) in
+the lenslet plane. Against the Monte-Carlo at 3.2 million rays per particle
+the per-pixel z-test finds no difference (mean z² 0.96–1.08 at 0.4, 2 and
+5 mrad, where one undivided lenslet gave 1.4–8.6 at 2–10 mrad).
+
+Camera imperfections
+--------------------
+:mod:`lfstudy.simulate.imperfections` (the config's ``camera.imperfections``)
+enters as: the imaging camera's grid (rotation, offset, pitch); a gap g between
+the lenslets and the sensor other than fl (the disc is then centred at
+``(g/fl)·c_k + (g + (1 − g/fl)·si)·t0`` with radius ``R·|g·c1 + (1 − g/fl)·(1 + si·c1)|``,
+and κ follows); per-lenslet centre offsets (each lenslet's disc on its own:
+``_G_SCAT``, the per-lenslet path of the rotated grid); a sensor tilt (per
+particle, the lenslet plane at its chief ray's point and a slope offset on the
+sensor side, :func:`_particle`); the main-lens distortion moves the particles
+before the kernel (their solid angle stays the true one). Their ideal values
+take exactly the arithmetic of the ideal model (bit-identical images).
 
 Data layout
 -----------

@@ -23,6 +23,13 @@ Conventions (shared with :mod:`lfstudy.optics` and the later stages):
   (lenslet f-number, |M| = fl/si). Appendix A's Fortran applies them the
   other way round; we follow the text.
 
+Imperfections (:mod:`lfstudy.simulate.imperfections`, ``imperfections=`` of :func:`render`):
+the kernel traces through the imaging camera's grid, with the lenslet-to-sensor
+gap g (``s = c·g/fl + g·t + (1 − g/fl)·l``), each lenslet's own optical centre,
+and a tilted sensor (per particle, the lenslet plane at its chief ray's point;
+slopes on the sensor side in the tilted frame); the main-lens distortion moves
+the particles before the kernel. The ideal values keep every sum bit-identical.
+
 Ray generation
 --------------
 Rays leave each particle towards points drawn uniformly over the circular
