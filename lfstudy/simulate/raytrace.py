@@ -258,7 +258,7 @@ def _trace(
     gr = gap / fl  # 1 for the ideal gap
     q = 1.0 - gr  # the landing's share of the lenslet-plane point (eq. 4.4 with a gap g != fl)
     scat = g[_G_SCAT] != 0.0
-    nlxi, nlyi = int(nlx), int(nly)
+    nlxi = int(nlx)
     cx0, cy0 = 0.5 * (nlx - 1.0), 0.5 * (nly - 1.0)
     # Reciprocals hoisted out of the ray loop (fastmath stays off).
     inv_fm, inv_pl, inv_fl, inv_pp = 1.0 / fm, 1.0 / pl, 1.0 / fl, 1.0 / pp
@@ -271,6 +271,7 @@ def _trace(
         unit = bits.view(np.float64)  # the same memory read as [1, 2) doubles
         pix = np.empty(_BLOCK)
         slope = np.empty((2, _BLOCK))
+        land = np.empty((4, _BLOCK))  # sensor x, y and lenslet column, row of each ray (for the scatter pass)
         n_traced = 0
         n_miss = 0
         n_off = 0
@@ -332,10 +333,6 @@ def _trace(
                     gcy = (cy0 - fi) * pl
                     ccx = cr * gcx - sr * gcy  # lenslet centre − grid origin
                     ccy = sr * gcx + cr * gcy
-                    if scat:  # the lenslet's optical centre is off its cell's centre
-                        ks = _G_SIZE + 2 * (min(max(int(fi), 0), nlyi - 1) * nlxi + min(max(int(fj), 0), nlxi - 1))
-                        ccx += g[ks]
-                        ccy += g[ks + 1]
                     # Lenslet = thin lens + prism (eq. 4.4), free space g to the sensor:
                     # s = l + g·(t − (l − c)/fl) = c·g/fl + g·t + (1 − g/fl)·l (= c + fl·t for g = fl),
                     # with the slope t in the tilted frame and l the lenslet-plane point before the
@@ -352,6 +349,23 @@ def _trace(
                     pix[t] = _MISSED_ARRAY if miss else (_OFF_SENSOR if off else fr * ncol + fc)
                     slope[0, t] = tx2
                     slope[1, t] = ty2
+                    land[0, t] = sx
+                    land[1, t] = sy
+                    land[2, t] = fj
+                    land[3, t] = fi
+                if scat:  # each lenslet's optical centre off its cell's centre: move the rays it took
+                    for t in range(m):  # (a pass of its own keeps the loop above branch-free)
+                        if pix[t] == _MISSED_ARRAY:
+                            continue
+                        ks = _G_SIZE + 2 * (int(land[3, t]) * nlxi + int(land[2, t]))
+                        sx = land[0, t] + gr * g[ks]
+                        sy = land[1, t] + gr * g[ks + 1]
+                        slope[0, t] += g[ks] * inv_fl
+                        slope[1, t] += g[ks + 1] * inv_fl
+                        fc = math.floor((sx + hw) * inv_pp)
+                        fr = math.floor((hh - sy) * inv_pp)
+                        off = (fc < 0.0) | (fc >= ncol) | (fr < 0.0) | (fr >= nrow)
+                        pix[t] = _OFF_SENSOR if off else fr * ncol + fc
                 for t in range(m):  # deposit (scalar: scattered adds)
                     p = pix[t]
                     if p < 0.0:
