@@ -4,7 +4,8 @@ Modules: :mod:`~lfstudy.simulate.particles` (sec. 4.3.2, 5.1; diameters, depth m
 :mod:`~lfstudy.simulate.flows` (sec. 4.4; analytic flows, a gridded field from a
 file, kinds of other packages), :mod:`~lfstudy.simulate.raytrace`
 (sec. 4.1–4.3, App. A; the Monte-Carlo reference), :mod:`~lfstudy.simulate.exact`
-(the expected image of the same model, without rays), :mod:`~lfstudy.simulate.sensor`
+(the expected image of the same model, without rays), :mod:`~lfstudy.simulate.imperfections`
+(the camera imperfections only the imaging sees), :mod:`~lfstudy.simulate.sensor`
 (photons, background light, shot and read noise, hot pixels, full well, ADC) and the 1-D teaching simulator
 :mod:`~lfstudy.simulate.raytrace1d` (sec. 4.2). Import from this package:
 the modules behind it may move.
@@ -29,6 +30,7 @@ from lfstudy.simulate.flows import (
     integrate,
     true_displacement,
 )
+from lfstudy.simulate.imperfections import CameraImperfections, ImperfectionError
 from lfstudy.simulate.particles import (
     ParticleError,
     illuminate,
@@ -55,6 +57,8 @@ from lfstudy.simulate.raytrace import (
 from lfstudy.simulate.sensor import SensorError, apply_sensor, hot_pixel_mask, lenslet_background, sensor_noise_variance
 
 __all__ = [
+    "CameraImperfections",
+    "ImperfectionError",
     "ParticleError",
     "particle_count",
     "seed_particles",

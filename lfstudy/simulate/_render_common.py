@@ -60,12 +60,27 @@ class RaytraceError(ValueError):
 # The geometry vector (table in the module docstring).
 _G_SO, _G_SI, _G_FM, _G_FL, _G_R, _G_PL, _G_PP, _G_HW, _G_HH = range(9)
 _G_OX, _G_OY, _G_COS, _G_SIN, _G_NLX, _G_NLY, _G_SM, _G_SL, _G_NROW, _G_NCOL = range(9, 19)
-_G_SIZE = 19
+_G_GAP, _G_TLX, _G_TLY, _G_SCAT = range(19, 23)
+_G_SIZE = 23
 
 
-def _geometry(camera: PlenopticCamera, sm: float, sl: float) -> np.ndarray:
-    """The geometry vector of ``camera`` with the diffraction blurs (σm, σl) in mm (0: none)."""
-    g = np.zeros(_G_SIZE)
+def _geometry(
+    camera: PlenopticCamera,
+    sm: float,
+    sl: float,
+    *,
+    gap: float | None = None,
+    tilt: tuple[float, float] = (0.0, 0.0),
+    scatter: np.ndarray | None = None,
+) -> np.ndarray:
+    """The geometry vector of ``camera`` with the diffraction blurs (σm, σl) in mm (0: none).
+
+    ``gap`` (lenslet-to-sensor distance, default the lenslet focal length), ``tilt`` (θx, θy)
+    [rad] and ``scatter`` (per-lenslet centre offsets, shape (nly, nlx, 2) [mm]) are the imaging
+    imperfections of :mod:`lfstudy.simulate.imperfections`.
+    """
+    nt = 0 if scatter is None else 2 * camera.n_lenslets_x * camera.n_lenslets_y
+    g = np.zeros(_G_SIZE + nt)
     g[_G_SO], g[_G_SI], g[_G_FM] = camera.so, camera.si, camera.main_focal_length
     g[_G_FL], g[_G_R] = camera.lenslet_focal_length, camera.aperture_diameter / 2.0
     g[_G_PL], g[_G_PP] = camera.lenslet_pitch, camera.pixel_pitch
@@ -75,6 +90,14 @@ def _geometry(camera: PlenopticCamera, sm: float, sl: float) -> np.ndarray:
     g[_G_NLX], g[_G_NLY] = camera.n_lenslets_x, camera.n_lenslets_y
     g[_G_SM], g[_G_SL] = sm, sl
     g[_G_NROW], g[_G_NCOL] = camera.n_pixels_y, camera.n_pixels_x
+    g[_G_GAP] = camera.lenslet_focal_length if gap is None else gap
+    g[_G_TLX], g[_G_TLY] = tilt
+    if scatter is not None:
+        table = np.asarray(scatter, dtype=np.float64)
+        if table.shape != (camera.n_lenslets_y, camera.n_lenslets_x, 2):
+            raise RaytraceError(f"scatter: shape {table.shape}; need (n_lenslets_y, n_lenslets_x, 2)")
+        g[_G_SCAT] = 1.0
+        g[_G_SIZE:] = table.ravel()
     return g
 
 

@@ -23,6 +23,13 @@ Conventions (shared with :mod:`lfstudy.optics` and the later stages):
   (lenslet f-number, |M| = fl/si). Appendix A's Fortran applies them the
   other way round; we follow the text.
 
+Imperfections (:mod:`lfstudy.simulate.imperfections`, ``imperfections=`` of :func:`render`):
+the kernel traces through the imaging camera's grid, with the lenslet-to-sensor
+gap g (``s = c·g/fl + g·t + (1 − g/fl)·l``), each lenslet's own optical centre,
+and a tilted sensor (per particle, the lenslet plane at its chief ray's point;
+slopes on the sensor side in the tilted frame); the main-lens distortion moves
+the particles before the kernel. The ideal values keep every sum bit-identical.
+
 Ray generation
 --------------
 Rays leave each particle towards points drawn uniformly over the circular
@@ -52,6 +59,7 @@ on which thread runs it. One seed therefore gives a bit-identical image with
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +73,7 @@ from lfstudy.simulate._render_common import (
     _G_COS,
     _G_FL,
     _G_FM,
+    _G_GAP,
     _G_HH,
     _G_HW,
     _G_NCOL,
@@ -76,11 +85,15 @@ from lfstudy.simulate._render_common import (
     _G_PL,
     _G_PP,
     _G_R,
+    _G_SCAT,
     _G_SI,
     _G_SIN,
+    _G_SIZE,
     _G_SL,
     _G_SM,
     _G_SO,
+    _G_TLX,
+    _G_TLY,
     DEFAULT_CHUNKS,
     RaytraceError,
     _blurs,
@@ -95,6 +108,7 @@ from lfstudy.simulate._render_common import (
     solid_angle,
 )
 from lfstudy.simulate.exact import render_exact, render_pinhole_exact
+from lfstudy.simulate.imperfections import CameraImperfections, resolve
 
 __all__ = [
     "RaytraceError",
@@ -238,6 +252,13 @@ def _trace(
     # branch-free) but scaled by zero.
     sm = g[_G_SM]
     sl = g[_G_SL]
+    # Imperfections (lfstudy.simulate.imperfections); their ideal values (gap = fl, no tilt, no
+    # scatter) leave every sum below bit-identical: gr = 1, q = 0, a tilt adds 0.0.
+    gap, tlx, tly = g[_G_GAP], g[_G_TLX], g[_G_TLY]
+    gr = gap / fl  # 1 for the ideal gap
+    q = 1.0 - gr  # the landing's share of the lenslet-plane point (eq. 4.4 with a gap g != fl)
+    scat = g[_G_SCAT] != 0.0
+    nlxi = int(nlx)
     cx0, cy0 = 0.5 * (nlx - 1.0), 0.5 * (nly - 1.0)
     # Reciprocals hoisted out of the ray loop (fastmath stays off).
     inv_fm, inv_pl, inv_fl, inv_pp = 1.0 / fm, 1.0 / pl, 1.0 / fl, 1.0 / pp
@@ -250,6 +271,7 @@ def _trace(
         unit = bits.view(np.float64)  # the same memory read as [1, 2) doubles
         pix = np.empty(_BLOCK)
         slope = np.empty((2, _BLOCK))
+        land = np.empty((4, _BLOCK))  # sensor x, y and lenslet column, row of each ray (for the scatter pass)
         n_traced = 0
         n_miss = 0
         n_off = 0
@@ -264,9 +286,13 @@ def _trace(
             c1 = inv_d - inv_fm
             tx0 = -px[i] * inv_d
             ty0 = -py[i] * inv_d
-            lsc = 1.0 + si * c1
-            lx0 = si * tx0 - ox
-            ly0 = si * ty0 - oy
+            # A tilted sensor: the lenslet plane at the chief ray's point lies at si + θy·x + θx·y.
+            sip = si + tly * (si * tx0) + tlx * (si * ty0)
+            lsc = 1.0 + sip * c1
+            lx0 = sip * tx0 - ox
+            ly0 = sip * ty0 - oy
+            sx0 = tx0 + tly  # chief-ray slope in the tilted frame (the sensor side)
+            sy0 = ty0 + tlx
             key = _mix64(key0 ^ (np.uint64(i) * _GAMMA))
             ni = nrays[i]
             n_traced += ni
@@ -295,8 +321,10 @@ def _trace(
                     # Lenslet plane, relative to the grid origin, with the
                     # main-lens diffraction spot (sec. 4.2.3).
                     n1, n2 = _normal_pair(unit[2, t], unit[3, t])
-                    dx = ax * lsc + lx0 + sm * n1
-                    dy = ay * lsc + ly0 + sm * n2
+                    lxn = ax * lsc + lx0
+                    lyn = ay * lsc + ly0
+                    dx = lxn + sm * n1
+                    dy = lyn + sm * n2
                     # Struck lenslet: grid frame, divide and round (eqs 4.10–4.11).
                     fj = math.floor((cr * dx + sr * dy) * inv_pl + cx0 + 0.5)
                     fi = math.floor(cy0 - (cr * dy - sr * dx) * inv_pl + 0.5)
@@ -305,13 +333,15 @@ def _trace(
                     gcy = (cy0 - fi) * pl
                     ccx = cr * gcx - sr * gcy  # lenslet centre − grid origin
                     ccy = sr * gcx + cr * gcy
-                    # Lenslet = thin lens + prism (eq. 4.4), free space fl:
-                    # s = l + fl·(t − (l − c)/fl) = c + fl·t, exactly.
+                    # Lenslet = thin lens + prism (eq. 4.4), free space g to the sensor:
+                    # s = l + g·(t − (l − c)/fl) = c·g/fl + g·t + (1 − g/fl)·l (= c + fl·t for g = fl),
+                    # with the slope t in the tilted frame and l the lenslet-plane point before the
+                    # diffraction shift (which only chooses the lenslet).
                     tx2 = tx - (dx - ccx) * inv_fl
                     ty2 = ty - (dy - ccy) * inv_fl
                     n3, n4 = _normal_pair(unit[4, t], unit[5, t])
-                    sx = ccx + ox + fl * tx + sl * n3  # sensor diffraction (sec. 4.2.3)
-                    sy = ccy + oy + fl * ty + sl * n4
+                    sx = gr * (ccx + ox) + gap * (ax * c1 + sx0) + q * (lxn + ox) + sl * n3  # sensor diffraction
+                    sy = gr * (ccy + oy) + gap * (ay * c1 + sy0) + q * (lyn + oy) + sl * n4  # (sec. 4.2.3)
                     # Pixel: column grows with x, row 0 at the top (eq. 4.15).
                     fc = math.floor((sx + hw) * inv_pp)
                     fr = math.floor((hh - sy) * inv_pp)
@@ -319,6 +349,23 @@ def _trace(
                     pix[t] = _MISSED_ARRAY if miss else (_OFF_SENSOR if off else fr * ncol + fc)
                     slope[0, t] = tx2
                     slope[1, t] = ty2
+                    land[0, t] = sx
+                    land[1, t] = sy
+                    land[2, t] = fj
+                    land[3, t] = fi
+                if scat:  # each lenslet's optical centre off its cell's centre: move the rays it took
+                    for t in range(m):  # (a pass of its own keeps the loop above branch-free)
+                        if pix[t] == _MISSED_ARRAY:
+                            continue
+                        ks = _G_SIZE + 2 * (int(land[3, t]) * nlxi + int(land[2, t]))
+                        sx = land[0, t] + gr * g[ks]
+                        sy = land[1, t] + gr * g[ks + 1]
+                        slope[0, t] += g[ks] * inv_fl
+                        slope[1, t] += g[ks + 1] * inv_fl
+                        fc = math.floor((sx + hw) * inv_pp)
+                        fr = math.floor((hh - sy) * inv_pp)
+                        off = (fc < 0.0) | (fc >= ncol) | (fr < 0.0) | (fr >= nrow)
+                        pix[t] = _OFF_SENSOR if off else fr * ncol + fc
                 for t in range(m):  # deposit (scalar: scattered adds)
                     p = pix[t]
                     if p < 0.0:
@@ -371,7 +418,21 @@ def memory_estimate(camera: PlenopticCamera, n_particles: int, n_chunks: int = D
 
 
 def _run_kernel(
-    camera, x, y, z, inten, nrays, seed, *, diffraction, n_chunks, record=True, nbins=0, hmax=1.0, progress=False
+    camera,
+    x,
+    y,
+    z,
+    inten,
+    nrays,
+    seed,
+    *,
+    diffraction,
+    n_chunks,
+    record=True,
+    nbins=0,
+    hmax=1.0,
+    progress=False,
+    geometry=None,
 ):
     bounds = _chunk_bounds(x.size, n_chunks)
     k = bounds.size - 1
@@ -381,7 +442,7 @@ def _run_kernel(
     lost = np.zeros(k, dtype=np.float64)
     hist = np.zeros((k, 2, nbins), dtype=np.int64)
     amax = np.zeros((k, 3), dtype=np.float64)
-    g = _geometry(camera, *_blurs(camera, diffraction))
+    g = _geometry(camera, *_blurs(camera, diffraction)) if geometry is None else geometry
     # Each chunk is traced in _PIECES consecutive pieces (a fixed count, so the
     # bytes never depend on the progress bar or the threads); one bar step per piece.
     cum = np.concatenate([[0], np.cumsum(nrays, dtype=np.int64)])
@@ -416,6 +477,7 @@ def render(
     max_image_bytes: float = 4e9,
     progress: bool = False,
     method: str = METHODS[0],
+    imperfections: CameraImperfections | Mapping[str, Any] | None = None,
 ) -> xr.DataArray:
     """Render the raw plenoptic image of a particle field (sec. 4.3), exactly or by ray tracing.
 
@@ -470,6 +532,10 @@ def render(
         ``"exact"``: the expected value of the Monte-Carlo image, computed
         without rays (deterministic; ``seed`` only drives ``shot_noise`` /
         ``read_noise``). ``"montecarlo"``: trace the rays (the reference).
+    imperfections : CameraImperfections or mapping, optional
+        What the imaging camera does differently from ``camera``
+        (:mod:`lfstudy.simulate.imperfections`, the config's ``camera.imperfections``);
+        None or all-ideal settings give the ideal camera's image, bit for bit.
 
     Returns
     -------
@@ -514,6 +580,7 @@ def render(
         "n_chunks": n_chunks,
         "max_image_bytes": max_image_bytes,
         "progress": progress,
+        "imperfections": resolve(imperfections),
     }
     if method == "exact":
         da = render_exact(camera, particles, n, **options)
@@ -535,9 +602,20 @@ def _render_montecarlo(
     n_chunks: int,
     max_image_bytes: float,
     progress: bool,
+    imperfections: CameraImperfections,
 ) -> xr.DataArray:
     """The noise-free Monte-Carlo image of :func:`render` (inputs already checked)."""
     x, y, z, inten = arrays
+    imp = imperfections
+    cam = imp.imaging_camera(camera)  # the lenslet grid the light meets
+    geometry = _geometry(
+        cam,
+        *_blurs(cam, diffraction),
+        gap=imp.gap(cam),
+        tilt=(imp.sensor_tilt_x * 1e-3, imp.sensor_tilt_y * 1e-3),
+        scatter=imp.scatter(cam),
+    )
+    x, y = imp.distort(camera, x, y, z)  # the light cone turns with its chief ray; Ω stays the true one
     need = memory_estimate(camera, x.size, n_chunks)
     if need > max_image_bytes:
         raise RaytraceError(
@@ -547,7 +625,17 @@ def _render_montecarlo(
         )
     nrays = ray_counts(camera, particles, n, solid_angle_correction=solid_angle_correction)
     buffers, stats, lost, _, _ = _run_kernel(
-        camera, x, y, z, inten, nrays, seed64, diffraction=diffraction, n_chunks=n_chunks, progress=progress
+        cam,
+        x,
+        y,
+        z,
+        inten,
+        nrays,
+        seed64,
+        diffraction=diffraction,
+        n_chunks=n_chunks,
+        progress=progress,
+        geometry=geometry,
     )
     # Fixed-order sum of the chunk buffers (deterministic whatever the threads).
     image = np.zeros(buffers.shape[1:], dtype=np.float64)
@@ -575,6 +663,8 @@ def _render_montecarlo(
         "intensity_lost": float(lost.sum()),
         "y_direction": "up; row 0 is the top",
     }
+    if not imp.ideal:
+        attrs.update(imp.to_attrs())
     return xr.DataArray(image, dims=("row", "col"), coords=_sensor_coords(camera), name="intensity", attrs=attrs)
 
 
@@ -586,6 +676,7 @@ def render_pinhole(
     rays_per_point: int = 100,
     seed: int = 0,
     method: str = METHODS[0],
+    imperfections: CameraImperfections | Mapping[str, Any] | None = None,
     **kwargs: Any,
 ) -> xr.DataArray:
     """Calibration "pinhole" image (sec. 5.1).
@@ -600,7 +691,8 @@ def render_pinhole(
     (:func:`lfstudy.simulate.exact.render_pinhole_exact`, no point or ray
     noise); ``"montecarlo"`` traces ``rays_per_point`` rays from each of
     ``count`` random points. Extra keyword arguments go to :func:`render`
-    (its noise options apply to both methods).
+    (its noise options apply to both methods). ``imperfections``: as for :func:`render` (the
+    points are imaged through the imperfect camera; their field is the nominal camera's).
     """
     from lfstudy.simulate.particles import pinhole_field
 
@@ -612,12 +704,18 @@ def render_pinhole(
         noise = [kwargs.pop(k, d) for k, d in defaults]
         _check_noise(noise[1], noise[3])
         da = render_pinhole_exact(
-            camera, fnumber=fnumber, count=count, rays_per_point=rays_per_point, seed=seed, **kwargs
+            camera,
+            fnumber=fnumber,
+            count=count,
+            rays_per_point=rays_per_point,
+            seed=seed,
+            imperfections=imperfections,
+            **kwargs,
         )
         return _finish(da, int(seed), *noise)
     cam = camera.with_(fnumber=float(fnumber))
     field = pinhole_field(camera, count=count, seed=seed)
-    img = render(cam, field, rays_per_point, seed, method=method, **kwargs)
+    img = render(cam, field, rays_per_point, seed, method=method, imperfections=imperfections, **kwargs)
     img.attrs.update(
         long_name="simulated pinhole calibration image", pinhole_fnumber=float(fnumber), pinhole_count=int(count)
     )

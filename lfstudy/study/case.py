@@ -65,8 +65,19 @@ def _stage_id(ccfg: Mapping[str, Any], stage: str) -> str:
 
 
 def case_camera(ccfg: Mapping[str, Any]) -> PlenopticCamera:
-    """The camera of a case config."""
+    """The camera of a case config (the nominal one: what the processing knows)."""
     return PlenopticCamera.from_config(ccfg)
+
+
+def case_imperfections(ccfg: Mapping[str, Any]) -> Any:
+    """The imaging imperfections of a case (``camera.imperfections``; ideal when absent).
+
+    The lenslet scatter is drawn from a seed derived from the study seed alone, so every image
+    and the pinhole image of a study see one physical lenslet array.
+    """
+    from lfstudy.simulate.imperfections import CameraImperfections
+
+    return CameraImperfections.from_config(ccfg, scatter_seed=derive_seed(ccfg["seed"], "lenslet_scatter"))
 
 
 def case_planes(ccfg: Mapping[str, Any], camera: PlenopticCamera | None = None) -> xr.Dataset:
@@ -248,6 +259,7 @@ def case_image(
         max_image_bytes=rt["max_image_bytes"],
         progress=progress,
         method=rt["method"],
+        imperfections=case_imperfections(ccfg),
     )
     img = case_sensor(ccfg, img, derive_seed(ccfg["seed"], "sensor", sid, frame), rt["rays_per_particle"])
     img.attrs.update(io.provenance(ccfg, seed), frame=frame)
@@ -275,6 +287,7 @@ def case_pinhole(ccfg: Mapping[str, Any], *, progress: bool = False) -> xr.DataA
         max_image_bytes=ccfg["raytrace"]["max_image_bytes"],
         progress=progress,
         method=ccfg["raytrace"]["method"],
+        imperfections=case_imperfections(ccfg),
     )
     img = case_sensor(
         ccfg,

@@ -78,8 +78,9 @@ class _Stage:
 #: Snakefile passes a stage only these config sections (and reruns it when they change);
 #: a stage's outputs live at the case-id prefix holding every setting it depends on.
 STAGES: dict[str, _Stage] = {
-    "camera": _Stage(("camera", "refocus"), ()),
-    "particles": _Stage(("seed", "camera", "particles"), ()),
+    # camera.imperfections reach the images only (the processing keeps the nominal camera)
+    "camera": _Stage(("camera", "refocus"), (), ("camera.imperfections",)),
+    "particles": _Stage(("seed", "camera", "particles"), (), ("camera.imperfections",)),
     "displace": _Stage(("flow",), ("particles",)),
     # the light volume dims each exposure's particles at their own depth
     "simulate": _Stage(("seed", "camera", "illumination", "raytrace", "sensor"), ("particles", "displace")),
