@@ -103,7 +103,6 @@ def _dc_factor(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:  # pra
     of each positive lag's autocorrelation ρ_j(l) up to the first that is <= 0, at most ``max_lag``)."""
     n, nz, ny, nx = a.shape
     out = np.ones((n, 3))
-    dims = (nz, ny, nx)
     for w in numba.prange(n):
         ma = a[w].mean()
         mb = b[w].mean()
@@ -127,32 +126,33 @@ def _dc_factor(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:  # pra
             v0 = (d * d).sum() / d.size
             if v0 <= 0.0:
                 continue
+            # every lag of every axis in one sweep over the field (the counts are the overlaps' sizes)
+            acc = np.zeros((3, max_lag + 1))
+            for i in range(mz):
+                for j in range(my):
+                    for q in range(mx):
+                        v = d[i, j, q]
+                        for lag in range(1, max_lag + 1):
+                            if i + lag < mz:
+                                acc[0, lag] += v * d[i + lag, j, q]
+                            if j + lag < my:
+                                acc[1, lag] += v * d[i, j + lag, q]
+                            if q + lag < mx:
+                                acc[2, lag] += v * d[i, j, q + lag]
             f = 1.0
             msz = (mz, my, mx)
             for ax in range(3):
-                acc = 0.0
+                tot = 0.0
                 for lag in range(1, min(max_lag, msz[ax] - 1) + 1):
-                    c = 0.0
-                    cnt = 0
-                    for i in range(mz - (lag if ax == 0 else 0)):
-                        for j in range(my - (lag if ax == 1 else 0)):
-                            for q in range(mx - (lag if ax == 2 else 0)):
-                                c += (
-                                    d[i, j, q]
-                                    * d[
-                                        i + (lag if ax == 0 else 0),
-                                        j + (lag if ax == 1 else 0),
-                                        q + (lag if ax == 2 else 0),
-                                    ]
-                                )
-                                cnt += 1
-                    rho = c / cnt / v0
+                    cnt = (
+                        (mz - (lag if ax == 0 else 0)) * (my - (lag if ax == 1 else 0)) * (mx - (lag if ax == 2 else 0))
+                    )
+                    rho = acc[ax, lag] / cnt / v0
                     if rho <= 0.0:
                         break
-                    acc += rho
-                f *= 1.0 + 2.0 * acc
+                    tot += rho
+                f *= 1.0 + 2.0 * tot
             out[w, k] = f
-    _ = dims
     return out
 
 
