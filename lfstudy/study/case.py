@@ -342,18 +342,68 @@ def case_grid(ccfg: Mapping[str, Any], camera: PlenopticCamera | None = None) ->
     )
 
 
-def case_stack(ccfg: Mapping[str, Any], lightfield: xr.DataArray) -> xr.DataArray:
+def case_volcal(ccfg: Mapping[str, Any], centers: xr.Dataset) -> xr.Dataset:
+    """The dot-target volumetric calibration of a case's design (``volumetric_calibration``;
+    :mod:`lfstudy.lightfield.volcal`, Hall et al. 2018).
+
+    The card (dots ``spacing`` apart over the field of view; default 5 lenslet pitches/|M|) is
+    imaged through the case's camera with its imperfections at ``n_depths`` depths evenly over
+    the reconstruction grid's depth, with shot and read noise (seed from the study seed), then
+    registered with the case's lenslet calibration ``centers`` and fitted.
+    """
+    from lfstudy.lightfield.registration import register
+    from lfstudy.lightfield.volcal import fit_volumetric
+    from lfstudy.simulate.dottarget import render_dot_target
+
+    vc = ccfg["volumetric_calibration"]
+    cam = case_camera(ccfg)
+    grid = case_grid(ccfg, cam)
+    depths = np.linspace(float(grid.z.min()), float(grid.z.max()), int(vc["n_depths"]))
+    spacing = vc["spacing"] or 5.0 * cam.lenslet_pitch / abs(cam.magnification)
+    rt = ccfg.get("raytrace", {})
+    imgs = render_dot_target(
+        cam,
+        depths,
+        spacing=float(spacing),
+        photons=float(vc["photons"]),
+        read_noise=float(vc["read_noise"]),
+        seed=derive_seed(ccfg.get("seed", 0), "volumetric-calibration"),
+        diffraction=bool(rt.get("diffraction", True)),
+        imperfections=case_imperfections(ccfg),
+        max_image_bytes=float(rt.get("max_image_bytes", 4e9)),
+    )
+    lfs = [register(imgs.isel(depth=k).drop_vars("depth"), centers, cam) for k in range(depths.size)]
+    cal = fit_volumetric(lfs, depths, cam, spacing=float(spacing), order=int(vc["order"]))
+    cal.attrs.update(io.provenance(ccfg, None))
+    return cal
+
+
+def case_stack(
+    ccfg: Mapping[str, Any], lightfield: xr.DataArray, calibration: xr.Dataset | None = None
+) -> xr.DataArray:
     """Light field → focal stack of a case, refocused onto the planes of its reconstruction grid.
 
     On a uniform grid every plane sits at a grid depth (refocusing at any t is
     exact, eqs 5.10–5.15), so the focal-stack methods and the others share one
     grid; with ``grid.spacing: planes`` the planes are the marching's own
-    (Table 5.1). Lazy, one dask chunk per plane.
+    (Table 5.1). Lazy, one dask chunk per plane. With ``refocus.model: volumetric`` the
+    planes are sampled through the dot-target ``calibration`` (:func:`case_volcal`) instead.
     """
     from lfstudy.lightfield.refocus import focal_stack
 
     cam = case_camera(ccfg)
     grid = case_grid(ccfg, cam)
+    if ccfg["refocus"].get("model", "thin_lens") == "volumetric":
+        from lfstudy.lightfield.volcal import volumetric_stack
+
+        if calibration is None:
+            raise ValueError(
+                "refocus.model = 'volumetric' needs the dot-target calibration (volumetric_calibration; "
+                "lfstudy.study.case.case_volcal)"
+            )
+        stack = volumetric_stack(lightfield, calibration, grid.z, grid.x, grid.y, camera=cam)
+        stack.attrs.update(grid.attrs())
+        return stack
     planes = case_planes(ccfg, cam) if grid.spacing == "planes" else cam.planes_at(grid.z)
     if grid.spacing == "planes" and planes.sizes["plane"] != grid.z.size:  # grid.z_range keeps some planes
         planes = planes.isel(plane=np.flatnonzero(np.isin(planes["z"].values, grid.z)))
@@ -545,13 +595,19 @@ def render_volume(
 
 
 def render_frame(
-    raw: xr.DataArray, centers: xr.Dataset, ccfg: Mapping[str, Any], *, progress: bool = False
+    raw: xr.DataArray,
+    centers: xr.Dataset,
+    ccfg: Mapping[str, Any],
+    *,
+    progress: bool = False,
+    calibration: xr.Dataset | None = None,
 ) -> tuple[xr.DataArray, xr.DataArray, xr.DataArray, xr.Dataset | None]:
     """:func:`render_volume` and the particle list of a method that fits particles
-    (:func:`case_reconstruction`; None for the others)."""
+    (:func:`case_reconstruction`; None for the others); ``calibration``: the volumetric one
+    (:func:`case_volcal`) where ``refocus.model`` is ``volumetric``."""
     from lfstudy.lightfield.registration import register
 
     lf = register(raw, centers, case_camera(ccfg))
     # persist: the reconstruction and the caller's write both read the stack
-    stack = case_stack(ccfg, lf).persist()
+    stack = case_stack(ccfg, lf, calibration).persist()
     return (lf, stack, *case_reconstruction(ccfg, stack, lf, centers, progress=progress))

@@ -1,0 +1,141 @@
+"""Volumetric calibration from a dot target (issue 29 §2; Hall et al. 2018, Appl. Opt. 57(4) 914).
+
+The fitted mapping must reproduce the thin-lens model on the ideal camera (where that model
+is exact), and must place particles where they are on a camera the thin-lens model gets
+wrong (main-lens distortion and a lenslet gap error), where the thin-lens refocus does not.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfstudy.lightfield import find_lenslet_centers, focal_stack, register
+from lfstudy.lightfield import volcal as vc
+from lfstudy.optics import PlenopticCamera
+from lfstudy.simulate import raytrace as rt
+from lfstudy.simulate.dottarget import DotTargetError, render_dot_target
+from lfstudy.simulate.particles import make_field
+
+#: Table 4.3 optics on a 35 x 28 lenslet sensor.
+CAM = PlenopticCamera(600, 480, 0.0074, 0.125, 0.5, 50.0, -1.0)
+DEPTHS = np.linspace(-3.0, 3.0, 7)
+SPACING = 0.5  # 4 lenslets: 9 x 7 dots over the field
+IMPERFECT = {"distortion_k1": 0.05, "lenslet_gap_error": 0.02}
+
+
+def _calibrate(imp):
+    pinhole = rt.render_pinhole(CAM, count=20000, rays_per_point=50, seed=1, method="exact", imperfections=imp)
+    centers = find_lenslet_centers(pinhole, CAM)
+    imgs = render_dot_target(CAM, DEPTHS, spacing=SPACING, photons=20000, imperfections=imp, seed=3)
+    lfs = [register(imgs.isel(depth=k).drop_vars("depth"), centers, CAM) for k in range(DEPTHS.size)]
+    return centers, vc.fit_volumetric(lfs, DEPTHS, CAM, spacing=SPACING)
+
+
+@pytest.fixture(scope="module")
+def ideal():
+    return _calibrate(None)
+
+
+@pytest.fixture(scope="module")
+def imperfect():
+    return _calibrate(IMPERFECT)
+
+
+def _grid():
+    d = CAM.lenslet_pitch / abs(CAM.magnification)
+    xg = (np.arange(CAM.n_lenslets_x) - 0.5 * (CAM.n_lenslets_x - 1)) * d
+    yg = (np.arange(CAM.n_lenslets_y) - 0.5 * (CAM.n_lenslets_y - 1)) * d
+    return xg, yg, d
+
+
+def _locate(stack, zg, xg, yg):
+    """The brightest voxel's plane and the 3 x 3 in-plane centroid around it."""
+    v = stack.values.astype(float)
+    k, j, i = np.unravel_index(np.argmax(v), v.shape)
+    w = v[k, j - 1 : j + 2, i - 1 : i + 2]
+    w = w - w.min()
+    return zg[k], (w.sum(0) * xg[i - 1 : i + 2]).sum() / w.sum(), (w.sum(1) * yg[j - 1 : j + 2]).sum() / w.sum()
+
+
+def test_dot_target_images_are_reproducible_and_laid_out():
+    a = render_dot_target(CAM, [-1.0, 1.0], spacing=SPACING, seed=5)
+    b = render_dot_target(CAM, [-1.0, 1.0], spacing=SPACING, seed=5)
+    assert a.dims == ("depth", "row", "col") and a.shape == (2, 480, 600)
+    np.testing.assert_array_equal(a.values, b.values)
+    assert a.attrs["n_dots"] == vc.dot_grid(SPACING, CAM.fov_x, CAM.fov_y)[0].size
+    assert float(a.min()) >= 0.0  # a sensor reads counts
+    c = render_dot_target(CAM, [-1.0, 1.0], spacing=SPACING, seed=6)
+    assert not np.array_equal(a.values, c.values)  # the noise follows the seed
+
+
+def test_fit_reproduces_the_thin_lens_model_on_the_ideal_camera(ideal):
+    _, cal = ideal
+    assert cal.attrs["order"] == 3 and cal.sizes["term"] == 20
+    assert cal["valid"].sum() > 150  # the sub-apertures inside the main-lens aperture
+    assert cal.attrs["holdout_depth"] == 0.0
+    assert 0 < cal.attrs["holdout_rms_lenslets"] < 0.15
+    assert 0 < cal.attrs["fit_rms_lenslets"] < 0.35
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-0.4, 0.4, (2, 200)) * np.array([[CAM.fov_x], [CAM.fov_y]])
+    z = rng.uniform(-2.5, 2.5, 200)
+    lf = register(rt.render(CAM, make_field([0.0], [0.0], [0.0], [1.0]), 1000, 0), ideal[0], CAM)
+    s0, t0 = vc._nominal_positions(lf, CAM, x, y, z)
+    p = vc.predict(cal, x, y, z).values
+    ok = cal["valid"].values
+    err = np.hypot(p[0] - s0, p[1] - t0)[:, ok]
+    assert abs(np.mean((p[0] - s0)[:, ok])) < 0.02 and abs(np.mean((p[1] - t0)[:, ok])) < 0.02
+    assert np.sqrt(np.mean(err**2)) < 0.2  # lenslets
+
+
+def test_volumetric_stack_locates_particles_the_thin_lens_model_misplaces(ideal, imperfect):
+    xg, yg, d = _grid()
+    zg = np.linspace(-2.5, 2.5, 11)
+    pts = [(-1.5, -1.1, 0.5), (1.6, 1.0, -2.0), (0.3, 0.2, 1.0)]
+    worst = {"thin": 0.0, "vol": 0.0, "vol_ideal": 0.0}
+    for imp, (centers, cal), names in ((IMPERFECT, imperfect, ("thin", "vol")), (None, ideal, (None, "vol_ideal"))):
+        for x, y, z in pts:
+            img = rt.render(CAM, make_field([x], [y], [z], [1.0]), 20000, 0, imperfections=imp)
+            lf = register(img, centers, CAM)
+            stacks = {
+                names[0]: focal_stack(lf, CAM, CAM.planes_at(zg), x=xg, y=yg) if names[0] else None,
+                names[1]: vc.volumetric_stack(lf, cal, zg, xg, yg),
+            }
+            for name, st in stacks.items():
+                if name is None:
+                    continue
+                _, cx, cy = _locate(st, zg, xg, yg)
+                worst[name] = max(worst[name], abs(cx - x) / d, abs(cy - y) / d)
+    assert worst["thin"] > 0.2  # distortion and the gap error move the corner particles
+    assert worst["vol"] < 0.12  # voxels
+    assert worst["vol_ideal"] < 0.12
+
+
+def test_volumetric_stack_conserves_the_plane_signal_like_the_splat(ideal):
+    centers, cal = ideal
+    xg, yg, _ = _grid()
+    img = rt.render(CAM, make_field([0.2], [-0.1], [1.5], [1.0]), 20000, 0)
+    lf = register(img, centers, CAM)
+    zg = np.array([-1.0, 0.0, 1.5])
+    vol = vc.volumetric_stack(lf, cal, zg, xg, yg).values.sum(axis=(1, 2))
+    thin = focal_stack(lf, CAM, CAM.planes_at(zg), x=xg, y=yg).values.sum(axis=(1, 2))
+    # the calibrated sub-apertures carry nearly all the light; the sums agree to a few per cent
+    np.testing.assert_allclose(vol, thin, rtol=0.05)
+
+
+def test_bad_settings_name_the_field(ideal):
+    centers, cal = ideal
+    with pytest.raises(vc.VolumetricCalibrationError, match=r"volumetric_calibration\.order = 7.*\[1, 5\]"):
+        vc.polynomial_exponents(7)
+    with pytest.raises(vc.VolumetricCalibrationError, match=r"volumetric_calibration\.spacing"):
+        vc.dot_grid(-1.0, 1.0, 1.0)
+    with pytest.raises(DotTargetError, match=r"volumetric_calibration\.depths.*2 distinct"):
+        render_dot_target(CAM, [1.0, 1.0], spacing=SPACING)
+    lf = register(rt.render(CAM, make_field([0.0], [0.0], [0.0], [1.0]), 1000, 0), centers, CAM)
+    with pytest.raises(vc.VolumetricCalibrationError, match=r"order \+ 1 = 4 distinct"):
+        vc.fit_volumetric([lf, lf, lf], [0.0, 1.0, 2.0], CAM, spacing=SPACING)
+    with pytest.raises(vc.VolumetricCalibrationError, match=r"window = 9 lenslets exceeds the dot pitch"):
+        vc.fit_volumetric([lf] * 4, [0.0, 1.0, 2.0, 3.0], CAM, spacing=SPACING, window=9)
+    xg, yg, _ = _grid()
+    with pytest.raises(vc.VolumetricCalibrationError, match=r"volumetric_calibration\.depths cover.*extrapolate"):
+        vc.volumetric_stack(lf, cal, np.array([0.0, 5.0]), xg, yg)
