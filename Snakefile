@@ -251,15 +251,39 @@ rule register:
     shell: STAGE + " register {input.raw:q} {input.centers:q} {output[0]:q}"
 
 
+def volcal_input(stage):
+    """Input function: the dot-target calibration a stage samples its planes through, where
+    refocus.model is volumetric (the thin lens needs none)."""
+    def path(wildcards):
+        case = _case(stage, wildcards)
+        if SWEEP.apply(case)["refocus"].get("model", "thin_lens") != "volumetric":
+            return []
+        return [f"{OUT}/{SWEEP.locate(case, 'volcal.zarr')}"]
+    return path
+
+
+rule volcal:
+    input: at("centers.zarr", "volcal")
+    output: directory(f"{OUT}/calib/{{cid}}/volcal.zarr")
+    log: f"{LOG}/volcal/{{cid}}.log"
+    benchmark: f"{BENCH}/volcal/{{cid}}.tsv"
+    threads: HEAVY
+    params: cfg=stage_params("volcal")
+    resources: mem_mb=mem_mb("volcal")
+    shell: STAGE + " volcal {input[0]:q} {output[0]:q}"
+
+
 rule refocus:
-    input: at("lightfield_{frame}.zarr", "refocus")
+    input:
+        lightfield=at("lightfield_{frame}.zarr", "refocus"),
+        volcal=volcal_input("refocus"),
     output: directory(f"{OUT}/{{sid}}/stack_{{frame}}.zarr")
     log: f"{LOG}/refocus/{{sid}}_{{frame}}.log"
     benchmark: f"{BENCH}/refocus/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("refocus")
     resources: mem_mb=mem_mb("refocus")
-    shell: DASK_STAGE + " refocus {input[0]:q} {output[0]:q}"
+    shell: DASK_STAGE + " refocus {input.lightfield:q} {output[0]:q} {input.volcal:q}"
 
 
 rule reconstruct:
@@ -304,14 +328,16 @@ if PARTICLE_IDS:
 
 
 rule depthcal:
-    input: at("centers.zarr", "depthcal")
+    input:
+        centers=at("centers.zarr", "depthcal"),
+        volcal=volcal_input("depthcal"),
     output: directory(f"{OUT}/calib/{{cid}}/depth_calibration.zarr")
     log: f"{LOG}/depthcal/{{cid}}.log"
     benchmark: f"{BENCH}/depthcal/{{cid}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("depthcal")
     resources: mem_mb=mem_mb("depthcal")
-    shell: DASK_STAGE + " depthcal {input[0]:q} {output[0]:q}"
+    shell: DASK_STAGE + " depthcal {input.centers:q} {output[0]:q} {input.volcal:q}"
 
 
 def depth_input(wildcards):

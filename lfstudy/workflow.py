@@ -139,9 +139,27 @@ def run_register(ccfg: Mapping[str, Any], raw: str | Path, centers: str | Path, 
     io.write_zarr(lf, out, name=lf.name or "radiance")
 
 
-def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path) -> None:
-    """Light field → focal stack (z, y, x), resized to constant magnification."""
-    stack = cl.case_stack(ccfg, io.open_array(lightfield).load())
+def run_volcal(ccfg: Mapping[str, Any], centers: str | Path, out: str | Path) -> None:
+    """The dot-target volumetric calibration of a design (:func:`lfstudy.study.case.case_volcal`)."""
+    cal = cl.case_volcal(ccfg, io.open_zarr(centers).load())
+    a = cal.attrs
+    print(
+        f"volumetric calibration: {a['valid_subapertures']} sub-apertures from {a['n_dots']} dots, fit residual "
+        f"{a['fit_rms_lenslets']:.3g} lenslets, held-out depth {a['holdout_depth']} mm: {a['holdout_rms_lenslets']:.3g}",
+        flush=True,
+    )
+    io.write_zarr(cal, out)
+
+
+def _volcal(path: str | Path | None) -> Any:
+    """The volumetric calibration a stage samples its planes through, or None ('' from the Snakefile)."""
+    return io.open_zarr(path).load() if path else None
+
+
+def run_refocus(ccfg: Mapping[str, Any], lightfield: str | Path, out: str | Path, volcal: str | Path = "") -> None:
+    """Light field → focal stack (z, y, x), resized to constant magnification; with
+    ``refocus.model: volumetric`` sampled through the dot-target calibration ``volcal``."""
+    stack = cl.case_stack(ccfg, io.open_array(lightfield).load(), _volcal(volcal))
     stack.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(stack, out, name=stack.name or "intensity", progress=True)  # one task per plane
 
@@ -179,9 +197,12 @@ def run_reconstruct(
     io.write_zarr(vol, out, name=vol.name or "intensity")
 
 
-def run_depth_calibration(ccfg: Mapping[str, Any], centers: str | Path, out: str | Path) -> None:
-    """Depth gain of a design and its processing from a traversed seeded volume (:mod:`lfstudy.piv.depth`)."""
-    cal = cl.case_depth_calibration(ccfg, io.open_zarr(centers).load(), progress=True)
+def run_depth_calibration(
+    ccfg: Mapping[str, Any], centers: str | Path, out: str | Path, volcal: str | Path = ""
+) -> None:
+    """Depth gain of a design and its processing from a traversed seeded volume (:mod:`lfstudy.piv.depth`);
+    ``volcal``: the dot-target calibration where ``refocus.model`` is ``volumetric``."""
+    cal = cl.case_depth_calibration(ccfg, io.open_zarr(centers).load(), progress=True, calibration=_volcal(volcal))
     sd = cal["gain_total_sd"].values if "gain_total_sd" in cal else None
     for i, (s, v, g) in enumerate(zip(cal["shift"].values, cal["shift_voxels"].values, cal["gain_total"].values)):
         layers = cal["gain"].sel(shift=s).values
@@ -294,6 +315,7 @@ _RUNNERS = {
     "pinhole": run_pinhole,
     "calibrate": run_calibrate,
     "depthcal": run_depth_calibration,
+    "volcal": run_volcal,
     "register": run_register,
     "refocus": run_refocus,
     "reconstruct": run_reconstruct,

@@ -374,6 +374,7 @@ def test_heavy_rules_declare_their_memory(tmp_path):
 
     raw = yaml.safe_load(TINY.read_text())
     raw["grid"] = {"voxel_xy": 0.02, "voxel_z": 0.002}
+    raw["refocus"]["model"] = "volumetric"  # plans the dot-target calibration (rule volcal) too
     path = tmp_path / "fine.yaml"
     path.write_text(yaml.safe_dump(raw))
     sweep = Sweep(validate_config(raw))

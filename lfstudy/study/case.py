@@ -534,7 +534,13 @@ def oracle_piv(
     return res
 
 
-def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, progress: bool = False) -> xr.Dataset:
+def case_depth_calibration(
+    ccfg: Mapping[str, Any],
+    centers: xr.Dataset,
+    *,
+    progress: bool = False,
+    calibration: xr.Dataset | None = None,
+) -> xr.Dataset:
     """The depth calibration of a case's design and processing (``depth_calibration`` section).
 
     A seeded volume of the case's density (its own seed, so never the case's
@@ -544,7 +550,8 @@ def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, prog
     reconstruction, each shifted one is correlated with the first by the case's
     PIV, and :func:`lfstudy.piv.depth.depth_response` reads the response per
     depth layer. Only the camera model and the lenslet calibration are used (what an
-    experiment with a traverse has), never the case's flow.
+    experiment with a traverse has), never the case's flow. ``calibration``: the dot-target
+    one (:func:`case_volcal`) where ``refocus.model`` is ``volumetric``.
     """
     from lfstudy.piv.depth import depth_response
 
@@ -568,7 +575,7 @@ def case_depth_calibration(ccfg: Mapping[str, Any], centers: xr.Dataset, *, prog
 
         def volume(frame: str, shift: float, imaging=imaging, lit=lit) -> xr.DataArray:
             img = case_image(imaging, lit.assign(z=lit["z"] + shift), frame, progress=progress, illuminate=False)
-            return render_volume(img, centers, ccfg, progress=progress)[2].load()
+            return render_frame(img, centers, ccfg, progress=progress, calibration=calibration)[2].load()
 
         ref = volume("calibration_0", 0.0)
         for i, s in enumerate(shifts):

@@ -132,6 +132,8 @@ RULE_STAGES: dict[str, tuple[str, ...]] = {
     "refocus": ("reconstruct",),
     "reconstruct": ("reconstruct",),
     "depthcal": ("reconstruct", "piv"),
+    # the dot card imaged and registered at each depth, one at a time
+    "volcal": ("simulate", "register"),
     "piv": ("piv",),
     "process": ("simulate", "register", "reconstruct", "piv"),
 }

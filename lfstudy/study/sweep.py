@@ -88,7 +88,11 @@ STAGES: dict[str, _Stage] = {
     "pinhole": _Stage(("seed", "camera", "pinhole", "raytrace", "sensor"), (), ("camera.main_lens.fnumber",)),
     "calibrate": _Stage(("camera",), ("pinhole",), ("camera.main_lens.fnumber",)),
     "register": _Stage(("camera",), ("simulate", "calibrate")),
-    "refocus": _Stage(("camera", "refocus", "grid"), ("register",)),
+    # the dot-target volumetric calibration (Hall et al. 2018): the card imaged through the case's
+    # camera, imperfections and all, over the grid's depth, fitted on the lenslet calibration
+    "volcal": _Stage(("seed", "camera", "raytrace", "refocus", "grid", "volumetric_calibration"), ("calibrate",)),
+    # with refocus.model: volumetric the planes are sampled through it (the thin lens needs none)
+    "refocus": _Stage(("camera", "refocus", "grid", "volumetric_calibration"), ("register", "volcal")),
     "reconstruct": _Stage(("camera", "refocus", "grid", "reconstruct"), ("refocus", "register", "calibrate")),
     # the traversed-volume depth calibration of a design and its processing: every setting of the
     # images and of their processing, but not the flow (it images its own seeded volume)
@@ -105,8 +109,9 @@ STAGES: dict[str, _Stage] = {
             "reconstruct",
             "piv",
             "depth_calibration",
+            "volumetric_calibration",
         ),
-        ("calibrate",),
+        ("calibrate", "volcal"),
         ("depth_calibration.enabled",),  # whether the PIV uses it, not what it is
     ),
     "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "depthcal")),
@@ -120,7 +125,7 @@ STAGES: dict[str, _Stage] = {
 
 #: Stages whose outputs are shared by every case with equal settings and live under ``calib/``:
 #: the pinhole image, the lenslet calibration and the depth calibration.
-SHARED: tuple[str, ...] = ("pinhole", "calibrate", "depthcal")
+SHARED: tuple[str, ...] = ("pinhole", "calibrate", "volcal", "depthcal")
 
 #: Every per-case file of the workflow and the stage that writes it.
 FILES: dict[str, str] = {
@@ -133,6 +138,7 @@ FILES: dict[str, str] = {
     "pinhole.tif": "pinhole",
     "centers.zarr": "calibrate",
     "depth_calibration.zarr": "depthcal",
+    "volcal.zarr": "volcal",
     **{f"lightfield_{f}.zarr": "register" for f in "ab"},
     **{f"stack_{f}.zarr": "refocus" for f in "ab"},
     **{f"volume_{f}.zarr": "reconstruct" for f in "ab"},
