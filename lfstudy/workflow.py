@@ -145,7 +145,8 @@ def run_volcal(ccfg: Mapping[str, Any], centers: str | Path, out: str | Path) ->
     a = cal.attrs
     print(
         f"volumetric calibration: {a['valid_subapertures']} sub-apertures from {a['n_dots']} dots, fit residual "
-        f"{a['fit_rms_lenslets']:.3g} lenslets, held-out depth {a['holdout_depth']} mm: {a['holdout_rms_lenslets']:.3g}",
+        f"{a['fit_rms_lenslets']:.3g} lenslets, held-out depth {a['holdout_depth']} mm: "
+        f"{a['holdout_rms_lenslets']:.3g}",
         flush=True,
     )
     io.write_zarr(cal, out)

@@ -13,6 +13,7 @@ import pytest
 import xarray as xr
 import yaml
 
+from lfstudy import plugins as plugins_module
 from lfstudy.config import ConfigError
 from lfstudy.simulate.flows import (
     BlasiusBoundaryLayer,
@@ -396,7 +397,7 @@ def plugins(monkeypatch):
     def entry_points(group: str) -> list:
         return list(eps) if group == registry.ENTRY_POINT_GROUP else []
 
-    monkeypatch.setattr(registry, "entry_points", entry_points)
+    monkeypatch.setattr(plugins_module, "entry_points", entry_points)
     registry._plugins.cache_clear()
     yield eps
     registry._plugins.cache_clear()

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
+from lfstudy import plugins as plugins_module
 from lfstudy.config import ConfigError
 from lfstudy.lightfield import find_lenslet_centers, focal_stack, register, synthetic_pinhole
 from lfstudy.optics import PlenopticCamera
@@ -282,7 +283,7 @@ def plugins(monkeypatch):
     from lfstudy.study import schema
 
     def install(*eps: EntryPoint) -> None:
-        monkeypatch.setattr(registry, "entry_points", lambda group: [e for e in eps if e.group == group])
+        monkeypatch.setattr(plugins_module, "entry_points", lambda group: [e for e in eps if e.group == group])
         registry._plugins.cache_clear()
         schema._schema.cache_clear()
 

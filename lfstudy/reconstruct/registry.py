@@ -40,10 +40,8 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 from typing import Any, ClassVar
 
 import numpy as np
@@ -51,6 +49,7 @@ import xarray as xr
 
 from lfstudy.config import ConfigError, validate_section
 from lfstudy.optics import PlenopticCamera
+from lfstudy.plugins import load_plugins
 from lfstudy.reconstruct.grid import ReconstructionGrid
 
 __all__ = [
@@ -232,26 +231,13 @@ def _plugins() -> tuple[dict[str, type[ReconstructionMethod]], dict[str, str]]:
     wrongly is skipped with a warning (as xarray's backend loader does), so one
     broken package does not stop every config from loading.
     """
-    found: dict[str, type[ReconstructionMethod]] = {}
-    skipped: dict[str, str] = {}
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        try:
-            cls = ep.load()
-            if not (isinstance(cls, type) and issubclass(cls, ReconstructionMethod)):
-                raise ReconstructionError(f"{cls!r} is not a ReconstructionMethod subclass")
-            detect_parameters(cls)
-        except Exception as exc:  # a third-party import may raise anything
-            why = f"{type(exc).__name__}: {exc}"
-            skipped[ep.name] = why
-            warnings.warn(
-                f"reconstruction method {ep.name!r} (entry point {ep.value!r} of group {ENTRY_POINT_GROUP!r}) "
-                f"is skipped, it failed to load: {why}",
-                RuntimeWarning,
-                stacklevel=2,
-            )
-            continue
-        found[ep.name] = cls
-    return found, skipped
+
+    def check(name: str, cls: Any) -> None:
+        if not (isinstance(cls, type) and issubclass(cls, ReconstructionMethod)):
+            raise ReconstructionError(f"{cls!r} is not a ReconstructionMethod subclass")
+        detect_parameters(cls)
+
+    return load_plugins(ENTRY_POINT_GROUP, "reconstruction method", check)
 
 
 def available_methods() -> list[str]:

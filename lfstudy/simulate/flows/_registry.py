@@ -24,13 +24,12 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
-import warnings
 from collections.abc import Mapping
-from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
 from lfstudy.config import ConfigError, validate_section
+from lfstudy.plugins import load_plugins
 from lfstudy.simulate.flows._core import FlowError
 
 __all__ = [
@@ -110,26 +109,13 @@ def flow_parameters(cls: type) -> tuple[dict[str, Any], list[str]]:
 @functools.lru_cache(maxsize=1)
 def _plugins() -> tuple[dict[str, type], dict[str, str]]:
     """The kinds of the entry-point group, loaded: ``({name: class}, {name: why it was skipped})``."""
-    found: dict[str, type] = {}
-    skipped: dict[str, str] = {}
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        try:
-            if ep.name in BUILTIN:
-                raise FlowError(f"{ep.name!r} is a built-in flow kind")
-            cls = ep.load()
-            flow_parameters(cls)
-        except Exception as exc:  # a third-party import may raise anything
-            why = f"{type(exc).__name__}: {exc}"
-            skipped[ep.name] = why
-            warnings.warn(
-                f"flow kind {ep.name!r} (entry point {ep.value!r} of group {ENTRY_POINT_GROUP!r}) is skipped, "
-                f"it failed to load: {why}",
-                RuntimeWarning,
-                stacklevel=2,
-            )
-            continue
-        found[ep.name] = cls
-    return found, skipped
+
+    def check(name: str, cls: Any) -> None:
+        if name in BUILTIN:
+            raise FlowError(f"{name!r} is a built-in flow kind")
+        flow_parameters(cls)
+
+    return load_plugins(ENTRY_POINT_GROUP, "flow kind", check)
 
 
 def available_kinds() -> list[str]:
