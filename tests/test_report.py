@@ -435,7 +435,13 @@ GAP = "camera.imperfections.lenslet_gap_error"
 ROT = "camera.imperfections.lenslet_rotation"
 
 
-def _tolerance_study(extra_sweep: dict | None = None):
+@pytest.fixture(scope="module")
+def tol_study():
+    """The study of :func:`_tolerance_study` and its config, built once (about 2 s)."""
+    return _tolerance_study()
+
+
+def _tolerance_study():
     """Two designs (lenslet pitch) x gap error [-0.01, 0, 0.02] x lenslet rotation [0, 3] mrad, one flow.
 
     Fine pitch: the better design at the ideal camera (0.010 mm against 0.015 mm) but sensitive to the gap
@@ -450,7 +456,6 @@ def _tolerance_study(extra_sweep: dict | None = None):
         "flow": ["uniform_x"],
         GAP: [-0.01, 0.0, 0.02],
         ROT: [0.0, 3.0],
-        **(extra_sweep or {}),
     }
     sweep = Sweep(cfg)
     rows = []
@@ -472,7 +477,7 @@ def _tolerance_study(extra_sweep: dict | None = None):
     return combine_cases(rows, sweep.settings), cfg
 
 
-def test_tolerance_section_only_where_an_imperfection_is_swept(study_dirs, tmp_path):
+def test_tolerance_section_only_where_an_imperfection_is_swept(study_dirs, tol_study, tmp_path):
     """The section and its figure per imperfection appear for a tolerance sweep; a study sweeping only design
     and processing settings (or an imperfection at one level) has neither."""
     from lfstudy.study import report as rp
@@ -482,7 +487,7 @@ def test_tolerance_section_only_where_an_imperfection_is_swept(study_dirs, tmp_p
     assert is_tolerance(GAP) and is_tolerance("illumination.thickness") and is_tolerance("sensor.hot_pixels.level")
     assert not is_tolerance("depth_calibration.enabled") and not is_tolerance("camera.lenslet.pitch")
     assert not is_tolerance("sensor.read_noise") and not is_tolerance("particles.ppp")
-    study, _ = _tolerance_study()
+    study, _ = tol_study
     dims = ["camera_imperfections_lenslet_gap_error", "camera_imperfections_lenslet_rotation"]
     assert tolerance_dims(study) == dims
     sections = rp.report_sections(study)
@@ -492,21 +497,23 @@ def test_tolerance_section_only_where_an_imperfection_is_swept(study_dirs, tmp_p
     one = study.isel({dims[0]: [1], dims[1]: [0]})  # imperfections at one level each: nothing to compare
     assert tolerance_dims(one) == [] and rp.TOLERANCE_SECTION[0] not in rp.report_sections(one)
     blocks = list(rp._tolerance_blocks(study))
-    assert [b.name for b in blocks] == ["intro", "limits", dims[0], f"table_{dims[0]}", dims[1], f"table_{dims[1]}"]
+    assert [b.name for b in blocks] == ["intro", dims[0], f"table_{dims[0]}", dims[1], f"table_{dims[1]}"]
     assert all(b.figure is not None for b in blocks if b.name in dims)
+    for b in blocks:  # the figures' content: test_tolerance_tables_and_figures_are_labelled_from_the_schema
+        b.figure = None
     sec = rp.write_html(blocks, {"tolerances": "T"}, "t", "t", "", tmp_path / "t.html").read_text()
-    assert sec.count("data:image/png;base64,") == 2 and "not available" not in sec
+    assert "not available" not in sec and sec.count("<h4>Error against ") == 2
     # the oracle beside each error, in mm
     assert "oracle_<wbr>rms_<wbr>total_<wbr>mm" in sec and "<td>0.004</td>" in sec
 
 
-def test_tolerance_tables_and_figures_are_labelled_from_the_schema():
+def test_tolerance_tables_and_figures_are_labelled_from_the_schema(tol_study):
     """Levels named by the schema's title and units; the other imperfections at their ideal level (the schema
     default 0, not the first level swept: the gap sweep starts at -0.01)."""
     from lfstudy.study.report import _tolerance_blocks
     from lfstudy.study.tolerance import ideal_levels, tolerance_table
 
-    study, _ = _tolerance_study()
+    study, _ = tol_study
     gap, rot = "camera_imperfections_lenslet_gap_error", "camera_imperfections_lenslet_rotation"
     assert ideal_levels(study) == {gap: 0.0, rot: 0.0}
     t = tolerance_table(study, rot)
@@ -527,7 +534,7 @@ def test_tolerance_tables_and_figures_are_labelled_from_the_schema():
     np.testing.assert_allclose(ax.lines[0].get_xdata(), [0.0, 3.0])
 
 
-def test_worst_case_ranking_picks_the_robust_design(tmp_path):
+def test_worst_case_ranking_picks_the_robust_design(tol_study):
     """At the ideal camera the fine pitch wins; at its worst over the tolerances (gap 0.02, rotation 3 mrad:
     0.043 mm against 0.0265 mm) the coarse one does, and the recommendation names the gap error as what
     limits it."""
@@ -535,7 +542,7 @@ def test_worst_case_ranking_picks_the_robust_design(tmp_path):
     from lfstudy.study.report import _answer_blocks
     from lfstudy.study.tolerance import at_ideal, limiting_tolerances, worst_case
 
-    study, cfg = _tolerance_study()
+    study, cfg = tol_study
     worst = worst_case(study)
     fine, coarse = (worst["rms_total_mm"].sel(lenslet_pitch=p).squeeze() for p in (0.0888, 0.1184))
     assert float(fine) == pytest.approx(0.010 + 1.5 * 0.02 + 0.003) and float(coarse) == pytest.approx(0.0265)
@@ -557,9 +564,12 @@ def test_worst_case_ranking_picks_the_robust_design(tmp_path):
 
     def answer(rank_at):
         c = {**cfg, "report": {"rank_at": rank_at}}
-        return " ".join(b.html for b in _answer_blocks(study, c) if b.name == "sentences")
+        return {b.name: b.html for b in _answer_blocks(study, c) if b.name in ("sentences", "limits")}
 
-    ideal, tol = answer("ideal"), answer("tolerances")
+    blocks = answer("tolerances")
+    ideal, tol = answer("ideal")["sentences"], blocks["sentences"]
+    # the recommendation says what limits every design: fine pitch the gap too (+0.03 mm)
+    assert blocks["limits"].count("<td>lenslet-to-sensor gap error 0.02</td>") == 2
     assert "pitch=0.0888" in ideal.split("It trades")[0] and "Ranked at the ideal camera" in ideal
     assert "build M=-1 f/#=matched pitch=0.1184" in tol and "Ranked at tolerances" in tol
     assert "0.0265 mm at its worst" in tol and "limits it is the lenslet-to-sensor gap error 0.02" in tol

@@ -386,6 +386,8 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
         + html.escape(", ".join(f"{m.long_name} ({m.better})" for m in mt.shown_in("pareto")))
         + " at once; the recommended one is the front's lowest total RMS error with at least 80 % valid vectors.</p>",
     )
+    if tol:
+        yield _limits_block(study)
     cols = [c for c in ("design", "flow", *mt.names("front"), "recommended") if c in table]
     for flow in sentences:
         yield _try(
@@ -404,6 +406,24 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
             + _table(front[cols].sort_values("rms_total_mm"), index=False),
         )
     yield from _budget_blocks(study)
+
+
+def _limits_block(study: xr.Dataset) -> Block:
+    """Per design: its error at the ideal camera, what each swept imperfection alone adds, its worst
+    case over the tolerances and the tolerance that limits it."""
+    from lfstudy.study.tolerance import limiting_tolerances
+
+    lim = limiting_tolerances(study)
+    if lim.empty:
+        return _na("answer", "limits", "What limits each design at tolerances", "no computed case at the ideal camera")
+    return Block(
+        "answer",
+        "limits",
+        html="<h4>What each tolerance costs each design</h4><p>Per design: the total RMS error at the ideal "
+        "camera, what each imperfection alone adds at its worst level (+, the other imperfections ideal), the "
+        "worst case over the whole tolerance sweep (combinations included) and the tolerance that costs the "
+        'most (<i>limited_by</i>; "nothing" where no imperfection raises the error).</p>' + _table(lim, index=False),
+    )
 
 
 def _tolerance_sentence(study: xr.Dataset, table: pd.DataFrame, flow: str, rank_at: str) -> str:
@@ -443,7 +463,6 @@ def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
         ideal_levels,
         level_label,
         level_text,
-        limiting_tolerances,
         tolerance_metrics,
         tolerance_table,
     )
@@ -467,18 +486,8 @@ def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
             if oracle
             else "The study holds no oracle (errors stores written before it)."
         )
-        + "</p>",
+        + " What each costs each design, and which limits it, is in the recommendation above.</p>",
     )
-    lim = limiting_tolerances(study)
-    if not lim.empty:
-        yield Block(
-            "tolerances",
-            "limits",
-            html="<h4>What each tolerance costs each design</h4><p>Per design: the total RMS error at the ideal "
-            "camera, what each imperfection alone adds at its worst level (+), the worst case over the whole "
-            "tolerance sweep (combinations included) and the tolerance that costs the most.</p>"
-            + _table(lim, index=False),
-        )
     for d in ideal:
         t = tolerance_table(study, d)
         label = level_label(study, d)
