@@ -94,7 +94,7 @@ def level_label(study: xr.Dataset, dim: str) -> str:
 
 
 def level_text(study: xr.Dataset, dim: str, level: Any) -> str:
-    """One level of a tolerance in words: ``lenslet grid rotation error 3 mrad``, ``... gap error 0.02``."""
+    """One level of a tolerance in words, with its units: ``lenslet grid rotation error 3 mrad``."""
     c = study[dim]
     units = str(c.attrs.get("units", ""))
     value = format_value(level.item() if hasattr(level, "item") else level)
