@@ -428,3 +428,162 @@ def test_report_shows_the_uncertainty_per_design(study_dirs, tmp_path):
     bare = study.drop_vars([v for v in study.data_vars if str(v).startswith("unc_")])
     none = list(rp._uncertainty_blocks(bare, {}))
     assert len(none) == 1 and "not available" in none[0].note
+
+
+# ------------------------------------------------------------ tolerances (issue 29 §3)
+GAP = "camera.imperfections.lenslet_gap_error"
+ROT = "camera.imperfections.lenslet_rotation"
+
+
+@pytest.fixture(scope="module")
+def tol_study():
+    """The study of :func:`_tolerance_study` and its config, built once (about 2 s)."""
+    return _tolerance_study()
+
+
+def _tolerance_study():
+    """Two designs (lenslet pitch) x gap error [-0.01, 0, 0.02] x lenslet rotation [0, 3] mrad, one flow.
+
+    Fine pitch: the better design at the ideal camera (0.010 mm against 0.015 mm) but sensitive to the gap
+    (+1.5 mm per unit of |gap error|); coarse pitch: +0.5 mm per unit. Rotation costs both a little (fine
+    0.001 mm/mrad, coarse 0.0005). Equal resolution, so only the error ranks them."""
+    from lfstudy.study.sweep import Sweep
+
+    cfg = load_config(ROOT / "config" / "demo.yaml")
+    cfg["sweep"] = {
+        "magnification": [-1.0],
+        "lenslet_pitch": [0.0888, 0.1184],
+        "flow": ["uniform_x"],
+        GAP: [-0.01, 0.0, 0.02],
+        ROT: [0.0, 3.0],
+    }
+    sweep = Sweep(cfg)
+    rows = []
+    for case in sweep.cases():
+        fine = case.lenslet_pitch < 0.1
+        g, r = abs(case[GAP]), case[ROT]
+        e = (0.010 if fine else 0.015) + (1.5 if fine else 0.5) * g + (0.001 if fine else 0.0005) * r
+        vals = {
+            "rms_total_mm": e,
+            "rms_x_mm": e / 2,
+            "rms_y_mm": e / 3,
+            "rms_z_mm": 0.8 * e,
+            "valid_percent": 95.0 - 100 * g,
+            "oracle_rms_total_mm": 0.004,
+            "spacing_mm_x": 0.4,
+            "spacing_mm_z": 0.5,
+        }
+        rows.append((case, xr.Dataset({k: ((), v) for k, v in vals.items()})))
+    return combine_cases(rows, sweep.settings), cfg
+
+
+def test_tolerance_section_only_where_an_imperfection_is_swept(study_dirs, tol_study, tmp_path):
+    """The section and its figure per imperfection appear for a tolerance sweep; a study sweeping only design
+    and processing settings (or an imperfection at one level) has neither."""
+    from lfstudy.study import report as rp
+    from lfstudy.study.sweep import is_tolerance
+    from lfstudy.study.tolerance import tolerance_dims
+
+    assert is_tolerance(GAP) and is_tolerance("illumination.thickness") and is_tolerance("sensor.hot_pixels.level")
+    assert not is_tolerance("depth_calibration.enabled") and not is_tolerance("camera.lenslet.pitch")
+    assert not is_tolerance("sensor.read_noise") and not is_tolerance("particles.ppp")
+    study, _ = tol_study
+    dims = ["camera_imperfections_lenslet_gap_error", "camera_imperfections_lenslet_rotation"]
+    assert tolerance_dims(study) == dims
+    sections = rp.report_sections(study)
+    assert list(sections)[:2] == ["answer", rp.TOLERANCE_SECTION[0]]
+    plain = study_dirs[0]
+    assert rp.report_sections(plain) == rp.SECTIONS and not list(rp._tolerance_blocks(plain))
+    one = study.isel({dims[0]: [1], dims[1]: [0]})  # imperfections at one level each: nothing to compare
+    assert tolerance_dims(one) == [] and rp.TOLERANCE_SECTION[0] not in rp.report_sections(one)
+    blocks = list(rp._tolerance_blocks(study))
+    assert [b.name for b in blocks] == ["intro", dims[0], f"table_{dims[0]}", dims[1], f"table_{dims[1]}"]
+    assert all(b.figure is not None for b in blocks if b.name in dims)
+    for b in blocks:  # the figures' content: test_tolerance_tables_and_figures_are_labelled_from_the_schema
+        b.figure = None
+    sec = rp.write_html(blocks, {"tolerances": "T"}, "t", "t", "", tmp_path / "t.html").read_text()
+    assert "not available" not in sec and sec.count("<h4>Error against ") == 2
+    # the oracle beside each error, in mm
+    assert "oracle_<wbr>rms_<wbr>total_<wbr>mm" in sec and "<td>0.004</td>" in sec
+
+
+def test_tolerance_tables_and_figures_are_labelled_from_the_schema(tol_study):
+    """Levels named by the schema's title and units; the other imperfections at their ideal level (the schema
+    default 0, not the first level swept: the gap sweep starts at -0.01)."""
+    from lfstudy.study.report import _tolerance_blocks
+    from lfstudy.study.tolerance import ideal_levels, tolerance_table
+
+    study, _ = tol_study
+    gap, rot = "camera_imperfections_lenslet_gap_error", "camera_imperfections_lenslet_rotation"
+    assert ideal_levels(study) == {gap: 0.0, rot: 0.0}
+    t = tolerance_table(study, rot)
+    assert list(t.columns)[:3] == ["design", "flow", "lenslet grid rotation error [mrad]"]
+    assert {"rms_total_mm", "oracle_rms_total_mm", "rms_x_mm", "rms_y_mm", "rms_z_mm", "valid_percent"} <= set(t)
+    assert list(t.columns).index("oracle_rms_total_mm") == list(t.columns).index("rms_total_mm") + 1
+    assert len(t) == 4  # 2 designs x 2 rotations, the gap ideal
+    fine = t[t["design"].str.contains("pitch=0.0888")].set_index("lenslet grid rotation error [mrad]")
+    assert fine.loc[3.0, "rms_total_mm"] == pytest.approx(0.010 + 0.003)  # gap 0 (ideal), not -0.01
+    tg = tolerance_table(study, gap)
+    assert "lenslet-to-sensor gap error" in tg and len(tg) == 6  # dimensionless: no "[1]"
+    figs = {b.name: b.figure for b in _tolerance_blocks(study) if b.figure is not None}
+    ax = figs[rot].axes[0]
+    assert ax.get_xlabel() == "lenslet grid rotation error [mrad]"
+    assert ax.get_title() == "total RMS error (all components) [mm] (dashed: oracle)"
+    assert [a.get_title() for a in figs[gap].axes][1:4] == [f"RMS error {c} [mm]" for c in "xyz"]
+    assert len(ax.lines) == 4  # per design: the case and its oracle
+    np.testing.assert_allclose(ax.lines[0].get_xdata(), [0.0, 3.0])
+
+
+def test_worst_case_ranking_picks_the_robust_design(tol_study):
+    """At the ideal camera the fine pitch wins; at its worst over the tolerances (gap 0.02, rotation 3 mrad:
+    0.043 mm against 0.0265 mm) the coarse one does, and the recommendation names the gap error as what
+    limits it."""
+    from lfstudy.study.designs import recommend
+    from lfstudy.study.report import _answer_blocks
+    from lfstudy.study.tolerance import at_ideal, limiting_tolerances, worst_case
+
+    study, cfg = tol_study
+    worst = worst_case(study)
+    fine, coarse = (worst["rms_total_mm"].sel(lenslet_pitch=p).squeeze() for p in (0.0888, 0.1184))
+    assert float(fine) == pytest.approx(0.010 + 1.5 * 0.02 + 0.003) and float(coarse) == pytest.approx(0.0265)
+    w = worst.sel(lenslet_pitch=0.0888).squeeze()
+    assert str(w["worst_camera_imperfections_lenslet_gap_error"].values) == "0.02"
+    assert float(w["valid_percent"]) == pytest.approx(93.0)  # every variable is the worst case's
+    assert int(w["tolerance_cases"]) == 6
+
+    def pick(ds):
+        t = recommend(ds)[0]
+        return float(t.loc[t["recommended"], "lenslet_pitch"].iloc[0])
+
+    assert pick(at_ideal(study)) == pytest.approx(0.0888) and pick(worst) == pytest.approx(0.1184)
+    lim = limiting_tolerances(study).set_index("design")
+    row = lim.loc[lim.index.str.contains("pitch=0.1184")].iloc[0]
+    assert row["+lenslet-to-sensor gap error"] == pytest.approx(0.01)  # 0.5 x 0.02
+    assert row["+lenslet grid rotation error [mrad]"] == pytest.approx(0.0015)
+    assert row["limited_by"] == "lenslet-to-sensor gap error 0.02"
+
+    def answer(rank_at):
+        c = {**cfg, "report": {"rank_at": rank_at}}
+        return {b.name: b.html for b in _answer_blocks(study, c) if b.name in ("sentences", "limits")}
+
+    blocks = answer("tolerances")
+    ideal, tol = answer("ideal")["sentences"], blocks["sentences"]
+    # the recommendation says what limits every design: fine pitch the gap too (+0.03 mm)
+    assert blocks["limits"].count("<td>lenslet-to-sensor gap error 0.02</td>") == 2
+    assert "pitch=0.0888" in ideal.split("It trades")[0] and "Ranked at the ideal camera" in ideal
+    assert "build M=-1 f/#=matched pitch=0.1184" in tol and "Ranked at tolerances" in tol
+    assert "0.0265 mm at its worst" in tol and "limits it is the lenslet-to-sensor gap error 0.02" in tol
+    with pytest.raises(ValueError, match=r"report\.rank_at"):
+        list(_answer_blocks(study, {"report": {"rank_at": "worst"}}))
+
+
+def test_rank_at_is_a_validated_setting(tmp_path):
+    from lfstudy.config import ConfigError
+
+    assert load_config(ROOT / "config" / "demo.yaml")["report"]["rank_at"] == "ideal"
+    cfg = load_config(ROOT / "config" / "tolerances.yaml")
+    assert cfg["report"]["rank_at"] == "tolerances"
+    text = (ROOT / "config" / "demo.yaml").read_text() + "report: {rank_at: worst}\n"
+    (tmp_path / "bad.yaml").write_text(text)
+    with pytest.raises(ConfigError, match="rank_at"):
+        load_config(tmp_path / "bad.yaml")

@@ -338,6 +338,12 @@ STAGES: dict[str, tuple[str, str, str]] = {
         "ch. 7 (sec. 7.1–7.4 compared in mm)",
         "The study's answer: designs in physical units, the Pareto front, the recommendation.",
     ),
+    "lfstudy.study.tolerance": (
+        "Tolerances",
+        "— (issue 29: imperfections the processing does not know, swept as settings)",
+        "Which tolerance matters: the error against each swept imperfection per design, and each design's "
+        "worst case over them.",
+    ),
     "lfstudy.process": (
         "Recorded images",
         "sec. 5.1–5.6 and ch. 6 applied to recordings (calibration, light field, refocus, "

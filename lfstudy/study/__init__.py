@@ -7,7 +7,8 @@ settings, cases, where each stage's outputs live), :mod:`~lfstudy.study.case` (o
 science: the layer the workflow, the CLI and notebooks share),
 :mod:`~lfstudy.study.metrics` (per-case errors, Q), :mod:`~lfstudy.study.metric_table` (every
 metric's units, long name, better direction and where it is shown), :mod:`~lfstudy.study.table`
-(the study Dataset and CSV), :mod:`~lfstudy.study.report` and
+(the study Dataset and CSV), :mod:`~lfstudy.study.tolerance` (the error against each swept imperfection,
+the worst case over them), :mod:`~lfstudy.study.report` and
 :mod:`~lfstudy.study.figures` (the HTML report). The report (matplotlib) is imported on first use, so the
 per-case stages that only need the metrics start fast.
 """

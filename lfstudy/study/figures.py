@@ -36,6 +36,7 @@ __all__ = [
     "uncertainty_maps",
     "uncertainty_histograms",
     "error_vs_uncertainty",
+    "tolerance_figure",
 ]
 
 _COMP = {"x": "u", "y": "v", "z": "w"}
@@ -519,6 +520,62 @@ def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Fig
     if lab:
         fig.legend(h, lab, loc="upper right", fontsize=7, ncols=min(4, len(lab)))
     fig.suptitle(f"Against {dim} (mean over the other settings)", fontsize=10, x=0.4)
+    return fig
+
+
+@_plain_ticks
+def tolerance_figure(
+    table: Any, level: str, panels: Mapping[str, str], oracle: Mapping[str, str] | None = None
+) -> Figure:
+    """The error against one imperfection's level, per design (colour) and flow (line style).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        :func:`lfstudy.study.tolerance.tolerance_table`: ``design``, ``flow`` (optional), the level
+        column and the metrics.
+    level : str
+        The level column (its name, the setting's label with units, labels the x axes).
+    panels : mapping column -> title
+        One panel per metric, in order.
+    oracle : mapping column -> oracle column, optional
+        Drawn dashed in the design's colour in that metric's panel (the PIV on the true volumes).
+    """
+    oracle = dict(oracle or {})
+    cols = [c for c in panels if c in table]
+    n = max(1, len(cols))
+    fig = _fig(3.0 * n, 3.0, left=0.3 / n + 0.02, right=0.98, bottom=0.2, top=0.8, wspace=0.45)
+    axes = np.atleast_1d(fig.subplots(1, n))
+    levels = list(dict.fromkeys(table[level].tolist())) if level in table else []
+    numeric = all(isinstance(v, (int, float, np.integer, np.floating)) for v in levels)
+    designs = list(dict.fromkeys(table["design"])) if "design" in table else [""]
+    flows = list(dict.fromkeys(table["flow"])) if "flow" in table else [None]
+    styles = ["o-", "s:", "^-.", "d--"]
+    for ax, c in zip(axes, cols):
+        pos = {v: v for v in levels} if numeric else dict(zip(levels, _categorical(ax, levels)))
+        for i, dsg in enumerate(designs):
+            for j, fl in enumerate(flows):
+                sel = (table["design"] == dsg) if "design" in table else np.ones(len(table), bool)
+                if fl is not None:
+                    sel = sel & (table["flow"] == fl)
+                sub = table[sel]
+                if sub.empty:
+                    continue
+                x = np.asarray([pos[v] for v in sub[level]], float)
+                order = np.argsort(x, kind="stable")
+                label = dsg + (f", {fl}" if fl is not None and len(flows) > 1 else "")
+                y = np.asarray(sub[c], float)[order]
+                ax.plot(x[order], y, styles[j % len(styles)], color=f"C{i % 10}", ms=4, label=label)
+                if c in oracle and oracle[c] in sub:
+                    yo = np.asarray(sub[oracle[c]], float)[order]
+                    ax.plot(x[order], yo, "--", color=f"C{i % 10}", lw=0.9, alpha=0.8)
+        ax.set_title(panels[c] + (" (dashed: oracle)" if c in oracle else ""), fontsize=8)
+        ax.set_xlabel(level, fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+    h, lab = axes[0].get_legend_handles_labels()
+    if lab:
+        fig.legend(h, lab, loc="upper center", fontsize=7, ncols=min(3, len(lab)), bbox_to_anchor=(0.5, 1.0))
     return fig
 
 

@@ -45,6 +45,9 @@ PLACES: dict[str, str] = {
     "resolution": "a column of the report's resolution and field-of-view table (and of the design table)",
     "budget": "a column of the report's error-budget table: per design, what the PIV windows give on the true "
     "particles (the oracle) beside what the reconstruction adds (and of the design table)",
+    "tolerance": "a column of the report's tolerance tables and a panel of its tolerance figures: per design, "
+    "against the level of each swept imperfection (with the oracle's oracle_<name> beside it where the study "
+    "holds one)",
     "uncertainty": "a column of the report's uncertainty table: per design and flow, how well the PIV's per-vector "
     "standard uncertainty measures the error against the truth",
 }
@@ -184,19 +187,20 @@ METRICS: tuple[Metric, ...] = (
     ),
     Metric(
         "rms_total_mm", "mm", "total RMS error (all components)", True,
-        {"summary", "headline", "panel", "overview", "criterion", "pareto", "front", "budget"}, "error",
-        criterion="lowest total RMS error",
+        {"summary", "headline", "panel", "overview", "criterion", "pareto", "front", "budget", "tolerance"},
+        "error", criterion="lowest total RMS error",
     ),
     Metric(
         "bias_norm_mm", "mm", "bias magnitude |b|", True, {"criterion"}, "error",
         criterion="lowest bias |b|", derive=_bias_norm_mm,
     ),
     Metric("bias_z_mm", "mm", "bias error z (mean of measured − true)", None, {"summary", "headline"}, "error"),
-    Metric("rms_z_mm", "mm", "RMS error z", True, {"summary", "headline"}, "error"),
-    Metric("rms_x_mm", "mm", "RMS error x", True, {"summary"}, "error"),
+    Metric("rms_z_mm", "mm", "RMS error z", True, {"summary", "headline", "tolerance"}, "error"),
+    Metric("rms_x_mm", "mm", "RMS error x", True, {"summary", "tolerance"}, "error"),
     Metric(
         "valid_percent", "percent", "valid vectors", False,
-        {"summary", "headline", "panel", "criterion", "front", "budget"}, "quality", criterion="most valid vectors",
+        {"summary", "headline", "panel", "criterion", "front", "budget", "tolerance"}, "quality",
+        criterion="most valid vectors",
     ),
     Metric(
         "Q", "1", "reconstruction quality Q", False, {"summary", "headline", "panel", "criterion", "front"},
@@ -259,7 +263,7 @@ METRICS: tuple[Metric, ...] = (
                description=_LOCKING),
     Metric("rms_total", "voxel", "total RMS error (all components)", True, (), "error"),
     *_per_axis("rms_{ax}", "voxel", "RMS error {ax}", lower_is_better=True, group="error"),
-    Metric("rms_y_mm", "mm", "RMS error y", True, (), "error"),
+    Metric("rms_y_mm", "mm", "RMS error y", True, {"tolerance"}, "error"),
     *_per_axis("bias_{ax}", "voxel", "bias error {ax} (mean of measured − true)", group="error"),
     *_per_axis("bias_{ax}_mm", "mm", "bias error {ax} (mean of measured − true)", axes="xy", group="error"),
     *_per_axis("std_{ax}", "voxel", "random error {ax} (std of measured − true)", lower_is_better=True, group="error"),

@@ -46,6 +46,8 @@ __all__ = [
     "case_table",
     "Block",
     "SECTIONS",
+    "TOLERANCE_SECTION",
+    "report_sections",
     "piv_figure_blocks",
 ]
 
@@ -61,6 +63,26 @@ SECTIONS: dict[str, str] = {
     "cases": "Per-case results",
     "legend": "Study table columns",
 }
+
+#: The tolerance section (id, title): in the report, after the answer, only where the study sweeps an
+#: imperfection (:data:`lfstudy.study.sweep.TOLERANCES`).
+TOLERANCE_SECTION: tuple[str, str] = ("tolerances", "Tolerances: the error against each imperfection")
+
+
+def report_sections(study: xr.Dataset) -> dict[str, str]:
+    """The report's sections for this study: :data:`SECTIONS`, with :data:`TOLERANCE_SECTION` after
+    the answer where the study sweeps an imperfection over two or more levels."""
+    from lfstudy.study.tolerance import tolerance_dims
+
+    if not tolerance_dims(study):
+        return dict(SECTIONS)
+    out: dict[str, str] = {}
+    for k, v in SECTIONS.items():
+        out[k] = v
+        if k == "answer":
+            out[TOLERANCE_SECTION[0]] = TOLERANCE_SECTION[1]
+    return out
+
 
 #: Thesis figures for the uniform displacements (image-frame sign), sec. 7.1–7.2.
 THESIS_REFERENCE = {
@@ -315,7 +337,8 @@ def report_blocks(
         Show a tqdm progress bar over the per-case figures.
     """
     cfg = dict(cfg)
-    yield from _answer_blocks(study)
+    yield from _answer_blocks(study, cfg)
+    yield from _tolerance_blocks(study)
     yield from _overview_blocks(study, case_dirs)
     yield from _comparison_blocks(study)
     yield from _design_blocks(study, cfg)
@@ -326,12 +349,30 @@ def report_blocks(
     yield from _legend_blocks(study)
 
 
-def _answer_blocks(study: xr.Dataset) -> Iterator[Block]:
-    """The recommendation: per flow, the Pareto front over error, in-plane and depth resolution."""
+def _rank_at(cfg: Mapping[str, Any]) -> str:
+    from lfstudy.study.tolerance import RANK_AT
+
+    rank_at = str((cfg.get("report") or {}).get("rank_at", "ideal"))
+    if rank_at not in RANK_AT:
+        raise ValueError(f"config key 'report.rank_at' = {rank_at!r}: allowed values are {', '.join(RANK_AT)}")
+    return rank_at
+
+
+def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> Iterator[Block]:
+    """The recommendation: per flow, the Pareto front over error, in-plane and depth resolution.
+
+    Where the study sweeps imperfections, the designs are ranked at the ideal camera or at their
+    worst case over the tolerances (``report.rank_at``), and the sentences say which."""
     from lfstudy.study import figures as rf
     from lfstudy.study.designs import recommend
+    from lfstudy.study.tolerance import at_ideal, tolerance_dims, worst_case
 
-    table, sentences = recommend(study)
+    rank_at = _rank_at(cfg or {})
+    tol = tolerance_dims(study)
+    ranked = study if not tol else (worst_case(study) if rank_at == "tolerances" else at_ideal(study))
+    table, sentences = recommend(ranked)
+    if tol:
+        sentences = {f: s + _tolerance_sentence(study, table, f, rank_at) for f, s in sentences.items()}
     if not sentences:
         yield Block("answer", "none", note="Recommendation: not available (no computed case with errors in mm).")
         return
@@ -345,6 +386,8 @@ def _answer_blocks(study: xr.Dataset) -> Iterator[Block]:
         + html.escape(", ".join(f"{m.long_name} ({m.better})" for m in mt.shown_in("pareto")))
         + " at once; the recommended one is the front's lowest total RMS error with at least 80 % valid vectors.</p>",
     )
+    if tol:
+        yield _limits_block(study)
     cols = [c for c in ("design", "flow", *mt.names("front"), "recommended") if c in table]
     for flow in sentences:
         yield _try(
@@ -363,6 +406,107 @@ def _answer_blocks(study: xr.Dataset) -> Iterator[Block]:
             + _table(front[cols].sort_values("rms_total_mm"), index=False),
         )
     yield from _budget_blocks(study)
+
+
+def _limits_block(study: xr.Dataset) -> Block:
+    """Per design: its error at the ideal camera, what each swept imperfection alone adds, its worst
+    case over the tolerances and the tolerance that limits it."""
+    from lfstudy.study.tolerance import limiting_tolerances
+
+    lim = limiting_tolerances(study)
+    if lim.empty:
+        return _na("answer", "limits", "What limits each design at tolerances", "no computed case at the ideal camera")
+    return Block(
+        "answer",
+        "limits",
+        html="<h4>What each tolerance costs each design</h4><p>Per design: the total RMS error at the ideal "
+        "camera, what each imperfection alone adds at its worst level (+, the other imperfections ideal), the "
+        "worst case over the whole tolerance sweep (combinations included) and the tolerance that costs the "
+        'most (<i>limited_by</i>; "nothing" where no imperfection raises the error).</p>' + _table(lim, index=False),
+    )
+
+
+def _tolerance_sentence(study: xr.Dataset, table: pd.DataFrame, flow: str, rank_at: str) -> str:
+    """What the tolerance sweep says about the recommended design of ``flow``."""
+    from lfstudy.study.tolerance import WORST_BY, limiting_tolerances, tolerance_dims
+
+    names = ", ".join(str(study[d].attrs.get("long_name", d)) for d in tolerance_dims(study))
+    if rank_at == "ideal":
+        head = (
+            f" Ranked at the ideal camera (every swept imperfection, {names}, at its ideal level); "
+            "report.rank_at: tolerances ranks at each design's worst case."
+        )
+    else:
+        head = f" Ranked at tolerances: each design at its worst case over {names} (its largest total RMS error)."
+    pick = table[table["recommended"] & ((table["flow"] == flow) if "flow" in table else True)]
+    lim = limiting_tolerances(study)
+    if pick.empty or lim.empty:
+        return head
+    row = lim[(lim["design"] == pick["design"].iloc[0]) & ((lim["flow"] == flow) if "flow" in lim else True)]
+    if row.empty or not row["limited_by"].iloc[0]:
+        return head
+    r = row.iloc[0]
+    ideal, worst = r[f"ideal {WORST_BY}"], r[f"worst {WORST_BY}"]
+    if r["limited_by"] == "nothing":
+        return head + f" No swept imperfection raises its error ({ideal:.3g} mm at the ideal camera)."
+    return head + (
+        f" Its error is {ideal:.3g} mm at the ideal camera and {worst:.3g} mm at its worst over the tolerances; "
+        f"the tolerance that limits it is the {r['limited_by']}."
+    )
+
+
+def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
+    """Per swept imperfection: a table and a figure of the error against its level, per design (the
+    other imperfections ideal), with the oracle beside it; and what limits each design."""
+    from lfstudy.study import figures as rf
+    from lfstudy.study.tolerance import (
+        ideal_levels,
+        level_label,
+        level_text,
+        tolerance_metrics,
+        tolerance_table,
+    )
+
+    ideal = ideal_levels(study)
+    if not ideal:
+        return
+    oracle = {m: f"oracle_{m}" for m in tolerance_metrics(study) if f"oracle_{m}" in study}
+    yield Block(
+        "tolerances",
+        "intro",
+        html="<p>Imperfections the imaging has and the processing does not know (the processing keeps the "
+        "nominal camera, as in an experiment). Each table and figure varies one of them, the others at their "
+        "ideal level ("
+        + html.escape("; ".join(level_text(study, d, v) for d, v in ideal.items()))
+        + "), per design. "
+        + (
+            "Beside each error, the oracle's: the case's PIV on the true particle volumes, which no imperfection "
+            "of the camera reaches, so the gap between the two is what the imperfection costs the "
+            "reconstruction."
+            if oracle
+            else "The study holds no oracle (errors stores written before it)."
+        )
+        + " What each costs each design, and which limits it, is in the recommendation above.</p>",
+    )
+    for d in ideal:
+        t = tolerance_table(study, d)
+        label = level_label(study, d)
+        if t.empty:
+            yield _na("tolerances", f"table_{d}", f"Error against {label}", "no computed case")
+            continue
+        panels = {m: f"{mt.metric(m).long_name} [{mt.metric(m).units}]" for m in tolerance_metrics(study)}
+        yield _try(
+            "tolerances",
+            d,
+            f"Error against {label}, per design, the other imperfections ideal; dashed: the oracle.",
+            f"error against {label}",
+            lambda t=t, label=label, panels=panels: rf.tolerance_figure(t, label, panels, oracle),
+        )
+        yield Block(
+            "tolerances",
+            f"table_{d}",
+            html=f"<h4>Error against {html.escape(label)}</h4>" + _table(t, index=False),
+        )
 
 
 def _budget_blocks(study: xr.Dataset) -> Iterator[Block]:
@@ -835,7 +979,7 @@ def write_report(
     )
     return write_html(
         blocks,
-        SECTIONS,
+        report_sections(study),
         f"lfstudy report: {name}",
         f"Light-field PIV study <code>{html.escape(name)}</code>",
         intro,

@@ -46,6 +46,8 @@ __all__ = [
     "format_value",
     "FILES",
     "SHARED",
+    "TOLERANCES",
+    "is_tolerance",
 ]
 
 #: Config sections in the order the pipeline first reads them: the order of case-id segments.
@@ -65,6 +67,25 @@ SECTION_ORDER: tuple[str, ...] = (
     "piv",
     "depth_calibration",
 )
+
+
+#: Config paths (sections or dotted sub-paths) of the imperfections a real experiment has and the
+#: processing does not know (issue 29): a swept setting under one of them is a *tolerance*, not a
+#: design choice. The report draws the error against each and can rank designs at their worst case
+#: over them (``report.rank_at``); every setting here defaults to its ideal value in the schema.
+TOLERANCES: tuple[str, ...] = (
+    "camera.imperfections",
+    "illumination",
+    "particles.diameter",
+    "particles.depth_margin",
+    "sensor.background",
+    "sensor.hot_pixels",
+)
+
+
+def is_tolerance(path: str) -> bool:
+    """Whether the setting at config ``path`` (dotted) is an imperfection (:data:`TOLERANCES`)."""
+    return _under(path, TOLERANCES)
 
 
 @dataclass(frozen=True)
