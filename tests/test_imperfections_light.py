@@ -321,3 +321,25 @@ def test_config_checks_and_sweeps_by_dotted_path():
     assert len({i["simulate"] for i in ids}) == 4 and len({i["errors"] for i in ids}) == 4
     assert len({i["pinhole"] for i in ids}) == 2  # the background reaches the pinhole image; the sheet does not
     assert "illumination" in stage_config(cfg, cases[-1], "errors")
+
+
+def test_the_levels_of_a_tolerance_sweep_share_the_image_noise():
+    """Common random numbers: cases that differ only in an imperfection render with the same seeds (their
+    stage ids differ, the noise stream does not), so the tolerance table compares like with like."""
+    import yaml
+
+    from lfstudy.study.case import _noise_stream
+    from lfstudy.study.config import stage_config, validate_config
+    from lfstudy.study.sweep import Sweep
+
+    raw = yaml.safe_load((Path(__file__).parent / "data" / "tiny.yaml").read_text())
+    raw["sweep"] = {"ppp": [0.002, 0.004], "camera.imperfections.lenslet_gap_error": [0.0, 0.02]}
+    cfg = validate_config(raw)
+    cases = Sweep(cfg).cases()
+    sids = {
+        (c.ppp, c["camera.imperfections.lenslet_gap_error"]): stage_config(cfg, c, "simulate")["stage_id"]
+        for c in cases
+    }
+    assert sids[(0.002, 0.0)] != sids[(0.002, 0.02)]
+    assert _noise_stream(sids[(0.002, 0.0)]) == _noise_stream(sids[(0.002, 0.02)])
+    assert _noise_stream(sids[(0.002, 0.0)]) != _noise_stream(sids[(0.004, 0.0)])

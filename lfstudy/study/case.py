@@ -52,6 +52,14 @@ __all__ = [
 ]
 
 
+def _noise_stream(stage_id: str) -> str:
+    """A simulate stage id without its imperfection segments (:data:`lfstudy.study.sweep.TOLERANCES`):
+    the random stream of the images, shared by the levels of a tolerance sweep."""
+    from lfstudy.study.sweep import is_tolerance
+
+    return "/".join(seg for seg in stage_id.split("/") if not is_tolerance(seg.partition("~")[0]))
+
+
 def derive_seed(base: int, *parts: Any) -> int:
     """A stable 32-bit seed from the study seed and labels (crc32, not ``hash``)."""
     text = "/".join(str(p) for p in (base, *parts))
@@ -242,13 +250,16 @@ def case_image(
     it already is), rendered with ``raytrace.method`` (exact: the expected image; montecarlo: ray
     traced), then recorded by the case's sensor; both seeds derive from the
     study seed, the simulate stage's location and the frame, so one config gives
-    one image, byte for byte. Every particle setting acts on the particle list (intensities,
-    positions) and every sensor setting in :func:`case_sensor`: both renderers honour all.
+    one image, byte for byte. The location's imperfection settings (``TOLERANCES``) are left out
+    of the seeds: the levels of a tolerance sweep see the same rays and noise (common random
+    numbers), so what differs between them is the imperfection. Every particle setting acts on
+    the particle list (intensities, positions) and every sensor setting in :func:`case_sensor`:
+    both renderers honour all.
     """
     from lfstudy.simulate.raytrace import render
 
     rt = ccfg["raytrace"]
-    sid = _stage_id(ccfg, "simulate")
+    sid = _noise_stream(_stage_id(ccfg, "simulate"))
     seed = derive_seed(ccfg["seed"], "raytrace", sid, frame)
     img = render(
         case_camera(ccfg),
