@@ -40,7 +40,14 @@ is strictly better), so no move raises the residual; a linearisation that oversh
 replaced by the best trial (Wieneke's shaking). After each iteration particles weaker than
 ``min_intensity`` times the median are removed as ghosts, and pairs closer than half a voxel
 are merged. The position uncertainty is the fit's covariance σ²·(JᵀJ)⁻¹ with σ² the patch's
-residual variance.
+residual variance. With ``jacobian="forward"`` the Jacobian is taken from the three +δ images
+(forward differences) and the choice is among the current position, those three and the step.
+
+The residual is rendered once (the data, before the first candidate is placed) and then kept
+exact incrementally: every change subtracts or adds back an exact image (the choice subtracts the
+chosen one, removed ghosts and rejected residual candidates are added back), so an iteration costs
+8 exact images per particle with central differences (the current one, six trials, the step) and
+5 with forward ones (a fresh render of the final list agrees to 1e-9, see the tests).
 
 Candidates: the peaks of a MART volume (:func:`lfstudy.reconstruct.mart.mart`) above
 ``peak_threshold`` of its maximum, on the case grid refined ``_REFINE_XY`` x ``_REFINE_XY`` x
@@ -52,7 +59,13 @@ within ``_MIN_SEPARATION`` voxels of a particle.
 
 Measured (``benchmarks/bench_ipr.py --crop 400 400``, Table 4.3 camera, seeds 0 and 1 used to
 set the defaults): 0.001 ppp 88.8 % found within half a voxel, 8–10 % ghosts; 0.005 ppp
-80–81 % found, 15–18 % ghosts; 17–50 s per crop on 2 shared cores.
+80–81 % found, 15–18 % ghosts; 17–50 s per crop on 2 shared cores. Where the time goes
+(``--crop 300 300 --ppp 0.005``, 450 particles, seed 0): about half in the 11 candidate MART
+volumes on the refined grid (the first and one per residual-candidate round), about 40 % in the
+32,381 exact particle images (40,862 before the residual was kept incrementally: x0.79, same
+particles found, 79.3 %, and ghosts, 19.2 %), the fit kernels ~5 %. Both dominant costs scale with
+the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp stays far above the issue's
+10 minutes on 2 cores (the attrs ``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
 
 Output: :func:`ipr_particles` returns the particle list; the method ``ipr`` returns the
 volume on the grid rendered from the particles with :func:`render_particles` (Gaussians of
@@ -648,7 +661,9 @@ def ipr_particles(
         intensity I at the reference solid angle puts I into the image), ``residual`` (‖residual‖/‖image‖
         on its patch), ``sigma_x``, ``sigma_y``, ``sigma_z`` [mm] (from the fit's covariance). Attrs:
         the settings, ``candidates``, ``removed_ghosts``, ``residual_norm`` per iteration (relative,
-        exact), ``seconds`` and the calibrated grid (:func:`calibrated_camera`).
+        exact), ``seconds`` and its split (``seconds_mart``: the candidate volumes, ``mart_volumes`` of them;
+        ``seconds_patches``: the exact particle images, ``particle_images`` of them; ``seconds_fit``: the fit
+        kernels) and the calibrated grid (:func:`calibrated_camera`).
     """
     t_start = time.perf_counter()
     for name in ("lightfield", "centers", "camera", "grid"):
@@ -682,13 +697,14 @@ def ipr_particles(
     central = jacobian == "central"
     signs = (1.0, -1.0) if central else (1.0,)
     tr = np.array([[d * delta[i] if a == i else 0.0 for a in range(3)] for i in range(3) for d in signs])
-    clock = {"mart": 0.0, "patches": 0.0, "fit": 0.0}
+    clock = {"mart": 0.0, "patches": 0.0, "fit": 0.0, "images": 0, "volumes": 0}
     cgrid = _refined(grid, _REFINE_XY, _REFINE_Z)
 
     def candidates(light: xr.DataArray) -> np.ndarray:
         t0 = time.perf_counter()
         vol = mart(light, inputs.camera, cgrid, iterations=mart_iterations).values
         clock["mart"] += time.perf_counter() - t0
+        clock["volumes"] += 1
         return _peaks(vol, cgrid, peak_threshold)
 
     xyz = candidates(lf)
@@ -705,6 +721,7 @@ def ipr_particles(
         t0 = time.perf_counter()
         out = particle_patches(cam, *pos.T, trials=trials)
         clock["patches"] += time.perf_counter() - t0
+        clock["images"] += len(pos) * (1 if trials is None else 1 + len(trials))
         return out
 
     def add_images(pos: np.ndarray, amp: np.ndarray, res: np.ndarray, sign: float) -> None:
@@ -832,6 +849,8 @@ def ipr_particles(
             "seconds_mart": float(clock["mart"]),
             "seconds_patches": float(clock["patches"]),
             "seconds_fit": float(clock["fit"]),
+            "particle_images": int(clock["images"]),
+            "mart_volumes": int(clock["volumes"]),
             **ginfo,
         },
     )
