@@ -1,7 +1,7 @@
 """IPR on a crop of the Table 4.3 camera: particles found, ghosts, position errors, time, memory (issue 27).
 
     python benchmarks/bench_ipr.py [--crop 600 600] [--ppp 0.001 0.005] [--rays 2000]
-        [--photons 25000] [--threads 2] [--iterations N] [--seed 0]
+        [--photons 25000] [--threads 2] [--iterations N] [--seed 0] [--compare jacobian=forward ...]
 
 For each ppp, a particle field over the crop's field of view and the thesis' 7 mm depth is
 imaged with Monte-Carlo rays (``--rays`` per particle) plus shot noise (``--photons`` per
@@ -12,6 +12,13 @@ with a fitted one within half a voxel, per-axis scaled), ghosts (fitted particle
 within half a voxel) as % of the fitted, rms position error of the found ones in mm and voxels
 (x, y together, z on its own), IPR wall time (after a warm-up that compiles the kernels) and the
 process' peak RSS. ``--crop`` trades coverage for time: the full sensor is 4872 x 3248.
+
+Where the time goes: the split of the IPR time into the candidate MART volumes, the exact particle
+images (:func:`lfstudy.reconstruct.ipr.particle_patches`) and the fit kernels (the rest: peaks,
+bookkeeping), and the full frame extrapolated at the crop's cost per particle (the crop's particle
+count scaled by the sensor area). ``--compare k=v ...`` fits the same scene again with each setting
+(one ``ipr_particles`` keyword each, e.g. ``jacobian=forward`` or ``residual_candidates=3``) and prints
+the same line and the time ratio to the defaults, in the same run.
 
 Targets (issue 27): >= 95 % found within half a voxel at 0.001 ppp, >= 80 % at 0.005 ppp,
 <= 10 % ghosts; a full frame at 0.005 ppp in <= 10 min on 2 cores and <= 8 GB.
@@ -79,6 +86,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--iterations", type=int, default=None, help="default: the method's")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--compare", nargs="*", default=[], metavar="K=V", help="ipr_particles settings to compare")
     args = ap.parse_args()
 
     import numba
@@ -90,23 +98,46 @@ def main() -> None:
     print(f"Table 4.3 camera cropped to {w} x {h} px (full: {WIDTH} x {HEIGHT}); {args.threads} threads")
     field, inputs = _scene(160, 160, 0.002, 200, args.photons, 99)  # warm-up: compile the kernels
     ipr_particles(inputs, iterations=1)
+    runs = [("defaults", {})] + [(c, _setting(c)) for c in args.compare]
     for ppp in args.ppp:
         t0 = time.perf_counter()
         field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed)
         t_sim = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        kw = {} if args.iterations is None else {"iterations": args.iterations}
-        parts = ipr_particles(inputs, **kw)
-        t_ipr = time.perf_counter() - t0
-        s = _score(field, parts, inputs.grid)
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-        print(
-            f"ppp {ppp}: {s['n_true']} true, {s['n_fit']} fitted; found {s['found']:.1f} % within half a voxel, "
-            f"ghosts {s['ghosts']:.1f} % of fitted; rms error x,y {s['rms_xy_mm']:.4f} mm ({s['rms_xy_vox']:.3f} vox), "
-            f"z {s['rms_z_mm']:.4f} mm ({s['rms_z_vox']:.3f} vox), mean z error {s['mean_z_mm']:+.4f} mm; "
-            f"IPR {t_ipr:.1f} s (simulation {t_sim:.1f} s); residual {parts.attrs['residual_norm'][0]:.3f} -> "
-            f"{parts.attrs['residual_norm'][-1]:.3f}; peak RSS {rss:.2f} GB"
-        )
+        print(f"ppp {ppp}: {len(field.x)} true particles (simulation {t_sim:.1f} s)")
+        t_ref = None
+        for name, setting in runs:
+            kw = ({} if args.iterations is None else {"iterations": args.iterations}) | setting
+            t0 = time.perf_counter()
+            parts = ipr_particles(inputs, **kw)
+            t_ipr = time.perf_counter() - t0
+            t_ref = t_ref or t_ipr
+            s = _score(field, parts, inputs.grid)
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+            a = parts.attrs
+            rest = t_ipr - a["seconds_mart"] - a["seconds_patches"] - a["seconds_fit"]
+            full = t_ipr * (WIDTH * HEIGHT) / (w * h)
+            print(
+                f"  {name}: {s['n_fit']} fitted; found {s['found']:.1f} % within half a voxel, "
+                f"ghosts {s['ghosts']:.1f} % of fitted; rms error x,y {s['rms_xy_mm']:.4f} mm "
+                f"({s['rms_xy_vox']:.3f} vox), z {s['rms_z_mm']:.4f} mm ({s['rms_z_vox']:.3f} vox), mean z error "
+                f"{s['mean_z_mm']:+.4f} mm; residual {a['residual_norm'][0]:.3f} -> {a['residual_norm'][-1]:.3f}\n"
+                f"    IPR {t_ipr:.1f} s (x{t_ipr / t_ref:.2f} the defaults): MART candidates {a['seconds_mart']:.1f} s "
+                f"({a['mart_volumes']} volumes), {a['particle_images']} particle images {a['seconds_patches']:.1f} s "
+                f"({1e3 * a['seconds_patches'] / max(a['particle_images'], 1):.2f} ms each), "
+                f"fit {a['seconds_fit']:.1f} s, rest {rest:.1f} s; "
+                f"full frame at this cost per particle {full / 60:.0f} min; peak RSS {rss:.2f} GB"
+            )
+
+
+def _setting(text: str) -> dict[str, object]:
+    """``k=v`` as an ipr_particles keyword (v an int, a float or a string)."""
+    k, _, v = text.partition("=")
+    for cast in (int, float):
+        try:
+            return {k: cast(v)}
+        except ValueError:
+            pass
+    return {k: v}
 
 
 if __name__ == "__main__":

@@ -40,7 +40,14 @@ is strictly better), so no move raises the residual; a linearisation that oversh
 replaced by the best trial (Wieneke's shaking). After each iteration particles weaker than
 ``min_intensity`` times the median are removed as ghosts, and pairs closer than half a voxel
 are merged. The position uncertainty is the fit's covariance σ²·(JᵀJ)⁻¹ with σ² the patch's
-residual variance.
+residual variance. With ``jacobian="forward"`` the Jacobian is taken from the three +δ images
+(forward differences) and the choice is among the current position, those three and the step.
+
+The residual is rendered once (the data, before the first candidate is placed) and then kept
+exact incrementally: every change subtracts or adds back an exact image (the choice subtracts the
+chosen one, removed ghosts and rejected residual candidates are added back), so an iteration costs
+8 exact images per particle with central differences (the current one, six trials, the step) and
+5 with forward ones (a fresh render of the final list agrees to 1e-9, see the tests).
 
 Candidates: the peaks of a MART volume (:func:`lfstudy.reconstruct.mart.mart`) above
 ``peak_threshold`` of its maximum, on the case grid refined ``_REFINE_XY`` x ``_REFINE_XY`` x
@@ -52,7 +59,13 @@ within ``_MIN_SEPARATION`` voxels of a particle.
 
 Measured (``benchmarks/bench_ipr.py --crop 400 400``, Table 4.3 camera, seeds 0 and 1 used to
 set the defaults): 0.001 ppp 88.8 % found within half a voxel, 8–10 % ghosts; 0.005 ppp
-80–81 % found, 15–18 % ghosts; 17–50 s per crop on 2 shared cores.
+80–81 % found, 15–18 % ghosts; 17–50 s per crop on 2 shared cores. Where the time goes
+(``--crop 300 300 --ppp 0.005``, 450 particles, seed 0): about half in the 11 candidate MART
+volumes on the refined grid (the first and one per residual-candidate round), about 40 % in the
+32,381 exact particle images (40,862 before the residual was kept incrementally: x0.79, same
+particles found, 79.3 %, and ghosts, 19.2 %), the fit kernels ~5 %. Both dominant costs scale with
+the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp stays far above the issue's
+10 minutes on 2 cores (the attrs ``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
 
 Output: :func:`ipr_particles` returns the particle list; the method ``ipr`` returns the
 volume on the grid rendered from the particles with :func:`render_particles` (Gaussians of
@@ -104,6 +117,7 @@ _MIN_SEPARATION = 0.5  # residual candidates nearer an existing particle [voxels
 _REFINE_XY = 3  # candidate MART grid: this many voxels per case voxel in x and y
 _REFINE_Z = 2  # and in z
 _GHOST_FROM = 0  # first iteration after which faint particles are removed
+_JACOBIANS = ("central", "forward")  # finite differences of the position Jacobian
 
 
 # ------------------------------------------------------------------ the calibrated model camera
@@ -331,8 +345,8 @@ def particle_patches(
 
 # ------------------------------------------------------------------ the fit (numba)
 @njit(cache=True)
-def _accumulate(img, buf, offs, r0, c0, shp, inten, sign):  # pragma: no cover - jitted
-    """img[patch] += sign·inten[i]·U_i for every particle's first (unshifted) image."""
+def _accumulate_masked(img, mask, buf, offs, r0, c0, shp, inten, sign):  # pragma: no cover - jitted
+    """img[patch] += sign·inten[i]·U_i on the pixels where ``mask`` is set, particle after particle."""
     for i in range(r0.size):
         h, w = shp[i, 0], shp[i, 1]
         o = offs[i]
@@ -341,14 +355,16 @@ def _accumulate(img, buf, offs, r0, c0, shp, inten, sign):  # pragma: no cover -
             continue
         for r in range(h):
             for c in range(w):
-                img[r0[i] + r, c0[i] + c] += a * buf[o + r * w + c]
+                if mask[r0[i] + r, c0[i] + c] != 0:
+                    img[r0[i] + r, c0[i] + c] += a * buf[o + r * w + c]
 
 
 @njit(cache=True)
-def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, move, out):  # pragma: no cover
+def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, move, central, out):  # pragma: no cover
     """One Gauss–Seidel pass of the linearised fit over the particles (module docstring).
 
-    ``buf`` holds per particle 7 images: U, then +x, −x, +y, −y, +z, −z (steps ``delta``).
+    ``buf`` holds per particle 7 images: U, then +x, −x, +y, −y, +z, −z (steps ``delta``; central
+    differences), or with ``central`` False 4: U, +x, +y, +z (forward differences).
     ``res`` is the residual image (data − model), updated in place. ``out[i]`` receives
     (dx, dy, dz, I', var_x, var_y, var_z, relative residual, pixels).
     """
@@ -371,9 +387,14 @@ def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, m
                 u = buf[q]
                 res[rr, cc] += ii * u
                 f0 = u
-                f1 = (buf[q + sz] - buf[q + 2 * sz]) / (2.0 * delta[0])
-                f2 = (buf[q + 3 * sz] - buf[q + 4 * sz]) / (2.0 * delta[1])
-                f3 = (buf[q + 5 * sz] - buf[q + 6 * sz]) / (2.0 * delta[2])
+                if central:
+                    f1 = (buf[q + sz] - buf[q + 2 * sz]) / (2.0 * delta[0])
+                    f2 = (buf[q + 3 * sz] - buf[q + 4 * sz]) / (2.0 * delta[1])
+                    f3 = (buf[q + 5 * sz] - buf[q + 6 * sz]) / (2.0 * delta[2])
+                else:
+                    f1 = (buf[q + sz] - u) / delta[0]
+                    f2 = (buf[q + 2 * sz] - u) / delta[1]
+                    f3 = (buf[q + 3 * sz] - u) / delta[2]
                 fv = (f0, f1, f2, f3)
                 rv = res[rr, cc]
                 npx += 1.0
@@ -411,7 +432,10 @@ def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, m
                 q = o + r * w + c
                 m = buf[q]
                 for a in range(3):
-                    m += step[a] * (buf[q + (2 * a + 1) * sz] - buf[q + (2 * a + 2) * sz]) / (2.0 * delta[a])
+                    if central:
+                        m += step[a] * (buf[q + (2 * a + 1) * sz] - buf[q + (2 * a + 2) * sz]) / (2.0 * delta[a])
+                    else:
+                        m += step[a] * (buf[q + (a + 1) * sz] - buf[q]) / delta[a]
                 m *= inew
                 res[rr, cc] -= m
                 rr2 += res[rr, cc] * res[rr, cc]
@@ -593,6 +617,7 @@ def ipr_particles(
     background: float = 0.0,
     residual_candidates: int = 10,
     mart_iterations: int = 3,
+    jacobian: str = "central",
     batch: int = 2048,
     progress: bool = False,
 ) -> xr.Dataset:
@@ -620,6 +645,10 @@ def ipr_particles(
         After each of this many first iterations, MART peaks of the positive residual add candidates.
     mart_iterations : int
         MART iterations of the candidate volumes.
+    jacobian : {"central", "forward"}
+        Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
+        particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
+        besides the current position: the three trials and the Gauss–Newton step).
     batch : int
         Particles rendered at once (bounds the patch memory).
     progress : bool
@@ -632,7 +661,9 @@ def ipr_particles(
         intensity I at the reference solid angle puts I into the image), ``residual`` (‖residual‖/‖image‖
         on its patch), ``sigma_x``, ``sigma_y``, ``sigma_z`` [mm] (from the fit's covariance). Attrs:
         the settings, ``candidates``, ``removed_ghosts``, ``residual_norm`` per iteration (relative,
-        exact), ``seconds`` and the calibrated grid (:func:`calibrated_camera`).
+        exact), ``seconds`` and its split (``seconds_mart``: the candidate volumes, ``mart_volumes`` of them;
+        ``seconds_patches``: the exact particle images, ``particle_images`` of them; ``seconds_fit``: the fit
+        kernels) and the calibrated grid (:func:`calibrated_camera`).
     """
     t_start = time.perf_counter()
     for name in ("lightfield", "centers", "camera", "grid"):
@@ -646,6 +677,9 @@ def ipr_particles(
     _check("max_step", max_step, 0.0, 5.0, lo_open=True)
     _check("damping", damping, 0.0, 1e6)
     _check("background", background, 0.0, math.inf)
+    if jacobian not in _JACOBIANS:
+        allowed = ", ".join(_JACOBIANS)
+        raise ReconstructionError(f"reconstruct.ipr.jacobian = {jacobian!r}: allowed values are {allowed}")
     if not isinstance(batch, (int, np.integer)) or batch < 1:
         raise ReconstructionError(f"reconstruct.ipr.batch = {batch!r}: allowed range is integers >= 1")
     from lfstudy.reconstruct.mart import mart
@@ -660,11 +694,18 @@ def ipr_particles(
     vox = np.array([dx, dy, dz])
     delta = shake * vox
     mstep = max_step * vox
-    tr = np.array([[d if a == i else 0.0 for a in range(3)] for i in range(3) for d in (delta[i], -delta[i])])
+    central = jacobian == "central"
+    signs = (1.0, -1.0) if central else (1.0,)
+    tr = np.array([[d * delta[i] if a == i else 0.0 for a in range(3)] for i in range(3) for d in signs])
+    clock = {"mart": 0.0, "patches": 0.0, "fit": 0.0, "images": 0, "volumes": 0}
     cgrid = _refined(grid, _REFINE_XY, _REFINE_Z)
 
     def candidates(light: xr.DataArray) -> np.ndarray:
-        return _peaks(mart(light, inputs.camera, cgrid, iterations=mart_iterations).values, cgrid, peak_threshold)
+        t0 = time.perf_counter()
+        vol = mart(light, inputs.camera, cgrid, iterations=mart_iterations).values
+        clock["mart"] += time.perf_counter() - t0
+        clock["volumes"] += 1
+        return _peaks(vol, cgrid, peak_threshold)
 
     xyz = candidates(lf)
     n_cand = len(xyz)
@@ -676,50 +717,72 @@ def ipr_particles(
     ghosts = 0
     inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
 
-    def render_model(pos: np.ndarray, amp: np.ndarray) -> np.ndarray:
-        res = data.copy()
+    def patches(pos: np.ndarray, trials: np.ndarray | None = None):
+        t0 = time.perf_counter()
+        out = particle_patches(cam, *pos.T, trials=trials)
+        clock["patches"] += time.perf_counter() - t0
+        clock["images"] += len(pos) * (1 if trials is None else 1 + len(trials))
+        return out
+
+    def add_images(pos: np.ndarray, amp: np.ndarray, res: np.ndarray, sign: float) -> None:
+        """res += sign·amp·U on the light field's pixels (the exact images of the particles at ``pos``)."""
         for s in range(0, len(pos), batch):
             sl = slice(s, s + batch)
-            buf, offs, r0, c0, shp = particle_patches(cam, *pos[sl].T)
-            _accumulate(res, buf, offs, r0, c0, shp, amp[sl] * 1.0, -1.0)
-        return np.where(mask > 0, res, 0.0)
+            buf, offs, r0, c0, shp = patches(pos[sl])
+            t0 = time.perf_counter()
+            _accumulate_masked(res, mask, buf, offs, r0, c0, shp, amp[sl] * 1.0, sign)
+            clock["fit"] += time.perf_counter() - t0
 
-    def fit_intensity(pos: np.ndarray, amp: np.ndarray, res: np.ndarray) -> np.ndarray:
+    def fit_intensity(pos: np.ndarray, res: np.ndarray, floor: float) -> np.ndarray:
+        """Intensities of new particles at ``pos`` (Gauss–Seidel on ``res``, which keeps the images of those
+        brighter than ``floor``: the others are added back)."""
         out = np.zeros((len(pos), 2))
         for s in range(0, len(pos), batch):
             sl = slice(s, s + batch)
-            buf, offs, r0, c0, shp = particle_patches(cam, *pos[sl].T)
-            _choose(res, mask, buf, offs, r0, c0, shp, 1, amp[sl], buf, offs, r0, c0, shp, out[sl])
+            buf, offs, r0, c0, shp = patches(pos[sl])
+            t0 = time.perf_counter()
+            _choose(res, mask, buf, offs, r0, c0, shp, 1, np.zeros(len(shp)), buf, offs, r0, c0, shp, out[sl])
+            back = np.where(out[sl, 1] > floor, 0.0, out[sl, 1])
+            _accumulate_masked(res, mask, buf, offs, r0, c0, shp, back, 1.0)
+            clock["fit"] += time.perf_counter() - t0
         return out[:, 1]
 
     def shake_step(pos: np.ndarray, amp: np.ndarray, res: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Gauss–Newton steps on a linearised copy of the residual, then the exact choice (``_choose``)."""
+        """Gauss–Newton steps on a linearised copy of the residual, then the exact choice (``_choose``), which
+        leaves ``res`` the exact residual of the moved particles."""
         lin = res.copy()
         out = np.zeros((len(pos), 9))
         pick = np.zeros((len(pos), 2))
         moved = pos.copy()
+        offsets = np.vstack([np.zeros((1, 3)), tr])
         for s in range(0, len(pos), batch):
             sl = slice(s, s + batch)
-            buf, offs, r0, c0, shp = particle_patches(cam, *pos[sl].T, trials=tr)
-            _sweep(lin, mask, buf, offs, r0, c0, shp, amp[sl].copy(), delta, mstep, float(damping), True, out[sl])
+            buf, offs, r0, c0, shp = patches(pos[sl], tr)
+            t0 = time.perf_counter()
+            lm = float(damping)
+            _sweep(lin, mask, buf, offs, r0, c0, shp, amp[sl].copy(), delta, mstep, lm, True, central, out[sl])
+            clock["fit"] += time.perf_counter() - t0
             step = pos[sl] + out[sl, :3]
-            bn, on, r0n, c0n, shpn = particle_patches(cam, *step.T)
+            bn, on, r0n, c0n, shpn = patches(step)
+            t0 = time.perf_counter()
             _choose(res, mask, buf, offs, r0, c0, shp, 1 + len(tr), amp[sl], bn, on, r0n, c0n, shpn, pick[sl])
+            clock["fit"] += time.perf_counter() - t0
             k = pick[sl, 0].astype(int)
-            offsets = np.vstack([np.zeros((1, 3)), tr])
             moved[sl] = np.where((k == len(tr) + 1)[:, None], step, pos[sl] + offsets[np.minimum(k, len(tr))])
         return moved, pick[:, 1], out
 
+    def norm(res: np.ndarray) -> float:
+        return float(np.sqrt(np.sum(res**2))) / norm_d
+
     bar = tqdm(total=iterations, desc="IPR", unit="it", disable=not progress)
-    # intensities of the candidates first (positions fixed)
-    if len(xyz):
-        res = render_model(xyz, inten)
-        inten = fit_intensity(xyz, inten, res)
+    # the residual is kept exact incrementally: every image subtracted or added back is the exact one
+    res = data.copy()
+    if len(xyz):  # intensities of the candidates first (positions fixed)
+        inten = fit_intensity(xyz, res, -1.0)
     for it in range(iterations):
         if not len(xyz):
             break
-        res = render_model(xyz, inten)
-        res_hist.append(float(np.sqrt(np.sum(res**2))) / norm_d)
+        res_hist.append(norm(res))
         xyz, inten, out = shake_step(xyz, inten, res)
         sig = np.sqrt(out[:, 4:7])
         rel = out[:, 7]
@@ -730,16 +793,19 @@ def ipr_particles(
             keep &= (xyz[:, a] >= inside[a][0] - vox[a]) & (xyz[:, a] <= inside[a][1] + vox[a])
         keep &= _unmerged(xyz, inten, vox)
         ghosts += int((~keep).sum())
+        gone = ~keep & (inten > 0)
+        if gone.any():
+            add_images(xyz[gone], inten[gone], res, 1.0)
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
         if it < residual_candidates:
-            res = render_model(xyz, inten)
             new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf))
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
                 n_cand += len(new)
-                amp0 = fit_intensity(new, np.zeros(len(new)), res)
-                good = amp0 > min_intensity * med
+                floor = min_intensity * med
+                amp0 = fit_intensity(new, res, floor)
+                good = amp0 > floor
                 xyz = np.vstack([xyz, new[good]])
                 inten = np.concatenate([inten, amp0[good]])
                 sig = np.vstack([sig, np.full((int(good.sum()), 3), np.inf)])
@@ -749,7 +815,7 @@ def ipr_particles(
             bar.set_postfix(particles=len(xyz), residual=f"{res_hist[-1]:.4f}")
     bar.close()
     if len(xyz):
-        res_hist.append(float(np.sqrt(np.sum(render_model(xyz, inten) ** 2))) / norm_d)
+        res_hist.append(norm(res))
     P = "particle"
     mm = lambda ln: {"units": "mm", "long_name": ln}  # noqa: E731
     return xr.Dataset(
@@ -776,7 +842,15 @@ def ipr_particles(
             "removed_ghosts": int(ghosts),
             "n_particles": len(xyz),
             "residual_norm": [float(r) for r in res_hist],
+            "jacobian": jacobian,
+            "residual_candidates": int(residual_candidates),
+            "mart_iterations": int(mart_iterations),
             "seconds": float(time.perf_counter() - t_start),
+            "seconds_mart": float(clock["mart"]),
+            "seconds_patches": float(clock["patches"]),
+            "seconds_fit": float(clock["fit"]),
+            "particle_images": int(clock["images"]),
+            "mart_volumes": int(clock["volumes"]),
             **ginfo,
         },
     )
@@ -831,6 +905,7 @@ def ipr(
     background: float = 0.0,
     residual_candidates: int = 10,
     mart_iterations: int = 3,
+    jacobian: str = "central",
     blob_sigma: float = 0.0,
     batch: int = 2048,
     progress: bool = False,
@@ -852,6 +927,7 @@ def ipr(
         background=background,
         residual_candidates=residual_candidates,
         mart_iterations=mart_iterations,
+        jacobian=jacobian,
         batch=batch,
         progress=progress,
     )
@@ -920,6 +996,11 @@ class IPR(ReconstructionMethod):
             "maximum": 50,
             "description": "MART iterations of the candidate volumes",
         },
+        "jacobian": {
+            "type": "string",
+            "enum": list(_JACOBIANS),
+            "description": "finite differences of the position Jacobian: central (6 trial images) or forward (3)",
+        },
         "blob_sigma": {
             "type": "number",
             "minimum": 0,
@@ -941,6 +1022,7 @@ class IPR(ReconstructionMethod):
         background: float = 0.0,
         residual_candidates: int = 10,
         mart_iterations: int = 3,
+        jacobian: str = "central",
         blob_sigma: float = 0.0,
         progress: bool = False,
     ) -> xr.DataArray:
@@ -955,6 +1037,7 @@ class IPR(ReconstructionMethod):
             background=background,
             residual_candidates=residual_candidates,
             mart_iterations=mart_iterations,
+            jacobian=jacobian,
             blob_sigma=blob_sigma,
             progress=progress,
         )
