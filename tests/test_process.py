@@ -644,3 +644,121 @@ def test_median_uncertainty_and_summary_without_sigma():
     ds["unc_w"] = (("z", "y", "x"), sigma[None])
     assert uncertainty_summary(ds) == "uncertainty: median σ of the 5 valid vectors of all pairs: w 0.25 voxel"
     assert float(pair_metrics(ds)["unc_median_w"]) == pytest.approx(0.25)
+
+
+# ------------------------------------------------------------------ recording.volumetric_calibration (issue 29 §2)
+VOLCAL_DEPTHS = [-2.0, -1.1, -0.25, 0.6, 1.45, 2.3]  # over the tiny grid's z = -1.78..2.13 mm
+VOLCAL_SPACING = 0.5  # mm: 5.6 lenslets, 5 x 5 dots over the field
+
+
+@pytest.fixture(scope="module")
+def dot_target(recording) -> list[str]:
+    """The dot card imaged through the real (rotated, offset) lenslet array at each depth, as 12-bit TIFFs
+    (Monte-Carlo: the exact renderer refuses this 10 mrad rotation out of focus)."""
+    from lfstudy.lightfield.volcal import dot_grid
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.simulate import render
+    from lfstudy.simulate.particles import make_field
+
+    cam = PlenopticCamera.from_config(recording["camera"])
+    gx, gy = dot_grid(VOLCAL_SPACING, cam.fov_x, cam.fov_y)
+    names = []
+    for k, z in enumerate(VOLCAL_DEPTHS):
+        field = make_field(gx, gy, np.full(gx.size, z), np.ones(gx.size))
+        img = render(cam, field, 20000, 200 + k, method="montecarlo").values
+        names.append(f"dots_{k}.tif")
+        img = np.clip(np.rint(img * (3000.0 / img.max())), 0, FULL_12).astype(np.uint16)
+        tifffile.imwrite(recording["dir"] / names[-1], img, extratags=_tags(FULL_12))
+    return names
+
+
+def _volcal_config(rec: dict, name: str, volcal: dict | None, model: str = "volumetric") -> Path:
+    recording = {"frames": {"pairs": [["frame_1.tif", "frame_2.tif"]]}}
+    if volcal is not None:
+        recording["volumetric_calibration"] = volcal
+    return _config(rec, name, recording, refocus={**rec["base"]["refocus"], "model": model})
+
+
+def test_a_recorded_dot_target_calibrates_and_refocuses(recording, dot_target, tmp_path, capsys, monkeypatch):
+    """The dot target is fitted (residual and held-out error in the summary, the store and the report's
+    table) and the frames are refocused through it: the pair measures the shift as the thin-lens chain does."""
+    from lfstudy.process import report
+
+    # the HTML (figures: seconds) is the other tests'; its volumetric-calibration table is checked below
+    monkeypatch.setattr(report, "write_process_report", lambda root, cfg, rec, out: Path(out).write_text("<html>"))
+    vc = {"images": "dots_*.tif", "depths": VOLCAL_DEPTHS, "spacing": VOLCAL_SPACING}
+    out = tmp_path / "vol"
+    assert main(["process", str(_volcal_config(recording, "volcal", vc)), "--out", str(out)]) == 0
+    log = capsys.readouterr().out
+    line = next(ln for ln in log.splitlines() if ln.startswith("volumetric calibration"))
+    cal = io.open_zarr(out / "volcal.zarr").load()
+    a = cal.attrs
+    assert a["depths"] == VOLCAL_DEPTHS and a["spacing"] == VOLCAL_SPACING and a["n_dots"] == 25
+    assert a["sources"] == dot_target
+    assert a["holdout_depth"] == -0.25  # the inner depth nearest the middle of the range
+    # within half a lenslet (one in-plane voxel) of every centroid, at the fitted and at the held-out depth
+    assert 0 < a["fit_rms_lenslets"] < 0.5 and 0 < a["holdout_rms_lenslets"] < 0.5, a
+    assert f"fit residual {a['fit_rms_lenslets']:.4f} lenslets RMS" in line, line
+    assert f"held-out z = -0.25 mm {a['holdout_rms_lenslets']:.4f} lenslets RMS" in line, line
+    assert int(cal["valid"].sum()) > 60  # most of the 12 x 12 sub-apertures
+    stack = io.open_array(out / "frames/000/stack.zarr")
+    assert stack.attrs["refocus"].startswith("volumetric calibration")
+    piv = io.open_zarr(out / "piv.zarr").load()
+    valid = piv["valid"].values
+    assert valid.mean() > 0.8
+    assert abs(piv["u"].values[valid].mean() - SHIFT_MM / VOXEL_MM) < 0.1
+    assert abs(piv["v"].values[valid].mean()) < 0.1
+    table = report.volcal_block(out).html
+    assert f"{a['holdout_rms_lenslets']:.4f} at z = -0.25 mm" in table and f"{a['fit_rms_lenslets']:.4f}" in table
+    assert report.volcal_block(tmp_path) is None
+
+
+def test_volumetric_calibration_refusals(recording, cli_error, tmp_path):
+    """Each bad setting is one line naming the field, before anything is written."""
+    five = [f"frame_{k}.tif" for k in (1, 2, 3)] + ["frame_1.tif", "frame_2.tif"]  # stand-ins: counts only
+    cases = {
+        "no_section": (None, "config key 'refocus.model' = 'volumetric' needs the dot-target images"),
+        "missing": (
+            {"images": ["dots_x.tif"] * 6, "depths": VOLCAL_DEPTHS, "spacing": 0.5},
+            "recording.volumetric_calibration.images: image file",
+        ),
+        "count": (
+            {"images": five, "depths": VOLCAL_DEPTHS, "spacing": 0.5},
+            "recording.volumetric_calibration.images: 5 images for 6 depths",
+        ),
+        "few_depths": (
+            {"images": five[:3], "depths": [-1.0, 0.0, 1.0], "spacing": 0.5},
+            "'recording.volumetric_calibration.depths': 3 depths for a polynomial of order 3",
+        ),
+        "same_depth": (
+            {"images": five, "depths": [-1.0, 0.0, 0.0, 1.0, 2.0], "spacing": 0.5},
+            "the depths must be distinct",
+        ),
+        "shallow": (
+            {"images": five, "depths": [-1.0, -0.5, 0.0, 0.5, 1.0], "spacing": 0.5},
+            "recording.volumetric_calibration.depths cover z = -1..1 mm but the reconstruction grid spans",
+        ),
+        "spacing": ({"images": five, "depths": VOLCAL_DEPTHS, "spacing": -0.5}, "recording.volumetric_calibration"),
+    }
+    for name, (vc, expect) in cases.items():
+        out = tmp_path / name
+        line = cli_error("process", str(_volcal_config(recording, f"volcal_{name}", vc)), "--out", str(out))
+        assert expect in line, (name, line)
+        _no_output(out)
+
+
+def test_dot_grid_origin():
+    from lfstudy.lightfield.volcal import VolumetricCalibrationError, dot_grid
+
+    x0, y0 = dot_grid(0.5, 2.8, 2.0)
+    x1, y1 = dot_grid(0.5, 2.8, 2.0, origin=(0.0, 0.0))
+    np.testing.assert_array_equal(x0, x1)
+    np.testing.assert_array_equal(y0, y1)
+    assert x0.size == 5 * 5 and np.abs(x0).max() == 1.0
+    x, y = dot_grid(0.5, 2.8, 2.0, origin=(0.2, -0.1))
+    assert np.isclose(x, 0.2).any() and np.isclose(y, -0.1).any()
+    assert np.abs(x).max() <= 1.4 and np.abs(y).max() <= 1.0
+    np.testing.assert_allclose(np.unique(np.round(np.diff(np.unique(x)), 12)), [0.5])
+    assert sorted(np.unique(np.round(x, 9))) == pytest.approx([-1.3, -0.8, -0.3, 0.2, 0.7, 1.2])
+    with pytest.raises(VolumetricCalibrationError, match="no dot of the grid"):
+        dot_grid(5.0, 2.8, 2.0, origin=(2.5, 0.0))

@@ -59,8 +59,10 @@ class VolumetricCalibrationError(ValueError):
     """The dot-target data or a volumetric-calibration setting do not allow the fit (names the field)."""
 
 
-def dot_grid(spacing: float, extent_x: float, extent_y: float) -> tuple[np.ndarray, np.ndarray]:
-    """The dots' (x, y) [mm] of a square grid of pitch ``spacing`` centred on the axis within the extent.
+def dot_grid(
+    spacing: float, extent_x: float, extent_y: float, origin: tuple[float, float] = (0.0, 0.0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """The dots' (x, y) [mm] of a square grid of pitch ``spacing`` through ``origin`` within the extent.
 
     Parameters
     ----------
@@ -68,6 +70,9 @@ def dot_grid(spacing: float, extent_x: float, extent_y: float) -> tuple[np.ndarr
         Dot pitch [mm], > 0.
     extent_x, extent_y : float
         Full width and height [mm] the dots lie within (|x| <= extent_x/2, |y| <= extent_y/2).
+    origin : (float, float)
+        The (x, y) [mm] of one dot of the grid (default the optical axis): the dots are
+        ``origin + (i, j)·spacing`` for integers i, j.
 
     Returns
     -------
@@ -83,9 +88,22 @@ def dot_grid(spacing: float, extent_x: float, extent_y: float) -> tuple[np.ndarr
             raise VolumetricCalibrationError(
                 f"volumetric_calibration.{name} = {e!r}: must be a finite number >= 0 (mm)"
             )
-    nx, ny = (int(np.floor(0.5 * e / spacing + 1e-9)) for e in (extent_x, extent_y))
-    gx = np.arange(-nx, nx + 1) * spacing
-    gy = np.arange(-ny, ny + 1) * spacing
+    ox, oy = (float(v) for v in origin)
+    if not (np.isfinite(ox) and np.isfinite(oy)):
+        raise VolumetricCalibrationError(f"volumetric_calibration.origin = {origin!r}: must be finite (mm)")
+
+    def ks(e: float, o: float) -> np.ndarray:
+        lo = int(np.ceil((-0.5 * e - o) / spacing - 1e-9))
+        hi = int(np.floor((0.5 * e - o) / spacing + 1e-9))
+        return np.arange(lo, hi + 1)
+
+    gx = ks(extent_x, ox) * spacing + ox
+    gy = ks(extent_y, oy) * spacing + oy
+    if gx.size == 0 or gy.size == 0:
+        raise VolumetricCalibrationError(
+            f"volumetric_calibration: no dot of the grid through origin {origin!r} with spacing {spacing!r} mm "
+            f"lies within the extent {extent_x!r} x {extent_y!r} mm"
+        )
     x, y = np.meshgrid(gx, gy)
     return x.ravel(), y.ravel()
 
@@ -272,6 +290,7 @@ def fit_volumetric(
     window: int | None = None,
     min_signal: float = 0.2,
     hold_out: int | None = -1,
+    origin: tuple[float, float] = (0.0, 0.0),
 ) -> xr.Dataset:
     """Fit the volumetric calibration (Hall 2018): per sub-aperture, a polynomial (x, y, z) → (s, t).
 
@@ -299,6 +318,8 @@ def fit_volumetric(
     hold_out : int or None
         Index into ``depths`` of the depth held out to report the prediction error there;
         -1 (default): the inner depth nearest the middle; None: no hold-out.
+    origin : (float, float)
+        The (x, y) [mm] of one dot on the card (:func:`dot_grid`; default the optical axis).
 
     Returns
     -------
@@ -323,7 +344,7 @@ def fit_volumetric(
         raise VolumetricCalibrationError(f"min_signal = {min_signal!r}: allowed range is [0, 1)")
     lf0 = lightfields[0]
     ex, ey = (camera.fov_x, camera.fov_y) if extent is None else extent
-    gx, gy = dot_grid(spacing, float(ex), float(ey))
+    gx, gy = dot_grid(spacing, float(ex), float(ey), origin)
     pitch_lenslets = spacing * abs(camera.magnification) / camera.lenslet_pitch
     if window is None:
         window = max(3, (math.floor(pitch_lenslets) - 1) // 2 * 2 + 1)
@@ -421,6 +442,8 @@ def fit_volumetric(
             "z_max": float(z.max()),
             "depths": [float(v) for v in z],
             "spacing": float(spacing),
+            "origin_x": float(origin[0]),
+            "origin_y": float(origin[1]),
             "window": int(window),
             "n_dots": int(m),
             "n_lrow": int(lf0.sizes["lrow"]),

@@ -101,9 +101,33 @@ def validate_process_config(cfg: Mapping[str, Any], base: str | Path | None = No
     if "depth_calibration" in rec:
         dc = rec["depth_calibration"]
         dc["images"] = resolve(dc["images"]) if isinstance(dc["images"], str) else [resolve(p) for p in dc["images"]]
+    vc = rec.get("volumetric_calibration")
+    if vc is not None:
+        vc["images"] = resolve(vc["images"]) if isinstance(vc["images"], str) else [resolve(p) for p in vc["images"]]
+        _check_volcal(vc)
+    if out["refocus"].get("model", "thin_lens") == "volumetric" and vc is None:
+        raise ConfigError(
+            "config key 'refocus.model' = 'volumetric' needs the dot-target images: give "
+            "recording.volumetric_calibration (images, depths, spacing), or use refocus.model: thin_lens"
+        )
     # a recording has no simulated particles: the memory estimate's simulate stage gets a placeholder
     check_memory({**out, "particles": {"count": 1, "ppp": 1e-9}})
     return out
+
+
+def _check_volcal(vc: dict[str, Any]) -> None:
+    """Depths the polynomial can be fitted on: distinct, at least ``order + 1`` of them."""
+    depths = [float(v) for v in vc["depths"]]
+    order = int(vc.setdefault("order", 3))
+    if len(set(depths)) != len(depths):
+        raise ConfigError(
+            f"config key 'recording.volumetric_calibration.depths' = {depths}: the depths must be distinct"
+        )
+    if len(depths) < order + 1:
+        raise ConfigError(
+            f"config key 'recording.volumetric_calibration.depths': {len(depths)} depths for a polynomial of order "
+            f"{order} in z; give at least order + 1 = {order + 1} (order + 2 for the held-out error)"
+        )
 
 
 def load_process_config(path: str | Path) -> dict[str, Any]:

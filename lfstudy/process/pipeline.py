@@ -8,9 +8,13 @@ recorded frames instead of ray-traced ones:
 2. the calibration image (pinhole or white, sec. 5.1) gives the lenslet centres;
 3. every frame is registered (eqs 5.2–5.9), refocused onto the reconstruction
    grid (eqs 5.10–5.20) and reconstructed (sec. 5.5 or the configured method), once;
-4. with a recorded traverse (``recording.depth_calibration``), the depth
+4. with a recorded dot target (``recording.volumetric_calibration``), its images
+   are registered and the volumetric calibration is fitted (Hall et al. 2018,
+   :mod:`lfstudy.lightfield.volcal`); with ``refocus.model: volumetric`` every
+   frame (and the traverse) is refocused through it instead of the thin-lens model;
+5. with a recorded traverse (``recording.depth_calibration``), the depth
    response of this camera and processing is measured (:mod:`lfstudy.piv.depth`);
-5. every pair (1–2, 2–3, … for a series) is correlated by WIDIM (ch. 6), its w
+6. every pair (1–2, 2–3, … for a series) is correlated by WIDIM (ch. 6), its w
    mapped back through the depth response, and measured without a known flow
    (:mod:`lfstudy.process.metrics`).
 
@@ -22,6 +26,7 @@ half-written. An existing output directory is replaced only if an earlier run of
 Output directory::
 
     centers.zarr, calibration.zarr, dark.zarr     the calibration (dark only with dark frames)
+    volcal.zarr                                   the volumetric calibration (only with a dot target)
     depth_calibration.zarr                        the depth response (only with a recorded traverse)
     frames/<k>/lightfield.zarr, stack.zarr, volume.zarr
     frames/<k>/particles.zarr                     the particle list (a method that fits particles: ipr)
@@ -155,7 +160,8 @@ def process_recording(
     say = log or (lambda _line: None)
     cam = cl.case_camera(cfg)
     rec = open_recording(cfg["recording"], cam)
-    cl.case_grid(cfg, cam)  # a grid too big for the memory bound fails here, before any work
+    grid = cl.case_grid(cfg, cam)  # a grid too big for the memory bound fails here, before any work
+    _check_volcal_depths(cfg, rec, grid.z)
     out = Path(out)
     prov = io.provenance(cfg)
     protect = [*recording_files(cfg["recording"]), *inputs]
@@ -176,13 +182,16 @@ def process_recording(
             f"pitch {float(centers.attrs['pitch_px']):.4f} px, lattice residual "
             f"{float(centers.attrs['lattice_rms_px']):.4f} px RMS"
         )
-        depth = _depth_calibration(cfg, rec, centers, dark, tmp, prov, say, progress=progress)
+        volcal = _volumetric_calibration(cfg, rec, centers, dark, tmp, prov, say)
+        if cfg["refocus"].get("model", "thin_lens") != "volumetric":
+            volcal = None  # fitted and stored, but the frames are refocused by the thin-lens model
+        depth = _depth_calibration(cfg, rec, centers, dark, tmp, prov, say, progress=progress, calibration=volcal)
         saturated: dict[str, float] = {}
         results: list[xr.Dataset] = []
         metrics: list[xr.Dataset] = []
         for k, frame in enumerate(rec.frames):
             raw, saturated[frame.label] = read_frame(rec, frame, dark)
-            lf, stack, volume, particles = cl.render_frame(raw, centers, cfg)
+            lf, stack, volume, particles = cl.render_frame(raw, centers, cfg, calibration=volcal)
             d = tmp / frame_dir(k)
             for obj, name in ((lf, "lightfield"), (stack, "stack"), (volume, "volume"), (particles, "particles")):
                 if obj is None:  # no particle list: the method fits none
@@ -233,6 +242,82 @@ def _recording_attrs(rec: Recording) -> dict[str, Any]:
     return out
 
 
+def _check_volcal_depths(cfg: Mapping[str, Any], rec: Recording, z: np.ndarray) -> None:
+    """Refuse, before any work, a volumetric refocus onto depths the dot target does not cover
+    (the polynomial would extrapolate; :func:`lfstudy.lightfield.volcal.volumetric_stack` allows
+    5 % of the calibrated range either side)."""
+    from lfstudy.process.recording import RecordingError
+
+    if cfg["refocus"].get("model", "thin_lens") != "volumetric" or not rec.volcal_depths:
+        return
+    lo, hi = min(rec.volcal_depths), max(rec.volcal_depths)
+    tol = 0.05 * (hi - lo)
+    if float(z.min()) < lo - tol or float(z.max()) > hi + tol:
+        raise RecordingError(
+            f"recording.volumetric_calibration.depths cover z = {lo:.4g}..{hi:.4g} mm but the reconstruction grid "
+            f"spans z = {float(z.min()):.4g}..{float(z.max()):.4g} mm: image the card over the grid's depth, or "
+            "narrow grid.z_range"
+        )
+
+
+def _volumetric_calibration(
+    cfg: Mapping[str, Any],
+    rec: Recording,
+    centers: xr.Dataset,
+    dark: Any,
+    root: Path,
+    prov: Mapping[str, Any],
+    say: Callable[[str], None],
+) -> xr.Dataset | None:
+    """The volumetric calibration from the recorded dot target (``recording.volumetric_calibration``), or None.
+
+    Each dot-target image is dark-corrected and registered with the recording's lenslet
+    calibration ``centers``; :func:`lfstudy.lightfield.volcal.fit_volumetric` fits the
+    per-sub-aperture polynomial on the known dot positions and depths. Written to ``volcal.zarr``.
+    """
+    from lfstudy.lightfield.registration import register
+    from lfstudy.lightfield.volcal import VolumetricCalibrationError, fit_volumetric
+
+    if not rec.volcal_frames:
+        return None
+    vc = cfg["recording"]["volumetric_calibration"]
+    cam = cl.case_camera(cfg)
+    key = "recording.volumetric_calibration.images"
+    lfs = []
+    for frame in rec.volcal_frames:
+        raw, _ = read_frame(rec, frame, dark, key=key)
+        lfs.append(register(raw, centers, cam))
+    extent = vc.get("extent")
+    try:
+        cal = fit_volumetric(
+            lfs,
+            rec.volcal_depths,
+            cam,
+            spacing=float(vc["spacing"]),
+            extent=None if extent is None else (float(extent[0]), float(extent[1])),
+            order=int(vc.get("order", 3)),
+            origin=tuple(float(v) for v in vc.get("origin", (0.0, 0.0))),
+            hold_out=-1 if len(rec.volcal_depths) >= int(vc.get("order", 3)) + 2 else None,
+        )
+    except VolumetricCalibrationError as exc:  # name the recording's keys
+        msg = str(exc).replace("volumetric_calibration.", "recording.volumetric_calibration.")
+        raise VolumetricCalibrationError(msg) from None
+    cal.attrs.update(prov, sources=[f.label for f in rec.volcal_frames])
+    io.write_zarr(cal, root / "volcal.zarr")
+    a = cal.attrs
+    held = (
+        f", held-out z = {a['holdout_depth']:.4g} mm {a['holdout_rms_lenslets']:.4f} lenslets RMS"
+        if np.isfinite(a["holdout_rms_lenslets"])
+        else ", no held-out depth (order + 2 depths needed)"
+    )
+    say(
+        f"volumetric calibration ({len(rec.volcal_frames)} dot-target images, z = {a['z_min']:.4g}..{a['z_max']:.4g} "
+        f"mm): {a['n_dots']} dots, {a['valid_subapertures']} sub-apertures, order {a['order']}, fit residual "
+        f"{a['fit_rms_lenslets']:.4f} lenslets RMS{held}"
+    )
+    return cal
+
+
 def _depth_calibration(
     cfg: Mapping[str, Any],
     rec: Recording,
@@ -243,11 +328,13 @@ def _depth_calibration(
     say: Callable[[str], None],
     *,
     progress: bool,
+    calibration: xr.Dataset | None = None,
 ) -> xr.Dataset | None:
     """The depth response from the recorded traverse (``recording.depth_calibration``), or None.
 
     Every traverse image goes through the frames' chain (dark, registration,
-    focal stack, reconstruction) and is correlated with the start image by the
+    focal stack, reconstruction; through the volumetric ``calibration`` where
+    ``refocus.model`` is volumetric) and is correlated with the start image by the
     recording's PIV; :func:`lfstudy.piv.depth.depth_response` reads the response.
     """
     from lfstudy.piv.depth import depth_response
@@ -258,7 +345,7 @@ def _depth_calibration(
     vols = []
     for frame in rec.depth_frames:
         raw, _ = read_frame(rec, frame, dark, key=key)
-        vols.append(cl.render_volume(raw, centers, cfg)[2].load())
+        vols.append(cl.render_frame(raw, centers, cfg, calibration=calibration)[2].load())
     pairs = [(s, cl.case_piv(cfg, vols[0], v)) for s, v in zip(rec.depth_shifts, vols[1:])]
     min_gain = float(cfg["recording"]["depth_calibration"].get("min_gain", 0.3))
     cal = depth_response(pairs, min_gain=min_gain)

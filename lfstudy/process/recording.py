@@ -210,9 +210,10 @@ def recording_files(rec: Mapping[str, Any]) -> list[str]:
     items: list[str] = [rec["calibration"]["image"], *([rec["dark"]] if isinstance(rec["dark"], str) else rec["dark"])]
     for spec in fr.get("pairs", []) + ([fr["series"]] if "series" in fr else []):
         items += [spec] if isinstance(spec, str) else list(spec)
-    if "depth_calibration" in rec:
-        imgs = rec["depth_calibration"]["images"]
-        items += [imgs] if isinstance(imgs, str) else list(imgs)
+    for section in ("depth_calibration", "volumetric_calibration"):
+        if section in rec:
+            imgs = rec[section]["images"]
+            items += [imgs] if isinstance(imgs, str) else list(imgs)
     out: list[str] = []
     for item in items:
         for p in sorted(glob.glob(item), key=_natural) if glob.has_magic(item) else [item]:
@@ -252,6 +253,10 @@ class Recording:
         per traverse (empty: none given).
     depth_shifts : list of float
         Traverse of each later depth-calibration image from the start [mm].
+    volcal_frames : list of Frame
+        The dot-target images of the volumetric calibration, one per depth (empty: none given).
+    volcal_depths : list of float
+        The card's depth in each dot-target image [mm].
     """
 
     calibration: Frame
@@ -268,6 +273,8 @@ class Recording:
     max_saturated: float
     depth_frames: list[Frame] = field(default_factory=list)
     depth_shifts: list[float] = field(default_factory=list)
+    volcal_frames: list[Frame] = field(default_factory=list)
+    volcal_depths: list[float] = field(default_factory=list)
 
     @property
     def full_scale(self) -> float | None:
@@ -293,6 +300,7 @@ class Recording:
             "dtype": self.dtype.name,
             "dt_s": self.dt,
             "depth_calibration_images": len(self.depth_frames),
+            "volumetric_calibration_images": len(self.volcal_frames),
         }
 
 
@@ -394,6 +402,23 @@ def open_recording(rec: Mapping[str, Any], camera: Any) -> Recording:
             [(frames[0].label, first), *((f.label, tiff_info(f.path, key=key, bit_depth=bd)) for f in depth_frames)],
             key,
         )
+    volcal_frames, volcal_depths = [], []
+    if rec.get("volumetric_calibration"):
+        vc = rec["volumetric_calibration"]
+        key = "recording.volumetric_calibration.images"
+        volcal_frames = expand_frames(vc["images"], key=key, bit_depth=bd)
+        volcal_depths = [float(z) for z in vc["depths"]]
+        if len(volcal_frames) != len(volcal_depths):
+            raise RecordingError(
+                f"{key}: {len(volcal_frames)} images for {len(volcal_depths)} depths in "
+                "recording.volumetric_calibration.depths; give one image per depth, in the same order"
+            )
+        # dark frames are subtracted from these too: same size and scale as the frames
+        _same(
+            [(frames[0].label, first), *((f.label, tiff_info(f.path, key=key, bit_depth=bd)) for f in volcal_frames)],
+            key,
+            depth=bool(dark),
+        )
     return Recording(
         calibration=calib,
         calibration_kind=rec["calibration"].get("kind", "pinhole"),
@@ -409,6 +434,8 @@ def open_recording(rec: Mapping[str, Any], camera: Any) -> Recording:
         max_saturated=float(rec.get("max_saturated", 1e-4)),
         depth_frames=depth_frames,
         depth_shifts=depth_shifts,
+        volcal_frames=volcal_frames,
+        volcal_depths=volcal_depths,
     )
 
 

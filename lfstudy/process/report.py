@@ -24,7 +24,7 @@ from lfstudy.process.recording import Recording, frame_dir
 from lfstudy.study import figures as rf
 from lfstudy.study.report import Block, _table, _try, piv_figure_blocks, write_html
 
-__all__ = ["SECTIONS", "METRICS", "write_process_report"]
+__all__ = ["SECTIONS", "METRICS", "write_process_report", "volcal_block"]
 
 #: Section ids and titles, in report order.
 SECTIONS: dict[str, str] = {
@@ -111,6 +111,9 @@ def _recording_blocks(root: Path, rec: Recording, cfg: Mapping[str, Any]) -> Ite
         yield Block("recording", "calibration", html=_table(cal))
     except (OSError, ValueError, KeyError) as exc:
         yield Block("recording", "calibration", note=f"Calibration: not available ({exc}).")
+    vc = volcal_block(root)
+    if vc is not None:
+        yield vc
     yield _try(
         "recording",
         "calibration_image",
@@ -118,6 +121,29 @@ def _recording_blocks(root: Path, rec: Recording, cfg: Mapping[str, Any]) -> Ite
         "calibration image",
         lambda: rf.raw_crop(io.open_zarr(root / "calibration.zarr", name="intensity")),
     )
+
+
+def volcal_block(root: Path) -> Block | None:
+    """The volumetric calibration's facts (``volcal.zarr``: Hall et al. 2018), or None without one."""
+    path = Path(root) / "volcal.zarr"
+    if not path.exists():
+        return None
+    a = io.open_zarr(path).attrs
+    held = (
+        f"{float(a['holdout_rms_lenslets']):.4f} at z = {float(a['holdout_depth']):.4g} mm"
+        if np.isfinite(float(a["holdout_rms_lenslets"]))
+        else "–"
+    )
+    depths = ", ".join(f"{float(z):.4g}" for z in a["depths"])
+    facts = {
+        "volumetric calibration: dot-target depths [mm]": f"{len(a['depths'])}: {depths}",
+        "volumetric calibration: dot spacing [mm], dots per image": f"{float(a['spacing']):.4g}, {int(a['n_dots'])}",
+        "volumetric calibration: order, calibrated sub-apertures": f"{int(a['order'])}, {int(a['valid_subapertures'])}",
+        "volumetric calibration: fit residual [lenslets RMS]": f"{float(a['fit_rms_lenslets']):.4f}",
+        "volumetric calibration: held-out depth error [lenslets RMS]": held,
+    }
+    df = pd.DataFrame({"value": list(facts.values())}, index=list(facts))
+    return Block("recording", "volcal", html=_table(df))
 
 
 def _pair_blocks(
