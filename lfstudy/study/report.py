@@ -448,6 +448,11 @@ def _tolerance_sentence(study: xr.Dataset, table: pd.DataFrame, flow: str, rank_
     r = row.iloc[0]
     ideal, worst = r[f"ideal {WORST_BY}"], r[f"worst {WORST_BY}"]
     if r["limited_by"] == "nothing":
+        if worst > ideal:  # no imperfection alone raises it, a combination does
+            return head + (
+                f" No swept imperfection alone raises its error ({ideal:.3g} mm at the ideal camera); their "
+                f"combination reaches {worst:.3g} mm."
+            )
         return head + f" No swept imperfection raises its error ({ideal:.3g} mm at the ideal camera)."
     return head + (
         f" Its error is {ideal:.3g} mm at the ideal camera and {worst:.3g} mm at its worst over the tolerances; "
