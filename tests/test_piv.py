@@ -473,6 +473,7 @@ def test_uncertainty_is_nan_for_invalid_vectors_and_absent_when_off():
         assert np.isnan(sig[~valid]).all()
         assert (sig[valid] > 0).mean() > 0.95
     assert "unc_u" not in widim(a, b, window=16, spacing=8, uncertainty=None)
+    assert "unc_u" not in widim(a, b, window=16, spacing=8, uncertainty="none")  # the setting's word
     with pytest.raises(ValueError, match="uncertainty"):
         widim(a, b, window=16, uncertainty="bogus")
 

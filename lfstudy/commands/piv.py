@@ -74,7 +74,7 @@ def _piv(a: Any, b: Any, p: dict[str, Any]) -> Any:
         subpixel=p["subpixel"],
         predictor_filter=p["predictor_filter"],
         progress=True,
-        uncertainty=None if p.get("uncertainty", "correlation") == "none" else p.get("uncertainty", "correlation"),
+        uncertainty=p.get("uncertainty", "correlation"),
     )
 
 

@@ -852,11 +852,13 @@ def widim(
         Threads for ``scipy.fft``; results do not depend on it.
     progress : bool
         Show a tqdm bar over the passes (level, corrector RMS and valid % as it goes).
-    uncertainty : {"correlation", "moment"} or None
+    uncertainty : {"correlation", "independent", "moment", "none"} or None
         Per-vector standard uncertainty of each component from the final pass's
         windows (:mod:`lfstudy.piv.uncertainty`): ``"correlation"`` (default) is
-        Wieneke's correlation statistics [3]_ in 3-D, ``"moment"`` a simpler
-        peak-width estimate; None skips it (no ``unc_*`` variables).
+        Wieneke's correlation statistics [3]_ in 3-D with the correlation of
+        neighbouring voxels' contributions counted, ``"independent"`` the same as
+        published, ``"moment"`` a simpler peak-width estimate; None or ``"none"``
+        (the ``piv.uncertainty`` setting's word) skips it (no ``unc_*`` variables).
 
     Returns
     -------
@@ -927,8 +929,10 @@ def widim(
         chunk_windows=chunk_windows,
         workers=workers,
     )
+    if uncertainty == "none":
+        uncertainty = None
     if uncertainty is not None and uncertainty not in _UNC_METHODS:
-        raise ValueError(f"`uncertainty` must be one of {_UNC_METHODS} or None; got {uncertainty!r}")
+        raise ValueError(f"`uncertainty` must be one of {_UNC_METHODS}, 'none' or None; got {uncertainty!r}")
     for name, inp in (("a", ia), ("b", ib)):
         bad = _count_nonfinite(inp)
         if bad:

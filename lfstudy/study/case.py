@@ -487,7 +487,7 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
         subpixel=p["subpixel"],
         predictor_filter=p["predictor_filter"],
         progress=progress,
-        uncertainty=None if p.get("uncertainty", "correlation") == "none" else p.get("uncertainty", "correlation"),
+        uncertainty=p.get("uncertainty", "correlation"),
     )
     res.attrs["piv_seconds"] = time.perf_counter() - t0
     return res
