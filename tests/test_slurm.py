@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
 from lfstudy import io
 from lfstudy.study.config import expand_cases, load_config
@@ -51,7 +52,7 @@ def _require_cluster() -> None:
     assert ready, f"no usable SLURM node (sinfo: {' '.join(states)}); `bash scripts/local-slurm.sh` starts one"
 
 
-def _snakemake(workdir: Path, *extra: str) -> list[str]:
+def _snakemake(workdir: Path, config: Path, *extra: str) -> list[str]:
     return [
         sys.executable,
         "-m",
@@ -61,7 +62,7 @@ def _snakemake(workdir: Path, *extra: str) -> list[str]:
         "-d",
         str(workdir),
         "--configfile",
-        str(TINY),
+        str(config),
         *extra,
     ]
 
@@ -83,22 +84,27 @@ def _comparable(csv: Path) -> pd.DataFrame:
 
 
 def test_tiny_study_on_slurm_equals_local_run(tmp_path, request):
-    """The reference is the suite's own local run of the tiny study (conftest's ``tiny_study``,
-    which the workflow tests use too): made while the SLURM jobs queue and poll, or reused.
+    """One case of the tiny study (its ppp 0.004 case alone: the same case id, seeds and shared
+    calibration) through SLURM, from the lenslet calibration to the study table and report, equals
+    the suite's own local run of the whole tiny study (conftest's ``tiny_study``, which the
+    workflow tests use too): made while the SLURM jobs queue and poll, or reused.
 
-    Jobs (profiles/slurm groups): the calibration and the camera job side by side, then the two
-    cases' jobs side by side, then study + report. Measured back to back on this 2-core machine
-    (load 6-9 from other work, the local run beside it): 823 s when the shared camera job joined
-    both cases into one job of 25 rules one after another (calibration 60 s, cases 574 s, study
-    47 s), 520 s now (calibration 57 s beside the camera's 34 s, each case 330 s side by side,
-    study 39 s); the workflow tests no longer make a second local run.
+    Jobs (profiles/slurm groups): the calibration and the camera job side by side, then the case's
+    job, then study + report. One case rather than both: each case's job repeats the same rules,
+    and the two shared the node's 2 CPUs with the local run (520 s for both cases, load 6-9).
     """
     _require_cluster()
-    cases = [c.case_id for c in expand_cases(load_config(TINY))]
+    raw = yaml.safe_load(TINY.read_text())
+    raw["sweep"]["ppp"] = [0.004]
+    one = tmp_path / "tiny-one-case.yaml"
+    one.write_text(yaml.safe_dump(raw))
+    cases = [c.case_id for c in expand_cases(load_config(one))]
+    assert len(cases) == 1 and cases[0] in {c.case_id for c in expand_cases(load_config(TINY))}
     prefix = f"lfstudy-test-{os.getpid()}"
     slurm_dir = tmp_path / "slurm"
     slurm_cmd = _snakemake(
         slurm_dir,
+        one,
         "--profile",
         str(PROFILE),
         # The profile as a cluster would use it, with jobs of one CPU: a group job runs its rules
@@ -142,7 +148,7 @@ def test_tiny_study_on_slurm_equals_local_run(tmp_path, request):
     assert len(states) >= 3 + len(cases) and set(states) == {"COMPLETED"}, acct
 
     slurm_out, local_out = slurm_dir / "results" / "tiny", local_dir / "results" / "tiny"
-    pd.testing.assert_frame_equal(_comparable(slurm_out / "study.csv"), _comparable(local_out / "study.csv"))
+    pd.testing.assert_frame_equal(_comparable(slurm_out / "study.csv"), _comparable(local_out / "study.csv").loc[cases])
     for case in cases:
         a = io.open_zarr(slurm_out / case / "piv.zarr").load()
         b = io.open_zarr(local_out / case / "piv.zarr").load()

@@ -300,10 +300,11 @@ def test_a_given_config_does_not_inherit_the_demo(tmp_path):
     assert "config/demo.yaml" in r.stdout + r.stderr
 
 
-def test_sweep_over_dotted_settings_shares_the_upstream_stages(tmp_path):
+def test_sweep_over_dotted_settings_shares_the_upstream_stages(study_dir, tmp_path):
     """reconstruct.method and piv.spacing swept by their dotted paths: the images, light fields and
     stacks are made once and shared, each method reconstructs once and feeds two PIV spacings, and
-    the study has a dimension per swept setting."""
+    the study has a dimension per swept setting. Run beside a copy of the tiny study: its images,
+    light fields and stacks have the same settings, so only the swept stages run."""
     import yaml
 
     raw = yaml.safe_load(TINY.read_text())
@@ -313,13 +314,16 @@ def test_sweep_over_dotted_settings_shares_the_upstream_stages(tmp_path):
         "piv.spacing": [[4, 8, 8], [4, 6, 6]],
     }
     raw["reconstruct"] = {"method": "threshold", "mart": {"iterations": 2}}
-    # what is checked is the sharing and the study's layout: a smaller sensor (the suite's time)
-    raw["camera"]["sensor"].update(n_pixels_x=256, n_pixels_y=256)
+    raw["depth_calibration"] = {"enabled": False}  # not what is checked here (the suite's time)
     cfg_path = tmp_path / "dotted.yaml"
     cfg_path.write_text(yaml.safe_dump(raw))
-    work = tmp_path / "work"
-    jobs = _planned_jobs(work, config=cfg_path)
+    jobs = _planned_jobs(tmp_path / "fresh", config=cfg_path)
     assert jobs["simulate"] == 2 and jobs["register"] == 2 and jobs["refocus"] == 2  # shared by all 4 cases
+    assert jobs["reconstruct"] == 4 and jobs["piv"] == 4 and jobs["errors"] == 4
+    work = tmp_path / "work"
+    shutil.copytree(study_dir, work, symlinks=True)  # copy2: the outputs keep their times
+    jobs = _planned_jobs(work, config=cfg_path)
+    assert not {"particles", "simulate", "register", "refocus"} & set(jobs), jobs  # the tiny study's, reused
     assert jobs["reconstruct"] == 4 and jobs["piv"] == 4 and jobs["errors"] == 4
     r = _snakemake(work, config=cfg_path)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-5000:]
