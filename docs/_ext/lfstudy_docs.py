@@ -344,6 +344,12 @@ STAGES: dict[str, tuple[str, str, str]] = {
         "Which tolerance matters: the error against each swept imperfection per design, and each design's "
         "worst case over them.",
     ),
+    "lfstudy.study.replicates": (
+        "Replicates",
+        "— (issues 27 and 29: the study seed swept, every metric a mean over the seeds ± its spread)",
+        "A study over several seeds: each design's mean and spread, paired differences between designs or "
+        "tolerance levels, and what is within noise.",
+    ),
     "lfstudy.process": (
         "Recorded images",
         "sec. 5.1–5.6 and ch. 6 applied to recordings (calibration, light field, refocus, "

@@ -30,22 +30,46 @@ import pandas as pd
 import xarray as xr
 
 from lfstudy.study import metric_table as mt
+from lfstudy.study.replicates import (
+    REPLICATE_DIM,
+    SEPARATION,
+    paired_difference,
+    replicate_dim,
+    replicate_stats,
+    separable,
+)
 
-__all__ = ["design_table", "pareto_front", "recommend", "influence", "design_label", "error_limit", "budget_table"]
+__all__ = [
+    "design_table",
+    "design_values",
+    "pareto_front",
+    "recommend",
+    "influence",
+    "design_label",
+    "error_limit",
+    "budget_table",
+    "spread_columns",
+]
 
+#: The total error designs are ranked by (mm).
+TOTAL = "rms_total_mm"
 #: The error budget's two parts (rows of the metric table): the oracle's total error, the reconstruction's share.
 ORACLE_TOTAL = "oracle_rms_total_mm"
 ADDED_TOTAL = "recon_added_rms_total_mm"
+#: The budget's signed metrics (no better end: the crosstalk): whether they differ from 0 is the finding
+#: (issue 27), so with replicates they are shown with their standard error.
+SIGNED = tuple(m.name for m in mt.shown_in("budget") if m.lower_is_better is None)
 #: Labels of what limits a design's error (:func:`error_limit`).
 LIMITS = {"reconstruction": "the reconstruction", "windows": "the PIV windows"}
 
 
 def design_label(row: Mapping[str, object], dims: Sequence[str]) -> str:
-    """A short label of a design: its swept values but the flow (``M=-1 fnum=matched pitch=0.125 ...``)."""
+    """A short label of a design: its swept values but the flow and the replicate seed
+    (``M=-1 fnum=matched pitch=0.125 ...``)."""
     short = {"magnification": "M", "fnumber": "f/#", "lenslet_pitch": "pitch", "ppp": "ppp"}
     parts = []
     for d in dims:
-        if d == "flow":
+        if d in ("flow", REPLICATE_DIM):
             continue
         v = row[d]
         txt = f"{float(v):g}" if isinstance(v, (int, float, np.floating)) else str(v)
@@ -53,20 +77,62 @@ def design_label(row: Mapping[str, object], dims: Sequence[str]) -> str:
     return " ".join(parts)
 
 
-def design_table(study: xr.Dataset) -> pd.DataFrame:
-    """One row per computed case: the swept values, ``design`` (label), ``case_id`` and the
-    physical figures of merit that the study holds (the metric table's ``front``, ``resolution``,
-    ``pareto`` and ``budget`` metrics)."""
-    cols = [c for c in mt.names("front", "resolution", "pareto", "budget") if c in study]
+def _rows(study: xr.Dataset, cols: Sequence[str]) -> pd.DataFrame:
     extra = [v for v in ("computed", "case_id") if v in study]
-    if not cols:
-        return pd.DataFrame()
-    df = study[cols + extra].to_dataframe().reset_index()
+    df = study[list(cols) + extra].to_dataframe().reset_index()
     if "computed" in df:
         df = df[df["computed"].astype(bool)].drop(columns="computed")
     dims = [str(d) for d in study.dims]
     df.insert(0, "design", [design_label(r, dims) for _, r in df.iterrows()])
     return df.reset_index(drop=True)
+
+
+def design_table(study: xr.Dataset) -> pd.DataFrame:
+    """One row per computed case: the swept values, ``design`` (label), ``case_id`` and the
+    physical figures of merit that the study holds (the metric table's ``front``, ``resolution``,
+    ``pareto`` and ``budget`` metrics).
+
+    Where the study has replicates (:func:`~lfstudy.study.replicates.replicate_dim`), one row per
+    design: each metric is its mean over the replicates, ``<metric>_sd`` their standard deviation,
+    ``<metric>_se`` the standard error of the mean and ``n_replicates`` how many were computed
+    (of the total error)."""
+    cols = [c for c in mt.names("front", "resolution", "pareto", "budget") if c in study]
+    if not cols:
+        return pd.DataFrame()
+    if replicate_dim(study) is None:
+        return _rows(study, cols)
+    stats = replicate_stats(study)
+    df = _rows(stats.mean, cols)
+    sd, se, n = (_rows(ds, cols) for ds in (stats.sd, stats.se, stats.n))
+    for c in cols:
+        df[f"{c}_sd"] = sd[c].to_numpy()
+        df[f"{c}_se"] = se[c].to_numpy()
+    df["n_replicates"] = n[cols[0] if "rms_total_mm" not in cols else "rms_total_mm"].to_numpy()
+    return df
+
+
+def spread_columns(df: pd.DataFrame, cols: Sequence[str], *, se: Sequence[str] = ()) -> list[str]:
+    """``cols`` with the spread column of each that ``df`` has right after it: ``<c>_se`` for the
+    columns in ``se`` (a decision is made on them), ``<c>_sd`` for the others."""
+    out: list[str] = []
+    for c in cols:
+        out.append(c)
+        spread = f"{c}_se" if c in se else f"{c}_sd"
+        if spread in df:
+            out.append(spread)
+    return out
+
+
+def design_values(study: xr.Dataset, var: str) -> pd.DataFrame:
+    """``var`` of every computed case as a table: one row per design and flow (index ``design``,
+    ``flow`` where the study has flows), one column per replicate seed (a single column ``value``
+    without replicates). For paired comparisons (:func:`~lfstudy.study.replicates.paired_difference`)."""
+    dim = replicate_dim(study)
+    df = _rows(study, [var])
+    index = ["design", *(["flow"] if "flow" in df else [])]
+    if dim is None:
+        return df.set_index(index)[[var]].rename(columns={var: "value"})
+    return df.pivot(index=index, columns=dim, values=var)
 
 
 def pareto_front(df: pd.DataFrame, objectives: Sequence[tuple[str, str]] | None = None) -> np.ndarray:
@@ -106,11 +172,16 @@ def error_limit(oracle_mm: float, added_mm: float) -> str:
 def budget_table(study: xr.Dataset) -> pd.DataFrame:
     """Per computed case: the design, its flow, the metric table's ``budget`` metrics (the case's error
     beside the oracle's and the reconstruction's share) and ``limited_by`` (:func:`error_limit`).
-    Empty when the study holds no oracle."""
+    Empty when the study holds no oracle.
+
+    With replicates: the means, each followed by its standard deviation ``<metric>_sd``, but the
+    crosstalk's followed by its standard error ``<metric>_se`` (its sign is the finding, issue 27);
+    ``limited_by`` compares the means."""
     df = design_table(study)
     if df.empty or ORACLE_TOTAL not in df or ADDED_TOTAL not in df:
         return pd.DataFrame()
-    cols = [c for c in ("design", "flow", *mt.names("budget")) if c in df]
+    names = [c for c in mt.names("budget") if c in df]
+    cols = [c for c in ("design", "flow") if c in df] + spread_columns(df, names, se=SIGNED)
     out = df[cols].copy()
     out["limited_by"] = [LIMITS.get(error_limit(o, a), "") for o, a in zip(df[ORACLE_TOTAL], df[ADDED_TOTAL])]
     return out
@@ -128,10 +199,19 @@ def recommend(
     design if none has). What it trades away: the in-plane and depth
     resolution of the finest-resolving Pareto design, against its error.
 
+    With replicates (a swept ``seed``) the front and the pick are on the means over the seeds, and
+    every design of a flow is compared with the recommended one by the paired difference of their
+    total errors seed by seed (:func:`~lfstudy.study.replicates.paired_difference`): the sentence
+    names the designs of the front it is not separable from (difference below
+    :data:`~lfstudy.study.replicates.SEPARATION` standard errors).
+
     Returns
     -------
     table : pandas.DataFrame
-        The design table with ``pareto`` (bool) and ``recommended`` (bool) columns.
+        The design table with ``pareto`` (bool) and ``recommended`` (bool) columns; with
+        replicates also ``diff_rms_total_mm`` and ``diff_rms_total_mm_se`` (the paired difference
+        to the flow's recommended design and its standard error) and ``separable`` (bool, or
+        ``None`` where unknown).
     sentences : dict flow -> str
     """
     df = design_table(study)
@@ -139,6 +219,12 @@ def recommend(
         return df, {}
     df["pareto"] = False
     df["recommended"] = False
+    reps = replicate_dim(study) is not None
+    values = design_values(study, "rms_total_mm") if reps else None
+    if reps:
+        df["diff_rms_total_mm"] = math.nan
+        df["diff_rms_total_mm_se"] = math.nan
+        df["separable"] = None
     sentences: dict[str, str] = {}
     flows = df["flow"].unique() if "flow" in df else [None]
     for flow in flows:
@@ -153,7 +239,50 @@ def recommend(
         pick = (good if not good.empty else cand).sort_values("rms_total_mm").iloc[0]
         df.loc[pick.name, "recommended"] = True
         sentences[str(flow)] = _sentence(pick, cand, str(flow), min_valid, good.empty)
+        if values is not None:
+            sentences[str(flow)] += _separation(df, sub.index, pick, front_index=cand.index, values=values, flow=flow)
     return df, sentences
+
+
+def _key(design: str, flow: object) -> tuple[object, ...] | str:
+    return (design, flow) if flow is not None else design
+
+
+def _separation(
+    df: pd.DataFrame, rows: pd.Index, pick: pd.Series, *, front_index: pd.Index, values: pd.DataFrame, flow: object
+) -> str:
+    """Fill the paired differences to ``pick`` of the flow's ``rows`` and say which front designs it is
+    not separable from."""
+    ref = values.loc[_key(pick["design"], flow)].to_numpy(float)
+    for i in rows:
+        d, se, _ = paired_difference(values.loc[_key(df.at[i, "design"], flow)].to_numpy(float), ref)
+        df.at[i, "diff_rms_total_mm"] = d if i != pick.name else 0.0
+        df.at[i, "diff_rms_total_mm_se"] = se if i != pick.name else math.nan
+        df.at[i, "separable"] = separable(d, se) if i != pick.name else None
+    n = int(pick.get("n_replicates", 0))
+    s = (
+        f" Over {n} replicates (seeds) its total RMS error is {_fmt(pick['rms_total_mm'])} ± "
+        f"{_fmt(pick.get(TOTAL + '_se', math.nan), 'mm')} (mean ± standard error; "
+        f"{_fmt(pick.get(TOTAL + '_sd', math.nan), 'mm')} from seed to seed)."
+    )
+    others = [i for i in front_index if i != pick.name]
+    close = [i for i in others if df.at[i, "separable"] is False]
+    unknown = [i for i in others if df.at[i, "separable"] is None]
+    if close:
+        names = "; ".join(
+            f"{df.at[i, 'design']} ({df.at[i, 'diff_rms_total_mm']:+.3g} ± {df.at[i, 'diff_rms_total_mm_se']:.3g} mm)"
+            for i in close
+        )
+        s += (
+            f" It is not separable from {names}: the difference in total RMS error, paired seed by seed, is "
+            f"less than {SEPARATION:g} standard errors, so more replicates are needed to choose between them."
+        )
+    elif others and not unknown:
+        s += (
+            f" Every other design on the front has a larger error by at least {SEPARATION:g} standard errors of "
+            "the difference, paired seed by seed."
+        )
+    return s
 
 
 def _fmt(v: float, unit: str = "") -> str:
@@ -211,13 +340,14 @@ def _budget_sentence(pick: pd.Series) -> str:
 
 def influence(study: xr.Dataset, var: str) -> list[tuple[str, float]]:
     """Swept dimensions ranked by how much they move ``var``: the range of its mean over the
-    other dimensions (NaN-aware), largest first; flows are compared, not averaged."""
+    other dimensions (NaN-aware), largest first; flows are compared, not averaged, and the
+    replicate seeds are averaged, never ranked."""
     if var not in study:
         return []
     da = study[var]
     out = []
     for d in da.dims:
-        if d == "flow" or da.sizes[d] < 2:
+        if d in ("flow", REPLICATE_DIM) or da.sizes[d] < 2:
             continue
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)

@@ -496,7 +496,11 @@ def overview_heatmap(study: xr.Dataset, var: str, dims: Sequence[str]) -> Figure
 @_plain_ticks
 def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Figure:
     """A few headline metrics against one swept setting (categorical axis), one line per flow,
-    the other settings averaged over the computed cases."""
+    the other settings averaged over the computed cases. With replicates (a swept ``seed``) each
+    point is the mean over the seeds of that average, its bar their standard deviation."""
+    from lfstudy.study.replicates import replicate_dim
+
+    rep = replicate_dim(study)
     metrics = [m for m in metrics if m in study]
     n = max(1, len(metrics))
     fig = _fig(3.3 * n, 3.1, left=0.07, right=0.98, bottom=0.27, top=0.84, wspace=0.4)
@@ -508,8 +512,17 @@ def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Fig
             sub = study[m].sel(flow=fl) if fl is not None else study[m]
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                y = sub.mean([d for d in sub.dims if d != dim], skipna=True)
-            ax.plot(pos, np.asarray(y.values, float), "o-", color=f"C{i}", label=str(fl) if fl is not None else None)
+                y = sub.mean([d for d in sub.dims if d not in (dim, rep)], skipna=True)
+                if rep is not None:
+                    y, sd = y.mean(rep, skipna=True), y.std(rep, ddof=1, skipna=True)
+            label = str(fl) if fl is not None else None
+            if rep is None:
+                ax.plot(pos, np.asarray(y.values, float), "o-", color=f"C{i}", label=label)
+            else:
+                ax.errorbar(
+                    pos, np.asarray(y.values, float), np.asarray(sd.values, float), fmt="o-", color=f"C{i}",
+                    capsize=2, label=label,
+                )  # fmt: skip
         if m.startswith("bias"):
             ax.axhline(0.0, color="k", lw=0.5)
         ax.set_title(_label(study[m]), fontsize=8)
@@ -519,7 +532,8 @@ def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Fig
     h, lab = axes[0].get_legend_handles_labels()
     if lab:
         fig.legend(h, lab, loc="upper right", fontsize=7, ncols=min(4, len(lab)))
-    fig.suptitle(f"Against {dim} (mean over the other settings)", fontsize=10, x=0.4)
+    over = "mean over the other settings" + ("; bars: sd over the seeds" if rep is not None else "")
+    fig.suptitle(f"Against {dim} ({over})", fontsize=10, x=0.4)
     return fig
 
 
@@ -565,7 +579,13 @@ def tolerance_figure(
                 order = np.argsort(x, kind="stable")
                 label = dsg + (f", {fl}" if fl is not None and len(flows) > 1 else "")
                 y = np.asarray(sub[c], float)[order]
-                ax.plot(x[order], y, styles[j % len(styles)], color=f"C{i % 10}", ms=4, label=label)
+                if f"{c}_sd" in sub:  # replicates: the mean over the seeds, bars their sd
+                    sd = np.asarray(sub[f"{c}_sd"], float)[order]
+                    ax.errorbar(
+                        x[order], y, sd, fmt=styles[j % len(styles)], color=f"C{i % 10}", ms=4, capsize=2, label=label
+                    )
+                else:
+                    ax.plot(x[order], y, styles[j % len(styles)], color=f"C{i % 10}", ms=4, label=label)
                 if c in oracle and oracle[c] in sub:
                     yo = np.asarray(sub[oracle[c]], float)[order]
                     ax.plot(x[order], yo, "--", color=f"C{i % 10}", lw=0.9, alpha=0.8)
@@ -588,6 +608,8 @@ def pareto_figure(table: Any, flow: str) -> Figure:
     ax = fig.subplots()
     x, y = sub["spacing_mm_x"].to_numpy(float), sub["rms_total_mm"].to_numpy(float)
     c = sub["spacing_mm_z"].to_numpy(float) if "spacing_mm_z" in sub else np.zeros(len(sub))
+    if "rms_total_mm_sd" in sub:  # replicates: the mean over the seeds, bars their sd
+        ax.errorbar(x, y, np.asarray(sub["rms_total_mm_sd"], float), fmt="none", ecolor="0.5", lw=0.8, zorder=2)
     sc = ax.scatter(x, y, c=c, cmap="viridis", s=36, zorder=3)
     front = sub["pareto"].to_numpy(bool) if "pareto" in sub else np.zeros(len(sub), bool)
     ax.scatter(x[front], y[front], s=160, facecolors="none", edgecolors="C3", lw=1.5, zorder=4, label="Pareto front")
@@ -598,7 +620,9 @@ def pareto_figure(table: Any, flow: str) -> Figure:
     cb = fig.colorbar(sc, ax=ax)
     cb.set_label("vector spacing z [mm] (depth resolution)", fontsize=8)
     ax.set_xlabel("vector spacing x [mm] (in-plane resolution)", fontsize=8)
-    ax.set_ylabel("total RMS error [mm]", fontsize=8)
+    ax.set_ylabel(
+        "total RMS error [mm]" + (" (mean ± sd over the seeds)" if "rms_total_mm_sd" in sub else ""), fontsize=8
+    )
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     ax.set_title(f"{flow}: error against resolution (lower left is better)", fontsize=9)

@@ -35,6 +35,7 @@ from lfstudy.optics import PlenopticCamera
 from lfstudy.study import metric_table as mt
 from lfstudy.study.case import case_planes
 from lfstudy.study.config import case_config
+from lfstudy.study.replicates import SEPARATION, pm, replicate_dim, replicate_stats
 from lfstudy.study.sweep import format_value
 
 __all__ = [
@@ -165,6 +166,47 @@ def _table(df: pd.DataFrame, *, index: bool = True, fmt: str = "{:.3g}") -> str:
 
 _HEADER_CELL = re.compile(r"(<th[^>]*>)([^<]*)(</th>)")
 
+#: Header tags of a column merged with its spread (:func:`_spread_text`).
+_SPREAD = (("_sd", "± sd"), ("_se", "± s.e."))
+
+
+def _spread_text(df: pd.DataFrame) -> pd.DataFrame:
+    """A table with replicates, for display: each column ``c`` that has a ``c_sd`` (or ``c_se``)
+    column becomes the text ``mean ± spread`` under the header ``c ± sd`` (``c ± s.e.``); a table
+    without spread columns is returned as is."""
+    out = df.copy()
+    for c in list(df.columns):
+        for suffix, tag in _SPREAD:
+            if f"{c}{suffix}" in df and c in out:
+                out[c] = [pm(m, v) for m, v in zip(df[c], df[f"{c}{suffix}"])]
+                out = out.drop(columns=f"{c}{suffix}").rename(columns={c: f"{c} {tag}"})
+    return out
+
+
+def _spread_of(mean: pd.DataFrame, sd: pd.DataFrame, cols: Sequence[str]) -> pd.DataFrame:
+    """``mean`` with ``<c>_sd`` (from the aligned table ``sd``) after each column of ``cols``."""
+    out = mean.copy()
+    order = []
+    for c in mean.columns:
+        order.append(c)
+        if c in cols:
+            out[f"{c}_sd"] = sd[c].to_numpy()
+            order.append(f"{c}_sd")
+    return out[order]
+
+
+def _replicates_note(study: xr.Dataset) -> str:
+    """One sentence on the study's replicates for a section's text ("" without replicates)."""
+    dim = replicate_dim(study)
+    if dim is None:
+        return ""
+    seeds = ", ".join(format_value(v) for v in study[dim].values.tolist())
+    return (
+        f" The study holds {study.sizes[dim]} replicates (seeds {seeds}): a value is the mean over them, ± their "
+        "standard deviation (sd, the scatter of one case) or, where a decision rests on it, the standard error "
+        "of the mean (s.e.)."
+    )
+
 
 def _png(fig: Any) -> bytes:
     buf = _io.BytesIO()
@@ -179,10 +221,16 @@ def _safe(name: str) -> str:
 
 def case_table(study: xr.Dataset, columns: Sequence[str] | None = None) -> pd.DataFrame:
     """Computed cases as rows (index: swept parameters) and the given metrics as columns
-    (default: the metric table's ``headline`` metrics)."""
+    (default: the metric table's ``headline`` metrics).
+
+    With replicates (a swept ``seed``): one row per design and flow, each metric the mean over the
+    seeds followed by ``<metric>_sd``, their standard deviation."""
     cols = [c for c in (mt.names("headline") if columns is None else columns) if c in study]
     if not cols:
         return pd.DataFrame()
+    if replicate_dim(study) is not None:
+        stats = replicate_stats(study)
+        return _spread_of(case_table(stats.mean, cols), case_table(stats.sd, cols), cols)
     df = study[cols + (["computed"] if "computed" in study else [])].to_dataframe()
     df = df[df["computed"].astype(bool)].drop(columns="computed") if "computed" in df else df.dropna(how="all")
     return df[cols]
@@ -274,7 +322,9 @@ def piv_figure_blocks(
 
 
 def _varied(study: xr.Dataset) -> list[str]:
-    return [str(k) for k in study.dims if study.sizes[k] > 1 and k != "flow"]
+    """The swept settings with two or more values, but the flow and the replicate seed."""
+    rep = replicate_dim(study)
+    return [str(k) for k in study.dims if study.sizes[k] > 1 and k != "flow" and k != rep]
 
 
 def _computed_ids(study: xr.Dataset) -> list[str]:
@@ -364,13 +414,14 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
     Where the study sweeps imperfections, the designs are ranked at the ideal camera or at their
     worst case over the tolerances (``report.rank_at``), and the sentences say which."""
     from lfstudy.study import figures as rf
-    from lfstudy.study.designs import recommend
+    from lfstudy.study.designs import recommend, spread_columns
     from lfstudy.study.tolerance import at_ideal, tolerance_dims, worst_case
 
     rank_at = _rank_at(cfg or {})
     tol = tolerance_dims(study)
     ranked = study if not tol else (worst_case(study) if rank_at == "tolerances" else at_ideal(study))
     table, sentences = recommend(ranked)
+    reps = replicate_dim(study) is not None
     if tol:
         sentences = {f: s + _tolerance_sentence(study, table, f, rank_at) for f, s in sentences.items()}
     if not sentences:
@@ -384,11 +435,21 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
         "pitch/|M| across and a fraction of a refocus-plane spacing deep, and differs between designs. A design "
         "is on the Pareto front when no other is better in all of "
         + html.escape(", ".join(f"{m.long_name} ({m.better})" for m in mt.shown_in("pareto")))
-        + " at once; the recommended one is the front's lowest total RMS error with at least 80 % valid vectors.</p>",
+        + " at once; the recommended one is the front's lowest total RMS error with at least 80 % valid vectors."
+        + (
+            _replicates_note(study) + " Designs are ranked on their means; two whose total RMS errors differ by "
+            f"less than {SEPARATION:g} standard errors of their difference, paired seed by seed (the designs of "
+            "one seed image the same particles), are not separable."
+            if reps
+            else ""
+        )
+        + "</p>",
     )
     if tol:
         yield _limits_block(study)
-    cols = [c for c in ("design", "flow", *mt.names("front"), "recommended") if c in table]
+    front_cols = [c for c in mt.names("front") if c in table]
+    cols = [c for c in ("design", "flow") if c in table] + spread_columns(table, front_cols, se=("rms_total_mm",))
+    cols += ["recommended"] if "recommended" in table else []
     for flow in sentences:
         yield _try(
             "answer",
@@ -403,9 +464,44 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
             "answer",
             f"front_{flow}",
             html=f"<h4>Pareto front, {html.escape(flow)}</h4>"
-            + _table(front[cols].sort_values("rms_total_mm"), index=False),
+            + _table(_spread_text(front[cols].sort_values("rms_total_mm")), index=False),
         )
+        if reps:
+            yield _ranking_block(table, flow)
     yield from _budget_blocks(study)
+
+
+def _ranking_block(table: pd.DataFrame, flow: str) -> Block:
+    """With replicates: every design of ``flow`` by its mean total RMS error, with the paired difference
+    to the recommended design, its standard error and whether the two are separable."""
+    from lfstudy.study.designs import TOTAL
+
+    sub = table[table["flow"] == flow] if "flow" in table else table
+    sub = sub.sort_values(TOTAL)
+    words = {True: "yes", False: "no (within noise)"}
+    out = pd.DataFrame(
+        {
+            "design": sub["design"],
+            f"{TOTAL} ± s.e.": [pm(m, e) for m, e in zip(sub[TOTAL], sub[f"{TOTAL}_se"])],
+            "replicates": sub["n_replicates"].astype(int),
+            "− recommended [mm] ± s.e.": [
+                "–" if r else pm(d, e, sign=True)
+                for d, e, r in zip(sub["diff_rms_total_mm"], sub["diff_rms_total_mm_se"], sub["recommended"])
+            ],
+            "separable": [
+                "recommended" if r else words.get(v, "–") for v, r in zip(sub["separable"], sub["recommended"])
+            ],
+            "pareto": sub["pareto"],
+        }
+    )
+    return Block(
+        "answer",
+        f"ranking_{flow}",
+        html=f"<h4>Every design against the recommended one, {html.escape(flow)}</h4><p>Total RMS error: mean over "
+        "the seeds ± its standard error; the difference to the recommended design is the mean of the per-seed "
+        f"differences ± its standard error, <i>separable</i> where it is at least {SEPARATION:g} standard errors."
+        "</p>" + _table(out, index=False),
+    )
 
 
 def _limits_block(study: xr.Dataset) -> Block:
@@ -416,6 +512,8 @@ def _limits_block(study: xr.Dataset) -> Block:
     lim = limiting_tolerances(study)
     if lim.empty:
         return _na("answer", "limits", "What limits each design at tolerances", "no computed case at the ideal camera")
+    if replicate_dim(study) is not None:
+        return _limits_block_replicates(study, lim)
     return Block(
         "answer",
         "limits",
@@ -423,6 +521,30 @@ def _limits_block(study: xr.Dataset) -> Block:
         "camera, what each imperfection alone adds at its worst level (+, the other imperfections ideal), the "
         "worst case over the whole tolerance sweep (combinations included) and the tolerance that costs the "
         'most (<i>limited_by</i>; "nothing" where no imperfection raises the error).</p>' + _table(lim, index=False),
+    )
+
+
+def _limits_block_replicates(study: xr.Dataset, lim: pd.DataFrame) -> Block:
+    """:func:`_limits_block` of a study with replicates: each cost ± its standard error, and whether it is
+    beyond noise."""
+    out = lim.copy()
+    for c in [c for c in lim.columns if f"{c} s.e." in lim]:
+        out[c] = [
+            pm(m, e, sign=True) + ("" if beyond else " (within noise)")
+            for m, e, beyond in zip(lim[c], lim[f"{c} s.e."], lim[f"{c} beyond noise"])
+        ]
+        out = out.drop(columns=[f"{c} s.e.", f"{c} beyond noise"]).rename(columns={c: f"{c} ± s.e."})
+    return Block(
+        "answer",
+        "limits",
+        html="<h4>What each tolerance costs each design</h4><p>Per design: the total RMS error at the ideal "
+        "camera, what each imperfection alone adds at its worst level (+, the other imperfections ideal), the "
+        "worst case over the whole tolerance sweep (combinations included) and the tolerance that costs the "
+        "most (<i>limited_by</i>)." + _replicates_note(study) + " A cost is the mean over the seeds of the "
+        "difference to the ideal camera at the same seed (the levels of one seed share their particles, rays and "
+        f"noise), ± its standard error; one below {SEPARATION:g} standard errors is <i>within noise</i>: the "
+        "study cannot tell it from no cost. <i>limited_by</i> is the costliest imperfection beyond noise "
+        '("nothing beyond noise" where none is).</p>' + _table(_spread_text(out), index=False),
     )
 
 
@@ -447,6 +569,12 @@ def _tolerance_sentence(study: xr.Dataset, table: pd.DataFrame, flow: str, rank_
         return head
     r = row.iloc[0]
     ideal, worst = r[f"ideal {WORST_BY}"], r[f"worst {WORST_BY}"]
+    if r["limited_by"] == "nothing beyond noise":
+        return head + (
+            f" No swept imperfection alone costs it more than the noise of the replicates ({ideal:.3g} mm at the "
+            f"ideal camera; every cost is within {SEPARATION:g} standard errors of 0); its worst case over the "
+            f"tolerances is {worst:.3g} mm."
+        )
     if r["limited_by"] == "nothing":
         if worst > ideal:  # no imperfection alone raises it, a combination does
             return head + (
@@ -491,7 +619,9 @@ def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
             if oracle
             else "The study holds no oracle (errors stores written before it)."
         )
-        + " What each costs each design, and which limits it, is in the recommendation above.</p>",
+        + " What each costs each design, and which limits it, is in the recommendation above."
+        + (_replicates_note(study) + " Bars in the figures: the sd." if replicate_dim(study) is not None else "")
+        + "</p>",
     )
     for d in ideal:
         t = tolerance_table(study, d)
@@ -510,7 +640,7 @@ def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
         yield Block(
             "tolerances",
             f"table_{d}",
-            html=f"<h4>Error against {html.escape(label)}</h4>" + _table(t, index=False),
+            html=f"<h4>Error against {html.escape(label)}</h4>" + _table(_spread_text(t), index=False),
         )
 
 
@@ -530,8 +660,15 @@ def _budget_blocks(study: xr.Dataset) -> Iterator[Block]:
         "reconstruction could hand to the PIV, so its error is what the design's grid and PIV windows can "
         "resolve. The error the reconstruction adds is the case's beyond it, in quadrature "
         "(sqrt(case² − oracle²)). <i>limited_by</i> names the larger of the two. The crosstalk columns give, for "
-        "a uniform flow, the spurious w per unit of lateral shift.</p>"
-        + _table(bt.sort_values(sort) if sort else bt, index=False),
+        "a uniform flow, the spurious w per unit of lateral shift."
+        + (
+            _replicates_note(study) + " The crosstalk is shown with its standard error: one case's crosstalk is a "
+            f"random draw, so only a mean at least {SEPARATION:g} s.e. away from 0 is a systematic crosstalk."
+            if replicate_dim(study) is not None
+            else ""
+        )
+        + "</p>"
+        + _table(_spread_text(bt.sort_values(sort) if sort else bt), index=False),
     )
 
 
@@ -552,7 +689,10 @@ def _overview_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> I
             f"<p>{n_comp} of {n_total} combinations of the swept settings computed. Displacements and "
             "errors are in the object frame (+z away from the camera): a +x shift reads positive here, "
             "negative in the thesis' histograms. Errors are measured − true over valid vectors; across "
-            "designs they are compared in mm and relative to the true displacement.</p>" + _table(sweep)
+            "designs they are compared in mm and relative to the true displacement."
+            + _replicates_note(study)
+            + "</p>"
+            + _table(sweep)
         ),
     )
     var = next((m for m in mt.names("overview") if m in study), "")
@@ -564,7 +704,8 @@ def _overview_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> I
         "overview",
         "map",
         f"The headline error over the two settings that move it most ({', '.join(ranked[:2])}), mean over the "
-        "others, per flow.",
+        + ("others and the seeds" if replicate_dim(study) is not None else "others")
+        + ", per flow.",
         "overview map",
         lambda: rf.overview_heatmap(study, var, ranked[:2]),
     )
@@ -580,16 +721,21 @@ def _comparison_blocks(study: xr.Dataset) -> Iterator[Block]:
         yield _try(
             "comparison",
             f"panels_{p}",
-            f"Headline metrics against {p} (one line per flow, mean over the other settings).",
+            f"Headline metrics against {p} (one line per flow, mean over the other settings"
+            + ("; bars: sd over the seeds)." if replicate_dim(study) is not None else ")."),
             f"metrics against {p}",
             lambda p=p: rf.parameter_panels(study, p, mt.names("panel")),
         )
         cols = [m for m in mt.names("headline") if m in study]
         if cols:
+            rdim = replicate_dim(study)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                red = [d for d in study.dims if d not in (p, "flow")]
-                marg = study[cols].mean(red, skipna=True).to_dataframe()
+                red = [d for d in study.dims if d not in (p, "flow", rdim)]
+                per = study[cols].mean(red, skipna=True)
+                marg = per.to_dataframe() if rdim is None else per.mean(rdim, skipna=True).to_dataframe()
+                if rdim is not None:  # the spread of this mean from seed to seed
+                    marg = _spread_text(_spread_of(marg, per.std(rdim, ddof=1, skipna=True).to_dataframe(), cols))
             yield Block(
                 "comparison",
                 f"table_{p}",
@@ -597,21 +743,24 @@ def _comparison_blocks(study: xr.Dataset) -> Iterator[Block]:
             )
     ct = case_table(study)
     if not ct.empty:
-        yield Block("comparison", "all_cases", html="<h4>All computed cases</h4>" + _table(ct))
+        title = "All computed cases" if replicate_dim(study) is None else "All computed designs (mean over the seeds)"
+        yield Block("comparison", "all_cases", html=f"<h4>{title}</h4>" + _table(_spread_text(ct)))
 
 
 def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]:
     """Per design: resolution, measurable depth and field of view in mm; the cameras and their optics."""
     from lfstudy.study import figures as rf
-    from lfstudy.study.designs import design_table
+    from lfstudy.study.designs import design_table, spread_columns
 
     dt = design_table(study)
     cols = [c for c in ("design", "flow", *mt.names("resolution")) if c in dt]
     if not dt.empty and len(cols) > 2:
+        cols = spread_columns(dt, cols)
         yield Block(
             "designs",
             "resolution",
-            html="<h4>Spatial resolution, measured depth and field of view [mm]</h4>" + _table(dt[cols], index=False),
+            html="<h4>Spatial resolution, measured depth and field of view [mm]</h4>"
+            + _table(_spread_text(dt[cols]), index=False),
         )
     try:
         cams = _cameras(study, cfg)
@@ -665,13 +814,22 @@ def _uncertainty_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -
             "unc_*: piv.uncertainty none, or results computed before they existed).",
         )
         return
-    extra = [v for v in ("computed", "case_id") if v in study]
-    df = study[cols + extra].to_dataframe().reset_index()
-    if "computed" in df:
-        df = df[df["computed"].astype(bool)].drop(columns="computed")
-    dims = [str(d) for d in study.dims]
-    df.insert(0, "design", [design_label(r, dims) for _, r in df.iterrows()])
+
+    def rows(ds: xr.Dataset) -> pd.DataFrame:
+        extra = [v for v in ("computed", "case_id") if v in ds]
+        df = ds[cols + extra].to_dataframe().reset_index()
+        if "computed" in df:
+            df = df[df["computed"].astype(bool)].drop(columns="computed")
+        dims = [str(d) for d in ds.dims]
+        df.insert(0, "design", [design_label(r, dims) for _, r in df.iterrows()])
+        return df
+
+    df = rows(study)  # every case: the error-against-σ curves pool each design's seeds
     show = [c for c in ("design", "flow", *cols) if c in df]
+    shown = df[show]
+    if replicate_dim(study) is not None:
+        stats = replicate_stats(study)
+        shown = _spread_text(_spread_of(rows(stats.mean)[show], rows(stats.sd)[show], cols))
     yield Block(
         "uncertainty",
         "table",
@@ -679,8 +837,10 @@ def _uncertainty_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -
         "<code>piv.zarr</code>) measures its actual error against the known flow, over the valid vectors: the "
         "<i>coverage</i> is the fraction with |error| ≤ σ (0.68 for a right σ and Gaussian errors), the "
         "<i>ratio</i> RMS(error) / RMS(σ) (1 for a right σ; above 1 σ is too small). z, the depth, is measured "
-        "through the parallax of the sub-apertures and has a σ of its own scale.</p>"
-        + _table(df[show].sort_values(["design", "flow"] if "flow" in df else ["design"]), index=False),
+        "through the parallax of the sub-apertures and has a σ of its own scale."
+        + _replicates_note(study)
+        + "</p>"
+        + _table(shown.sort_values(["design", "flow"] if "flow" in df else ["design"]), index=False),
     )
     groups: dict[str, list[str]] = {}
     if "case_id" in df:
@@ -768,6 +928,10 @@ def _thesis_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
         ref = THESIS_REFERENCE.get(ax)
         cols = [f"mean_{ax}", f"true_{ax}", f"bias_{ax}", f"std_{ax}", f"mean_{ax}_mm", f"true_{ax}_mm"]
         sub = case_table(study.sel(flow=[flow]), cols)
+        if replicate_dim(study) is not None:  # the mean over the seeds ± their sd, as text
+            sub = pd.DataFrame(
+                {c: [pm(m, v) for m, v in zip(sub[c], sub[f"{c}_sd"])] for c in cols if c in sub}, index=sub.index
+            )
         for idx, r in sub.iterrows():
             p = dict(zip(sub.index.names, idx))
             rows.append(
@@ -798,7 +962,9 @@ def _thesis_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
             "<p>Mean and standard deviation of the measured displacement beside the thesis' histograms ("
             + "; ".join(html.escape(v["where"]) for v in THESIS_REFERENCE.values())
             + "). The thesis reports image-frame signs (μ negative) in its own voxels (a lenslet in x, y; a "
-            "refocus plane in z); ours are object-frame, in the voxels of the reconstruction grid and in mm.</p>"
+            "refocus plane in z); ours are object-frame, in the voxels of the reconstruction grid and in mm."
+            + _replicates_note(study)
+            + "</p>"
             + _table(pd.DataFrame(rows), index=False)
         ),
     )
@@ -838,13 +1004,15 @@ def _legend_blocks(study: xr.Dataset) -> Iterator[Block]:
     metric table sets) and, for a metric, which way is better."""
     known = {m.name: m for m in mt.METRICS}
     rows = [{"column": "case_id", "units": "", "meaning": "results sub-path of the case", "better": ""}]
+    rdim = replicate_dim(study)
     for d in study.dims:
         c = study[d]
         rows.append(
             {
                 "column": str(d),
                 "units": c.attrs.get("units", ""),
-                "meaning": f"swept: {c.attrs.get('long_name', d)}",
+                "meaning": f"swept: {c.attrs.get('long_name', d)}"
+                + (" (the replicates: the report shows the mean over them ± their spread)" if d == rdim else ""),
                 "better": "",
             }
         )

@@ -14,6 +14,12 @@ the other swept settings but the flow. Pure functions of the study Dataset
   each design's worst case (largest total RMS error in mm) over the tolerance sweep;
 - :func:`limiting_tolerances`: per design, what each imperfection alone costs it over the ideal
   camera, and which one limits it.
+
+Where the study has replicates (a swept ``seed``, :mod:`lfstudy.study.replicates`), the tables hold
+the means over the seeds with their standard deviations, the worst level of a design is the one with
+the largest mean, and a cost is the mean of the per-seed differences to the ideal camera (the levels
+of one seed share their particles, rays and noise: common random numbers) with its standard error;
+a cost below :data:`~lfstudy.study.replicates.SEPARATION` standard errors is *within noise*.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import pandas as pd
 import xarray as xr
 
 from lfstudy.study import metric_table as mt
+from lfstudy.study.replicates import REPLICATE_DIM, replicate_dim, replicate_stats, separable
 from lfstudy.study.sweep import format_value, is_tolerance
 
 __all__ = [
@@ -110,7 +117,7 @@ def tolerance_metrics(study: xr.Dataset) -> list[str]:
 
 def _design_dims(study: xr.Dataset) -> list[str]:
     tol = set(tolerance_dims(study))
-    return [str(d) for d in study.dims if d != "flow" and str(d) not in tol]
+    return [str(d) for d in study.dims if d not in ("flow", REPLICATE_DIM) and str(d) not in tol]
 
 
 def _label(row: Mapping[str, Any], dims: Sequence[str]) -> str:
@@ -128,8 +135,22 @@ def tolerance_table(study: xr.Dataset, dim: str) -> pd.DataFrame:
     pandas.DataFrame
         Columns ``design``, ``flow`` (where the study has one), the level (named by
         :func:`level_label`), then each :func:`tolerance_metrics` metric followed by its oracle
-        (``oracle_<name>``) where the study holds it. Only computed cases; empty if none.
+        (``oracle_<name>``) where the study holds it. Only computed cases; empty if none. With
+        replicates: the means over the seeds, each metric followed by its standard deviation
+        (``<name>_sd``).
     """
+    if replicate_dim(study) is not None:
+        stats = replicate_stats(study)
+        mean, sd = tolerance_table(stats.mean, dim), tolerance_table(stats.sd, dim)
+        if mean.empty:
+            return mean
+        keep = []
+        for c in mean.columns:
+            keep.append(c)
+            if c in tolerance_metrics(study):
+                mean[f"{c}_sd"] = sd[c].to_numpy()
+                keep.append(f"{c}_sd")
+        return mean[keep]
     others = {d: v for d, v in ideal_levels(study).items() if d != dim}
     sub = study.sel(others) if others else study
     cols: list[str] = []
@@ -165,7 +186,8 @@ def worst_case(study: xr.Dataset, by: str = WORST_BY) -> xr.Dataset:
     case whose error is reported. The tolerance dimensions are dropped; ``worst_<dim>`` holds the
     level of the worst case (a string, as the case id writes it) and ``tolerance_cases`` how many
     computed cases of the design it was chosen from. A study without swept imperfections is
-    returned as is.
+    returned as is. With replicates the worst level is the one with the largest mean over the
+    seeds, and every seed keeps its case at that level.
     """
     tol = tolerance_dims(study)
     if not tol:
@@ -174,15 +196,22 @@ def worst_case(study: xr.Dataset, by: str = WORST_BY) -> xr.Dataset:
         raise KeyError(f"worst case over the tolerances: the study has no {by!r}")
     stacked = study.stack(_tol=tol)
     ok = stacked["computed"].astype(bool) if "computed" in stacked else xr.ones_like(stacked[by], dtype=bool)
-    score = stacked[by].where(ok & stacked[by].notnull(), -np.inf)
+    rep = replicate_dim(study)
+    if rep is not None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = stacked[by].where(ok).mean(rep, skipna=True)
+        score = mean.where(mean.notnull(), -np.inf)
+    else:
+        score = stacked[by].where(ok & stacked[by].notnull(), -np.inf)
     idx = score.argmax("_tol")
     worst = stacked.isel(_tol=idx)
-    levels = {d: worst[d].values for d in tol}
+    levels = {d: (worst[d].dims, worst[d].values) for d in tol}
     worst = worst.drop_vars(["_tol", *tol], errors="ignore")
     for d in tol:
         worst[f"worst_{d}"] = (
-            worst[by].dims,
-            np.vectorize(lambda v: format_value(v.item() if hasattr(v, "item") else v), otypes=[object])(levels[d]),
+            levels[d][0],
+            np.vectorize(lambda v: format_value(v.item() if hasattr(v, "item") else v), otypes=[object])(levels[d][1]),
             {"long_name": f"level of the worst case: {study[d].attrs.get('long_name', d)}"},
         )
     n = ok.sum("_tol")
@@ -202,10 +231,20 @@ def limiting_tolerances(study: xr.Dataset, by: str = WORST_BY) -> pd.DataFrame:
     ``+<label>`` column per imperfection (its cost), ``worst <by>`` (over the whole tolerance
     sweep, combinations included) and ``limited_by`` (the costliest imperfection with its worst
     level, or "nothing" when no imperfection raises the error). Empty without swept imperfections.
+
+    With replicates (:mod:`lfstudy.study.replicates`) the cost of an imperfection at a level is the
+    mean over the seeds of the paired difference to the ideal camera; its worst level is the one of
+    the largest mean cost. ``ideal <by>`` and ``worst <by>`` are means with their standard deviation
+    (``_sd``), each cost has its standard error (``+<label> s.e.``) and whether it is beyond noise
+    (``+<label> beyond noise``: at least :data:`~lfstudy.study.replicates.SEPARATION` standard errors
+    above 0); ``limited_by`` is the costliest imperfection beyond noise, or "nothing beyond noise".
     """
     tol = tolerance_dims(study)
     if not tol or by not in study:
         return pd.DataFrame()
+    rep = replicate_dim(study)
+    if rep is not None:
+        return _limiting_replicates(study, by, rep)
     ideal = ideal_levels(study)
     base = at_ideal(study)
     worst = worst_case(study, by)
@@ -241,4 +280,58 @@ def limiting_tolerances(study: xr.Dataset, by: str = WORST_BY) -> pd.DataFrame:
     df["limited_by"] = limited
     df.insert(0, "design", [_label(r, design) for _, r in df.iterrows()])
     keep = ["design", *(["flow"] if "flow" in df else []), f"ideal {by}", *costs, f"worst {by}", "limited_by"]
+    return df[keep].reset_index(drop=True)
+
+
+def _limiting_replicates(study: xr.Dataset, by: str, rep: str) -> pd.DataFrame:
+    """:func:`limiting_tolerances` of a study with replicates: costs paired seed by seed."""
+    tol = tolerance_dims(study)
+    ideal = ideal_levels(study)
+    val = study[by].where(study["computed"].astype(bool)) if "computed" in study else study[by]
+    base = val.sel(ideal)
+    stats = replicate_stats(study)
+    mean_base, sd_base = at_ideal(stats.mean), at_ideal(stats.sd)
+    worst = replicate_stats(worst_case(study, by), rep)
+    order = mean_base[by].dims
+
+    def column(da: xr.DataArray) -> pd.Series:
+        return da.transpose(*order).to_dataframe(name="c")["c"]
+
+    df = pd.DataFrame({f"ideal {by}": column(mean_base[by]), f"ideal {by}_sd": column(sd_base[by])})
+    costs = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for d in tol:
+            others = {k: v for k, v in ideal.items() if k != d}
+            diff = (val.sel(others) if others else val) - base  # paired: the same seed at both levels
+            n = diff.count(rep)
+            mean_cost = diff.mean(rep, skipna=True)
+            se = diff.std(rep, ddof=1, skipna=True) / np.sqrt(n.where(n > 0))
+            at = mean_cost.fillna(-np.inf).argmax(d)
+            col = f"+{level_label(study, d)}"
+            costs.append(col)
+            df[col] = column(mean_cost.isel({d: at}, drop=True))
+            df[f"{col} s.e."] = column(se.isel({d: at}, drop=True))
+            df[f"_level_{d}"] = column(
+                xr.DataArray(np.asarray(study[d].values)[at.values], dims=at.dims, coords=at.coords)
+            ).map(lambda v: format_value(v.item() if hasattr(v, "item") else v))
+    df[f"worst {by}"] = column(worst.mean[by])
+    df[f"worst {by}_sd"] = column(worst.sd[by])
+    df = df.reset_index()
+    if "computed" in mean_base:
+        df = df[column(mean_base["computed"]).astype(bool).to_numpy()]
+    for col in costs:
+        df[f"{col} beyond noise"] = [bool(c > 0 and separable(c, e)) for c, e in zip(df[col], df[f"{col} s.e."])]
+    limited = []
+    for _, r in df.iterrows():
+        best, label = -np.inf, "nothing beyond noise"
+        for col, d in zip(costs, tol):
+            if r[f"{col} beyond noise"] and r[col] > best:
+                best, label = r[col], level_text(study, d, r[f"_level_{d}"])
+        limited.append(label if np.isfinite(np.asarray([r[c] for c in costs], float)).any() else "")
+    df["limited_by"] = limited
+    df.insert(0, "design", [_label(r, _design_dims(study)) for _, r in df.iterrows()])
+    spread = [x for c in costs for x in (c, f"{c} s.e.", f"{c} beyond noise")]
+    keep = ["design", *(["flow"] if "flow" in df else []), f"ideal {by}", f"ideal {by}_sd", *spread]
+    keep += [f"worst {by}", f"worst {by}_sd", "limited_by"]
     return df[keep].reset_index(drop=True)
