@@ -291,13 +291,17 @@ rule reconstruct:
         stack=at("stack_{frame}.zarr", "reconstruct"),
         lightfield=at("lightfield_{frame}.zarr", "reconstruct"),
         centers=at("centers.zarr", "reconstruct"),
+        volcal=volcal_input("reconstruct"),
     output: directory(f"{OUT}/{{sid}}/volume_{{frame}}.zarr")
     log: f"{LOG}/reconstruct/{{sid}}_{{frame}}.log"
     benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("reconstruct")
     resources: mem_mb=mem_mb("reconstruct")
-    shell: DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q}"
+    # '' for the particle list this method does not have, then the volumetric calibration ('' where none)
+    shell:
+        DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q} ''"
+        " {input.volcal:q}"
 
 
 # A method that fits particles writes the list beside each volume, from the same fit (one job).
@@ -314,6 +318,7 @@ if PARTICLE_IDS:
             stack=at("stack_{frame}.zarr", "reconstruct"),
             lightfield=at("lightfield_{frame}.zarr", "reconstruct"),
             centers=at("centers.zarr", "reconstruct"),
+            volcal=volcal_input("reconstruct"),
         output:
             volume=directory(f"{OUT}/{{sid}}/volume_{{frame}}.zarr"),
             particles=directory(f"{OUT}/{{sid}}/volume_{{frame}}.particles.zarr"),
@@ -324,7 +329,7 @@ if PARTICLE_IDS:
         resources: mem_mb=mem_mb("reconstruct")
         shell:
             DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q}"
-            " {output.volume:q} {output.particles:q}"
+            " {output.volume:q} {output.particles:q} {input.volcal:q}"
 
 
 rule depthcal:

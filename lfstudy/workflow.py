@@ -172,10 +172,13 @@ def run_reconstruct(
     centers: str | Path,
     out: str | Path,
     particles: str | Path | None = None,
+    volcal: str | Path = "",
 ) -> None:
     """Focal stack, light field and calibration → particle volume on the reconstruction grid; for a
     method that fits particles (``ipr``) also its particle list (``particles``: the store it goes to,
-    required for such a method and refused for the others: the Snakefile declares it per case).
+    required for such a method and refused for the others: the Snakefile declares it per case, and
+    passes ``''`` for none). ``volcal``: the dot-target calibration where ``refocus.model`` is
+    ``volumetric`` (MART's and IPR's beams go through it).
 
     The list is written before the volume, both atomically: an interrupted job leaves no volume
     without its list.
@@ -187,7 +190,12 @@ def run_reconstruct(
         need = "needs a particle-list path" if gives_particles(method) else "fits no particles: no particle-list path"
         raise ValueError(f"reconstruct stage: reconstruct.method = {method!r} {need} (got {particles!r})")
     vol, parts = cl.case_reconstruction(
-        ccfg, io.open_array(stack), io.open_array(lightfield).load(), io.open_zarr(centers).load(), progress=True
+        ccfg,
+        io.open_array(stack),
+        io.open_array(lightfield).load(),
+        io.open_zarr(centers).load(),
+        progress=True,
+        calibration=_volcal(volcal),
     )
     prov = io.provenance(ccfg, None)
     if parts is not None:

@@ -50,6 +50,7 @@ __all__ = [
     "dot_grid",
     "fit_volumetric",
     "predict",
+    "predict_thin_lens",
     "volumetric_stack",
     "polynomial_exponents",
 ]
@@ -475,6 +476,22 @@ def predict(cal: xr.Dataset, x: Any, y: Any, z: Any) -> xr.DataArray:
     out = np.einsum("pk,aijk->apij", d, cal["coef"].values)
     out[:, :, ~cal["valid"].values] = np.nan
     return xr.DataArray(out, dims=("axis", "point", "prow", "pcol"), coords={"axis": ["s", "t"]})
+
+
+def predict_thin_lens(lightfield: xr.DataArray, camera: PlenopticCamera, x: Any, y: Any, z: Any) -> xr.DataArray:
+    """The thin-lens (s, t) [lenslets] of object points in every sub-aperture of the resampled angular grid.
+
+    What the nominal camera predicts where :func:`predict` gives the calibrated mapping (eqs
+    5.10–5.15 inverted, on the lenslet grid registered in ``lightfield``).
+
+    Returns
+    -------
+    xarray.DataArray
+        Dims ``("axis", "point", "prow", "pcol")``, as :func:`predict`.
+    """
+    x, y, z = np.broadcast_arrays(*(np.atleast_1d(np.asarray(v, float)) for v in (x, y, z)))
+    s, t = _nominal_positions(lightfield, camera, x.ravel(), y.ravel(), z.ravel())
+    return xr.DataArray(np.stack([s, t]), dims=("axis", "point", "prow", "pcol"), coords={"axis": ["s", "t"]})
 
 
 @numba.njit(nogil=True, cache=True)

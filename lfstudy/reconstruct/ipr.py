@@ -109,6 +109,7 @@ __all__ = [
     "calibrated_camera",
     "particle_patches",
     "render_particles",
+    "volumetric_frame",
 ]
 
 _MAX_ROTATION_PX = 0.05  # largest lenslet displacement [px] a calibrated rotation may cause and be ignored
@@ -597,6 +598,82 @@ def _lightfield_from_raw(img: np.ndarray, lf: xr.DataArray) -> xr.DataArray:
     return lf.copy(data=vals.astype(lf.dtype))
 
 
+# ------------------------------------------------------------------ the volumetric calibration's frame
+def volumetric_frame(
+    xyz: np.ndarray,
+    lightfield: xr.DataArray,
+    camera: PlenopticCamera,
+    calibration: xr.Dataset,
+    *,
+    to: str = "calibrated",
+    iterations: int = 6,
+) -> np.ndarray:
+    """Positions moved between the nominal camera's frame and the volumetric calibration's.
+
+    IPR fits with the exact renderer of the nominal camera, so a fitted position ``x_nom`` is
+    where the nominal camera would have to see the particle to record the image it did. The
+    calibrated position is the one the fitted mapping (Hall et al. 2018) sends to the same
+    sub-aperture image positions: ``x_cal = argmin_x Σ_uv |P_uv(x) − Q_uv(x_nom)|²``, P the
+    calibration's polynomials and Q the thin-lens mapping of the same sub-apertures
+    (:func:`lfstudy.lightfield.volcal.predict_thin_lens`), over the calibrated sub-apertures;
+    ``to="nominal"`` solves the reverse, ``argmin_x Σ |Q(x) − P(x_cal)|²``. Gauss–Newton with a
+    central-difference Jacobian, all particles at once (3 x 3 normal equations each).
+
+    Parameters
+    ----------
+    xyz : ndarray (N, 3)
+        Positions [mm] in the frame ``to`` is not.
+    lightfield : xarray.DataArray
+        The registered light field (its lenslet grid and shape).
+    camera : PlenopticCamera
+        The nominal camera.
+    calibration : xarray.Dataset
+        From :func:`lfstudy.lightfield.volcal.fit_volumetric`.
+    to : {"calibrated", "nominal"}
+    iterations : int
+        Gauss–Newton steps.
+
+    Returns
+    -------
+    ndarray (N, 3)
+    """
+    from lfstudy.lightfield.volcal import predict, predict_thin_lens
+
+    if to not in ("calibrated", "nominal"):
+        raise ReconstructionError(f"volumetric_frame: to = {to!r}: allowed values are calibrated, nominal")
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    if not len(xyz):
+        return xyz.copy()
+    ok = np.asarray(calibration["valid"].values, bool)
+
+    def cal(p: np.ndarray) -> np.ndarray:
+        v = predict(calibration, p[:, 0], p[:, 1], p[:, 2]).values[:, :, ok]
+        return np.concatenate([v[0], v[1]], axis=1)
+
+    def nom(p: np.ndarray) -> np.ndarray:
+        v = predict_thin_lens(lightfield, camera, p[:, 0], p[:, 1], p[:, 2]).values[:, :, ok]
+        return np.concatenate([v[0], v[1]], axis=1)
+
+    src, dst = (nom, cal) if to == "calibrated" else (cal, nom)
+    target = src(xyz)
+    x = xyz.copy()
+    h = 1e-4 * max(camera.lenslet_pitch / abs(camera.magnification), 1e-12)  # a thousandth of a voxel or so
+    for _ in range(iterations):
+        r = dst(x) - target
+        jac = np.empty((*r.shape, 3))
+        for a in range(3):
+            e = np.zeros(3)
+            e[a] = h
+            jac[..., a] = (dst(x + e) - dst(x - e)) / (2.0 * h)
+        jtj = np.einsum("nma,nmb->nab", jac, jac)
+        jtr = np.einsum("nma,nm->na", jac, r)
+        reg = 1e-12 * np.trace(jtj, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+        x = x - np.linalg.solve(jtj + reg, jtr[..., None])[..., 0]
+    if not np.all(np.isfinite(x)):
+        raise ReconstructionError("the volumetric calibration cannot map the particle positions (non-finite)")
+    return x
+
+
 # ------------------------------------------------------------------ the method
 def _check(name: str, value: float, lo: float, hi: float, *, lo_open: bool = False) -> None:
     ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
@@ -626,7 +703,10 @@ def ipr_particles(
     Parameters
     ----------
     inputs : ReconstructionInputs
-        ``lightfield``, ``centers``, ``camera`` and ``grid``.
+        ``lightfield``, ``centers``, ``camera`` and ``grid``; with a volumetric ``calibration``
+        the candidates come from MART through it, are moved into the nominal frame the exact
+        renderer fits in, and the fitted positions are moved back into the calibrated frame
+        (:func:`volumetric_frame`), so positions, the rendered volume and PIV are calibrated.
     iterations : int
         Outer iterations (render, fit, remove ghosts, add candidates).
     peak_threshold : float
@@ -700,12 +780,17 @@ def ipr_particles(
     clock = {"mart": 0.0, "patches": 0.0, "fit": 0.0, "images": 0, "volumes": 0}
     cgrid = _refined(grid, _REFINE_XY, _REFINE_Z)
 
+    vcal = inputs.calibration
+
     def candidates(light: xr.DataArray) -> np.ndarray:
         t0 = time.perf_counter()
-        vol = mart(light, inputs.camera, cgrid, iterations=mart_iterations).values
+        vol = mart(light, inputs.camera, cgrid, iterations=mart_iterations, calibration=vcal).values
         clock["mart"] += time.perf_counter() - t0
         clock["volumes"] += 1
-        return _peaks(vol, cgrid, peak_threshold)
+        peaks = _peaks(vol, cgrid, peak_threshold)
+        if vcal is not None:  # the exact renderer fits in the nominal camera's frame
+            peaks = volumetric_frame(peaks, lf, inputs.camera, vcal, to="nominal")
+        return peaks
 
     xyz = candidates(lf)
     n_cand = len(xyz)
@@ -816,6 +901,8 @@ def ipr_particles(
     bar.close()
     if len(xyz):
         res_hist.append(norm(res))
+    if vcal is not None:
+        xyz = volumetric_frame(xyz, lf, inputs.camera, vcal, to="calibrated")
     P = "particle"
     mm = lambda ln: {"units": "mm", "long_name": ln}  # noqa: E731
     return xr.Dataset(
@@ -851,6 +938,7 @@ def ipr_particles(
             "seconds_fit": float(clock["fit"]),
             "particle_images": int(clock["images"]),
             "mart_volumes": int(clock["volumes"]),
+            "frame": "nominal camera" if vcal is None else "volumetric calibration (Hall et al. 2018)",
             **ginfo,
         },
     )

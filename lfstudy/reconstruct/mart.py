@@ -84,6 +84,7 @@ def mart(
     smoothing: float = 0.5,
     track_residual: bool = False,
     progress: bool = False,
+    calibration: xr.Dataset | None = None,
 ) -> xr.DataArray:
     """Reconstruct a volume on ``grid`` from a registered light field by MART.
 
@@ -129,6 +130,10 @@ def mart(
         ‖A·E − I‖ / ‖I‖ over the used samples (one more projection each).
     progress : bool
         A tqdm bar over the iterations.
+    calibration : xarray.Dataset, optional
+        A volumetric calibration (:func:`lfstudy.lightfield.volcal.fit_volumetric`): the beams'
+        centres come from its fitted mapping instead of the thin-lens model
+        (:class:`~lfstudy.reconstruct.projector.PlenopticProjector`).
 
     Returns
     -------
@@ -136,7 +141,9 @@ def mart(
         ``intensity`` on the grid (float32, non-negative); attrs: the
         settings, ``residual`` per iteration (exact with ``track_residual``,
         else the residual met during the iteration), ``seconds_per_iteration``,
-        ``init_seconds``, ``rays_used``, ``weight_table_bytes``.
+        ``init_seconds``, ``rays_used``, ``weight_table_bytes``, ``projector_model``
+        (``thin_lens`` or ``volumetric``) and ``samples_uncalibrated`` (samples left out
+        because the calibration has no sub-aperture for them).
 
     References
     ----------
@@ -157,7 +164,7 @@ def mart(
     if iterations < 0 or subsets < 1:
         raise ReconstructionError("reconstruct.mart: iterations must be >= 0 and subsets >= 1")
     t0 = time.perf_counter()
-    proj = PlenopticProjector(lightfield, camera, grid, min_vignetting=min_vignetting)
+    proj = PlenopticProjector(lightfield, camera, grid, min_vignetting=min_vignetting, calibration=calibration)
     meas = proj._lf_array(lightfield)
     if not np.all(np.isfinite(meas)):
         raise ReconstructionError("light field has non-finite samples")
@@ -270,6 +277,8 @@ def mart(
         seconds_per_iteration=[float(s) for s in seconds],
         init_seconds=float(init_s),
         rays_used=int(proj.n_rays),
+        projector_model=proj.model,
+        samples_uncalibrated=int(proj.uncalibrated_samples),
         weight_table_bytes=int(proj.table_bytes),
     )
 
@@ -365,4 +374,5 @@ class MART(ReconstructionMethod):
             min_coverage=min_coverage,
             smoothing=smoothing,
             progress=progress,
+            calibration=inputs.calibration,
         )

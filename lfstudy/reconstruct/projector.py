@@ -132,13 +132,172 @@ def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, st
                 if q0 < 0:
                     q0 = 0
                 start[k, l, p] = q0
-                gm = _sum_uniform_cdf_integral(c0 + (q0 - 1) * dc - xc, a, b)
-                g0 = _sum_uniform_cdf_integral(c0 + q0 * dc - xc, a, b)
-                for j in range(kk):
-                    gp = _sum_uniform_cdf_integral(c0 + (q0 + j + 1) * dc - xc, a, b)
-                    w[k, l, p, j] = (gp - 2.0 * g0 + gm) / dc
-                    gm = g0
-                    g0 = gp
+                _tent_weights(xc, a, b, c0, dc, q0, kk, w[k, l, p])
+
+
+@njit(inline="always", cache=True)
+def _tent_weights(xc, a, b, c0, dc, q0, kk, w):
+    """w[j] = tent voxel q0 + j averaged over the trapezoid beam profile centred at xc (second
+    difference of the profile's CDF integral)."""
+    gm = _sum_uniform_cdf_integral(c0 + (q0 - 1) * dc - xc, a, b)
+    g0 = _sum_uniform_cdf_integral(c0 + q0 * dc - xc, a, b)
+    for j in range(kk):
+        gp = _sum_uniform_cdf_integral(c0 + (q0 + j + 1) * dc - xc, a, b)
+        w[j] = (gp - 2.0 * g0 + gm) / dc
+        gm = g0
+        g0 = gp
+
+
+@njit(parallel=True, cache=True)
+def _axis_tables_at(xcs, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w):  # pragma: no cover - jitted
+    """:func:`_axis_tables` with the beam centres given, ``xcs[k, l, p]`` (the volumetric mapping)."""
+    nz, nl, n = xcs.shape
+    for k in prange(nz):
+        kk = kks[k]
+        a = abs(alpha[k]) * half_l
+        b = abs(beta[k]) * half_t
+        for l in range(nl):
+            for p in range(n):
+                xc = xcs[k, l, p]
+                q0 = math.floor((xc - a - b - c0) / dc)
+                if q0 > nc - kk:
+                    q0 = nc - kk
+                if q0 < 0:
+                    q0 = 0
+                start[k, l, p] = q0
+                _tent_weights(xc, a, b, c0, dc, q0, kk, w[k, l, p])
+
+
+@njit(inline="always", cache=True)
+def _poly2(c, ex, ey, xp, yp):
+    """Σ_t c[t]·x^ex[t]·y^ey[t] and its gradient, from the powers xp[i] = x^i, yp[i] = y^i."""
+    v = 0.0
+    gx = 0.0
+    gy = 0.0
+    for t in range(c.shape[0]):
+        a = ex[t]
+        b = ey[t]
+        v += c[t] * xp[a] * yp[b]
+        if a > 0:
+            gx += c[t] * a * xp[a - 1] * yp[b]
+        if b > 0:
+            gy += c[t] * b * xp[a] * yp[b - 1]
+    return v, gx, gy
+
+
+@njit(inline="always", cache=True)
+def _powers(x, out):
+    out[0] = 1.0
+    for i in range(1, out.shape[0]):
+        out[i] = out[i - 1] * x
+
+
+@njit(inline="always", cache=True)
+def _partner(r, d, n, valid_line):
+    """The neighbour of sub-aperture r that interpolates (or extrapolates) towards offset d: r + sign(d)
+    if calibrated, else r − sign(d), else r itself (no gradient)."""
+    sd = 1 if d >= 0.0 else -1
+    q = r + sd
+    if 0 <= q < n and valid_line[q]:
+        return q
+    q = r - sd
+    if 0 <= q < n and valid_line[q]:
+        return q
+    return r
+
+
+@njit(parallel=True, cache=True)
+def _mapped_centres(c2, ex, ey, valid, s0, t0, u, v, x0, y0, xs, ys, wgt, xcs, ycs, bad, shear):  # pragma: no cover
+    """Beam centres through the volumetric mapping (Hall 2018), reduced to the per-axis tables.
+
+    For plane k, lenslet l and sample (pr, pc): the polynomial of the sample's fractional
+    sub-aperture (u[l, pc], v[l, pr]), linearly interpolated from the nearest calibrated
+    sub-aperture and its calibrated neighbours (c2: coefficients in normalised x, y with z
+    fixed to the plane), is solved for the object point (x, y) it maps to the lenslet's
+    position (s0[l], t0[l]) by Newton steps from the thin-lens centre (x0, y0). The x table
+    of (k, l, pc) is the ``wgt``-weighted mean over pr of the sample centres, the y table of
+    (k, l, pr) the mean over pc. ``bad[l, pr, pc]``: the sample's sub-aperture is not
+    calibrated or a solve did not converge (it is left out). ``shear[l]``: the largest
+    |centre − table| [mm] the per-axis reduction makes at lenslet l.
+    """
+    nz = c2.shape[0]
+    n = c2.shape[2]
+    nt = c2.shape[4]
+    nl = s0.shape[0]
+    for l in prange(nl):
+        cs = np.empty(nt)
+        ct = np.empty(nt)
+        xp = np.empty(max(ex.max(), ey.max()) + 1)
+        yp = np.empty(xp.shape[0])
+        X = np.zeros((nz, n, n))
+        Y = np.zeros((nz, n, n))
+        for pr in range(n):
+            rv = math.floor(v[l, pr] + 0.5)
+            dv = v[l, pr] - rv
+            for pc in range(n):
+                if wgt[l, pr, pc] <= 0.0:
+                    continue
+                ru = math.floor(u[l, pc] + 0.5)
+                du = u[l, pc] - ru
+                if ru < 0 or ru >= n or rv < 0 or rv >= n or not valid[rv, ru]:
+                    bad[l, pr, pc] = True
+                    continue
+                pu = _partner(ru, du, n, valid[rv])
+                pv = _partner(rv, dv, n, valid[:, ru])
+                fu = du / (pu - ru) if pu != ru else 0.0
+                fv = dv / (pv - rv) if pv != rv else 0.0
+                for k in range(nz):
+                    for t in range(nt):
+                        b0 = c2[k, 0, rv, ru, t]
+                        cs[t] = b0 + fu * (c2[k, 0, rv, pu, t] - b0) + fv * (c2[k, 0, pv, ru, t] - b0)
+                        b1 = c2[k, 1, rv, ru, t]
+                        ct[t] = b1 + fu * (c2[k, 1, rv, pu, t] - b1) + fv * (c2[k, 1, pv, ru, t] - b1)
+                    xn = x0[k, l, pc] / xs
+                    yn = y0[k, l, pr] / ys
+                    conv = False
+                    for _ in range(20):
+                        _powers(xn, xp)
+                        _powers(yn, yp)
+                        ps, psx, psy = _poly2(cs, ex, ey, xp, yp)
+                        pt, ptx, pty = _poly2(ct, ex, ey, xp, yp)
+                        fs = ps - s0[l]
+                        ft = pt - t0[l]
+                        if abs(fs) + abs(ft) < 1e-9:  # lenslets
+                            conv = True
+                            break
+                        det = psx * pty - psy * ptx
+                        if not (math.isfinite(det) and det != 0.0):
+                            break
+                        xn -= (pty * fs - psy * ft) / det
+                        yn -= (psx * ft - ptx * fs) / det
+                    if not conv:
+                        bad[l, pr, pc] = True
+                        break
+                    X[k, pr, pc] = xn * xs
+                    Y[k, pr, pc] = yn * ys
+        sh = 0.0
+        for k in range(nz):
+            for pc in range(n):
+                sw = 0.0
+                sx = 0.0
+                for pr in range(n):
+                    if wgt[l, pr, pc] > 0.0 and not bad[l, pr, pc]:
+                        sw += wgt[l, pr, pc]
+                        sx += wgt[l, pr, pc] * X[k, pr, pc]
+                xcs[k, l, pc] = sx / sw if sw > 0.0 else x0[k, l, pc]
+            for pr in range(n):
+                sw = 0.0
+                sy = 0.0
+                for pc in range(n):
+                    if wgt[l, pr, pc] > 0.0 and not bad[l, pr, pc]:
+                        sw += wgt[l, pr, pc]
+                        sy += wgt[l, pr, pc] * Y[k, pr, pc]
+                ycs[k, l, pr] = sy / sw if sw > 0.0 else y0[k, l, pr]
+            for pr in range(n):
+                for pc in range(n):
+                    if wgt[l, pr, pc] > 0.0 and not bad[l, pr, pc]:
+                        sh = max(sh, abs(X[k, pr, pc] - xcs[k, l, pc]), abs(Y[k, pr, pc] - ycs[k, l, pr]))
+        shear[l] = sh
 
 
 @njit(parallel=True, cache=True)
@@ -413,6 +572,100 @@ def _impulse(k, j, i, lens, sxs, wxs, sys_, wys, gain, out):  # pragma: no cover
                 out[l, pr, pc] = gain[l, pr, pc] * wa * wxs[k, l, pc, b]
 
 
+# ------------------------------------------------------------------ the volumetric mapping
+def _volumetric_centres(
+    lf: xr.DataArray,
+    cal: xr.Dataset,
+    grid: ReconstructionGrid,
+    alpha: np.ndarray,
+    beta: np.ndarray,
+    lx: np.ndarray,
+    ly: np.ndarray,
+    sx: np.ndarray,
+    sy: np.ndarray,
+    vig: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Per-axis beam centres (nz, nl, n) through the volumetric calibration (:func:`_mapped_centres`).
+
+    Sub-apertures: volcal indexes them on the angular grid of
+    :func:`lfstudy.lightfield.volcal.resample_angular`, sub-aperture j at the local slope
+    (j − (n−1)/2)·pp/fl exactly; a registered sample's local slope tan θ puts it at the
+    fractional index tan θ·fl/pp + (n−1)/2 (rows: −tan φ, as there). Lenslet (row a, column b)
+    sits at (s, t) = (b, a) in the sub-aperture images.
+
+    Returns
+    -------
+    xcs, ycs : ndarray
+        Beam centres [mm] per plane, lenslet and pixel column (x) or row (y).
+    bad : ndarray (nl, n, n) bool
+        Samples left out: sub-aperture not calibrated, or the mapping not invertible there.
+    shear : float
+        The largest distance [mm] between a sample's own centre and its per-axis table entry.
+    """
+    for key in ("coef", "valid", "exponents"):
+        if key not in cal:
+            raise ProjectorError(f"the volumetric calibration lacks {key!r}: fit it with lfstudy.lightfield.volcal")
+    a = cal.attrs
+    nly, nlx, n = lf.sizes["lrow"], lf.sizes["lcol"], lf.sizes["prow"]
+    if (nly, nlx, n) != (a["n_lrow"], a["n_lcol"], a["pixels_per_lenslet"]):
+        raise ProjectorError(
+            f"the light field ({nly} x {nlx} lenslets, {n} px each) is not the one the volumetric calibration was "
+            f"fitted on ({a['n_lrow']} x {a['n_lcol']}, {a['pixels_per_lenslet']} px)"
+        )
+    z = np.asarray(grid.z, dtype=np.float64)
+    tol = 0.05 * (a["z_max"] - a["z_min"])
+    if z.min() < a["z_min"] - tol or z.max() > a["z_max"] + tol:
+        raise ProjectorError(
+            f"volumetric_calibration.depths cover z = {a['z_min']:.4g}..{a['z_max']:.4g} mm but the reconstruction "
+            f"grid spans {z.min():.4g}..{z.max():.4g} mm: the polynomial would extrapolate; calibrate over the grid's "
+            "depth"
+        )
+    exps = np.asarray(cal["exponents"].values, dtype=np.int64)
+    coef = np.asarray(cal["coef"].values, dtype=np.float64)  # (axis, prow, pcol, term)
+    pairs = sorted({(int(e[0]), int(e[1])) for e in exps})
+    col = {p: i for i, p in enumerate(pairs)}
+    zn = (z - a["z_center"]) / a["z_scale"]
+    m = np.zeros((z.size, exps.shape[0], len(pairs)))
+    for t, (ea, eb, ec) in enumerate(exps):
+        m[:, t, col[(int(ea), int(eb))]] = zn ** int(ec)
+    c2 = np.ascontiguousarray(np.einsum("aijt,ktq->kaijq", coef, m))  # the polynomial in x, y on each plane
+    ex = np.array([p[0] for p in pairs], np.int64)
+    ey = np.array([p[1] for p in pairs], np.int64)
+    fl_pp = float(lf.attrs.get("lenslet_focal_length")) / float(lf.attrs.get("pixel_pitch"))
+    nl = nly * nlx
+    u = np.tan(lf["theta"].transpose("lrow", "lcol", "pcol").values).reshape(nl, n) * fl_pp + 0.5 * (n - 1)
+    v = -np.tan(lf["phi"].transpose("lrow", "lcol", "prow").values).reshape(nl, n) * fl_pp + 0.5 * (n - 1)
+    rows, cols = np.divmod(np.arange(nl), nlx)
+    x0 = alpha[:, None, None] * lx[None, :, None] - beta[:, None, None] * sx[None]
+    y0 = alpha[:, None, None] * ly[None, :, None] - beta[:, None, None] * sy[None]
+    xcs = np.empty_like(x0)
+    ycs = np.empty_like(y0)
+    bad = np.zeros((nl, n, n), np.bool_)
+    shear = np.zeros(nl)
+    _mapped_centres(
+        c2,
+        ex,
+        ey,
+        np.ascontiguousarray(cal["valid"].values, dtype=np.bool_),
+        cols.astype(np.float64),
+        rows.astype(np.float64),
+        np.ascontiguousarray(u),
+        np.ascontiguousarray(v),
+        x0,
+        y0,
+        float(a["x_scale"]),
+        float(a["y_scale"]),
+        vig,
+        xcs,
+        ycs,
+        bad,
+        shear,
+    )
+    if not np.all(np.isfinite(xcs)) or not np.all(np.isfinite(ycs)):
+        raise ProjectorError("the volumetric calibration maps some beams to non-finite positions: refit it")
+    return xcs, ycs, bad, float(shear.max(initial=0.0))
+
+
 # ------------------------------------------------------------------ the projector
 class PlenopticProjector:
     """Matrix-free plenoptic projector A: volume on a grid ↔ registered light field.
@@ -450,6 +703,7 @@ class PlenopticProjector:
         *,
         min_vignetting: float = 0.25,
         max_bytes: float = 6e9,
+        calibration: xr.Dataset | None = None,
     ) -> None:
         lf = lightfield.transpose("lrow", "lcol", "prow", "pcol")
         for c in ("x", "y", "theta", "phi", "theta_bulk", "phi_bulk"):
@@ -507,18 +761,35 @@ class PlenopticProjector:
         self.wxs = np.zeros((nz, nl, n, self.kx), np.float32)
         self.sys = np.empty((nz, nl, n), np.int32)
         self.wys = np.zeros((nz, nl, n, self.ky), np.float32)
-        # Grid y ascends with the array index like object +y, and the sensor frame's y points up too.
-        _axis_tables(
-            lx, sx, self.alpha, self.beta, half_l, half_t, grid.x[0], dx, grid.x.size, self.kxs, self.sxs, self.wxs
-        )
-        _axis_tables(
-            ly, sy, self.alpha, self.beta, half_l, half_t, grid.y[0], dy, grid.y.size, self.kys, self.sys, self.wys
-        )
         vig = np.zeros((nl, n, n), np.float64)
         radius = camera.aperture_diameter / 2.0
         _vignetting(lx, ly, sx, sy, si, half_l, half_t, radius, vig)
         vig[~valid] = 0.0
         vig[vig < min_vignetting] = 0.0
+        self.model = "thin_lens" if calibration is None else "volumetric"
+        self.uncalibrated_samples = 0
+        self.mapping_shear = 0.0
+        if calibration is None:
+            # Grid y ascends with the array index like object +y, and the sensor frame's y points up too.
+            _axis_tables(
+                lx, sx, self.alpha, self.beta, half_l, half_t, grid.x[0], dx, grid.x.size, self.kxs, self.sxs, self.wxs
+            )
+            _axis_tables(
+                ly, sy, self.alpha, self.beta, half_l, half_t, grid.y[0], dy, grid.y.size, self.kys, self.sys, self.wys
+            )
+        else:
+            xcs, ycs, bad, shear = _volumetric_centres(
+                lf, calibration, grid, self.alpha, self.beta, lx, ly, sx, sy, vig
+            )
+            self.uncalibrated_samples = int(np.count_nonzero(bad & (vig > 0)))
+            vig[bad] = 0.0
+            self.mapping_shear = float(shear) / min(dx, dy)
+            _axis_tables_at(
+                xcs, self.alpha, self.beta, half_l, half_t, grid.x[0], dx, grid.x.size, self.kxs, self.sxs, self.wxs
+            )
+            _axis_tables_at(
+                ycs, self.alpha, self.beta, half_l, half_t, grid.y[0], dy, grid.y.size, self.kys, self.sys, self.wys
+            )
         self.vignetting = vig
         k_const = so**2 * (pl * camera.pixel_pitch / fl) ** 2 / (dx * dy * math.pi * radius**2)
         self.gain = np.ascontiguousarray(k_const * vig)

@@ -107,6 +107,10 @@ class ReconstructionInputs:
     camera : PlenopticCamera, optional
     grid : ReconstructionGrid, optional
         Default: the grid of ``stack`` (its coords).
+    calibration : xarray.Dataset, optional
+        The volumetric (dot-target) calibration (:func:`lfstudy.lightfield.volcal.fit_volumetric`,
+        Hall et al. 2018) where ``refocus.model`` is ``volumetric``: the methods that model the
+        camera (``mart``, ``ipr``) then place their beams through it instead of the thin lens.
     """
 
     stack: xr.DataArray | None = None
@@ -114,6 +118,7 @@ class ReconstructionInputs:
     centers: xr.Dataset | None = None
     camera: PlenopticCamera | None = None
     grid: ReconstructionGrid | None = None
+    calibration: xr.Dataset | None = None
 
     def __post_init__(self) -> None:
         if self.stack is not None:
@@ -138,6 +143,12 @@ class ReconstructionInputs:
                     f"the light field has {shape_l[0]} x {shape_l[1]} lenslets (rows x cols) but the calibration "
                     f"has {shape_c[0]} x {shape_c[1]}: they do not belong together"
                 )
+        if self.calibration is not None and not (
+            isinstance(self.calibration, xr.Dataset) and "coef" in self.calibration and "valid" in self.calibration
+        ):
+            raise ReconstructionError(
+                "calibration must be the volumetric calibration Dataset of lfstudy.lightfield.volcal.fit_volumetric"
+            )
 
 
 class ReconstructionMethod:

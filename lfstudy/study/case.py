@@ -431,10 +431,12 @@ def case_volume(
     centers: xr.Dataset | None = None,
     *,
     progress: bool = False,
+    calibration: xr.Dataset | None = None,
 ) -> xr.DataArray:
     """The particle volume of one frame with the case's reconstruction method (``reconstruct.method``)
-    and its parameters (``reconstruct.<method>``), on the case's grid."""
-    return case_reconstruction(ccfg, stack, lightfield, centers, progress=progress)[0]
+    and its parameters (``reconstruct.<method>``), on the case's grid (``calibration``: as
+    :func:`case_reconstruction`)."""
+    return case_reconstruction(ccfg, stack, lightfield, centers, progress=progress, calibration=calibration)[0]
 
 
 def case_reconstruction(
@@ -444,9 +446,15 @@ def case_reconstruction(
     centers: xr.Dataset | None = None,
     *,
     progress: bool = False,
+    calibration: xr.Dataset | None = None,
 ) -> tuple[xr.DataArray, xr.Dataset | None]:
     """:func:`case_volume` and, for a method that fits particles (``ipr``), the particle list the
     volume was rendered from, out of the same fit (:func:`lfstudy.reconstruct.reconstruct_particles`).
+
+    With ``refocus.model: volumetric`` the methods that model the camera (``mart``, ``ipr``) place
+    their beams through the dot-target ``calibration`` (:func:`case_volcal`; Hall et al. 2018), the
+    same mapping the focal stack was sampled through: one switch for the whole chain. Under the
+    thin-lens model a calibration is not used.
 
     Returns
     -------
@@ -460,7 +468,16 @@ def case_reconstruction(
     grid = case_grid(ccfg, cam)
     r = ccfg["reconstruct"]
     method = r["method"]
-    inputs = ReconstructionInputs(stack=stack, lightfield=lightfield, centers=centers, camera=cam, grid=grid)
+    if ccfg["refocus"].get("model", "thin_lens") != "volumetric":
+        calibration = None
+    elif calibration is None and method in ("mart", "ipr"):
+        raise ValueError(
+            f"refocus.model = 'volumetric' with reconstruct.method = {method!r} needs the dot-target calibration "
+            "(volumetric_calibration; lfstudy.study.case.case_volcal)"
+        )
+    inputs = ReconstructionInputs(
+        stack=stack, lightfield=lightfield, centers=centers, camera=cam, grid=grid, calibration=calibration
+    )
     vol, parts = reconstruct_particles(inputs, method, progress=progress, **dict(r.get(method, {})))
     vol.attrs.update({k: v for k, v in grid.attrs().items() if k not in vol.attrs})
     return vol, parts
@@ -628,4 +645,4 @@ def render_frame(
     lf = register(raw, centers, case_camera(ccfg))
     # persist: the reconstruction and the caller's write both read the stack
     stack = case_stack(ccfg, lf, calibration).persist()
-    return (lf, stack, *case_reconstruction(ccfg, stack, lf, centers, progress=progress))
+    return (lf, stack, *case_reconstruction(ccfg, stack, lf, centers, progress=progress, calibration=calibration))

@@ -114,7 +114,11 @@ STAGES: dict[str, _Stage] = {
     "volcal": _Stage(("seed", "camera", "raytrace", "refocus", "grid", "volumetric_calibration"), ("calibrate",)),
     # with refocus.model: volumetric the planes are sampled through it (the thin lens needs none)
     "refocus": _Stage(("camera", "refocus", "grid", "volumetric_calibration"), ("register", "volcal")),
-    "reconstruct": _Stage(("camera", "refocus", "grid", "reconstruct"), ("refocus", "register", "calibrate")),
+    # MART's and IPR's beams go through the volumetric calibration too where refocus.model is volumetric
+    "reconstruct": _Stage(
+        ("camera", "refocus", "grid", "reconstruct", "volumetric_calibration"),
+        ("refocus", "register", "calibrate", "volcal"),
+    ),
     # the traversed-volume depth calibration of a design and its processing: every setting of the
     # images and of their processing, but not the flow (it images its own seeded volume)
     "depthcal": _Stage(
