@@ -138,6 +138,19 @@ def test_vortex_ring_symmetry_far_field_and_core():
     assert np.abs(_divergence(flow, pts, eps=1e-5)).max() < 1e-5 * gamma / rc**2
 
 
+def test_vortex_ring_on_a_grid_equals_the_flat_points():
+    """A grid of any dimension (the errors stage passes its 3-D window centres) gives the flat
+    points' velocities in its own shape (the kernel flattened a before broadcasting r: a crash)."""
+    flow = VortexRing(circulation=2.0, radius=1.0, core_radius=0.4, axis=(0, 1, 1))
+    grid = np.meshgrid(np.linspace(-2, 2, 4), np.linspace(-1, 1, 3), np.linspace(-1.5, 1.5, 5), indexing="ij")
+    vel = flow.velocity(*grid)
+    flat = flow.velocity(*(g.ravel() for g in grid))
+    for v, f in zip(vel, flat):
+        assert v.shape == grid[0].shape
+        np.testing.assert_array_equal(v.ravel(), f)
+    assert np.abs(np.stack(flat)).max() > 0.1
+
+
 def test_vortex_ring_quadrature_has_converged():
     """The node rule (8 per integrand width) agrees with a 4x finer one to 1e-10 of the peak speed."""
     ring = VortexRing(circulation=1.0, radius=2.0, core_radius=0.05)

@@ -318,8 +318,10 @@ class VortexRing:
 
     def meridional(self, a: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(axial, radial) velocity at axial offset ``a`` and distance ``r`` from the axis [mm]."""
-        a = np.ascontiguousarray(np.asarray(a, dtype=float).ravel())
-        r = np.ascontiguousarray(np.broadcast_to(np.asarray(r, dtype=float), a.shape).ravel())
+        # broadcast before flattening: a grid of any dimension (the errors stage's window centres)
+        a, r = np.broadcast_arrays(np.asarray(a, dtype=float), np.asarray(r, dtype=float))
+        a = np.ascontiguousarray(a.ravel())
+        r = np.ascontiguousarray(r.ravel())
         ua = np.empty_like(a)
         ur = np.empty_like(a)
         sigma = self.core_radius / math.sqrt(2.0)
