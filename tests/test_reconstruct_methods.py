@@ -182,12 +182,9 @@ def test_mart_plan_gives_the_same_bytes_and_is_checked(frame):
     """A plan (the geometry-only part, made once: IPR's candidate volumes reuse it) changes no byte of
     MART's volume, for any light field of that layout; a plan for other settings is refused."""
     plan = mart_plan(frame.lightfield, CAM, frame.grid)
-    for lf in (frame.lightfield, 0.5 * frame.lightfield + 3.0):
-        for init in ("mlos", "uniform"):
-            ref = mart(lf, CAM, frame.grid, iterations=1, init=init)
-            np.testing.assert_array_equal(
-                mart(lf, CAM, frame.grid, iterations=1, init=init, plan=plan).values, ref.values
-            )
+    for lf, init in ((frame.lightfield, "mlos"), (0.5 * frame.lightfield + 3.0, "mlos"), (frame.lightfield, "uniform")):
+        ref = mart(lf, CAM, frame.grid, iterations=1, init=init).values
+        np.testing.assert_array_equal(mart(lf, CAM, frame.grid, iterations=1, init=init, plan=plan).values, ref)
     with pytest.raises(ReconstructionError, match=r"plan was made for another grid or other settings"):
         mart(frame.lightfield, CAM, frame.grid, iterations=1, subsets=2, plan=plan)
 

@@ -64,12 +64,18 @@ first guess alone, four times cheaper, but see the measurements below).
 Measured (``benchmarks/bench_ipr.py --crop 400 400``, Table 4.3 camera, seeds 0 and 1 used to
 set the defaults): 0.001 ppp 88.8 % found within half a voxel, 8–10 % ghosts; 0.005 ppp
 80–81 % found, 15–18 % ghosts; 17–50 s per crop on 2 shared cores. Where the time goes
-(``--crop 300 300 --ppp 0.005``, 450 particles, seed 0): about half in the 11 candidate MART
-volumes on the refined grid (the first and one per residual-candidate round), about 40 % in the
-32,381 exact particle images (40,862 before the residual was kept incrementally: x0.79, same
-particles found, 79.3 %, and ghosts, 19.2 %), the fit kernels ~5 %. Both dominant costs scale with
-the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp stays far above the issue's
-10 minutes on 2 cores (the attrs ``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
+(``--crop 300 300 --ppp 0.005``, 450 particles, seed 7, load ~1.5 on 2 cores, before the MART
+plan): 13.6 s of 23.0 s in the 11 candidate MART volumes on the refined grid (the first and one
+per residual-candidate round), 7.8 s in the 31,424 exact particle images (0.25 ms each), the fit
+kernels 1.4 s. The plan (the tables and coverage made once per fit, not per volume) takes 10 % off
+the fit's CPU time (seeds 7 and 8: 32.2 -> 29.0 s and 31.7 -> 28.9 s of CPU, the MART part 13 % and
+9 %; the same particles, byte for byte). Cheaper residual volumes trade quality for time (CPU
+time; seeds 7 / 8 / 9 / 10, change of found in points): ``residual_mart_iterations=0`` x0.59–0.82,
+found −0.3 / −1.6 / −5.1 / −4.4 (ghosts up to +4.6); ``residual_candidates=5`` x0.70–0.74, found
+−0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the defaults are unchanged). Both
+dominant costs scale with the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp
+stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine; the attrs
+``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
 
 Output: :func:`ipr_particles` returns the particle list; the method ``ipr`` returns the
 volume on the grid rendered from the particles with :func:`render_particles` (Gaussians of
