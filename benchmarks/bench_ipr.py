@@ -17,8 +17,10 @@ Where the time goes: the split of the IPR time into the candidate MART volumes, 
 images (:func:`lfstudy.reconstruct.ipr.particle_patches`) and the fit kernels (the rest: peaks,
 bookkeeping), and the full frame extrapolated at the crop's cost per particle (the crop's particle
 count scaled by the sensor area). ``--compare k=v ...`` fits the same scene again with each setting
-(one ``ipr_particles`` keyword each, e.g. ``jacobian=forward`` or ``residual_candidates=3``) and prints
-the same line and the time ratio to the defaults, in the same run.
+(one ``ipr_particles`` keyword each, e.g. ``jacobian=forward``, ``residual_candidates=3`` or
+``residual_mart_iterations=0``) and prints the same line and the time ratio to the defaults, in the
+same run. The CPU time (all threads) is printed beside the wall time: on a shared machine it moves
+less with the load.
 
 Targets (issue 27): >= 95 % found within half a voxel at 0.001 ppp, >= 80 % at 0.005 ppp,
 <= 10 % ghosts; a full frame at 0.005 ppp in <= 10 min on 2 cores and <= 8 GB.
@@ -107,9 +109,9 @@ def main() -> None:
         t_ref = None
         for name, setting in runs:
             kw = ({} if args.iterations is None else {"iterations": args.iterations}) | setting
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             parts = ipr_particles(inputs, **kw)
-            t_ipr = time.perf_counter() - t0
+            t_ipr, c_ipr = time.perf_counter() - t0, time.process_time() - c0
             t_ref = t_ref or t_ipr
             s = _score(field, parts, inputs.grid)
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
@@ -121,7 +123,8 @@ def main() -> None:
                 f"ghosts {s['ghosts']:.1f} % of fitted; rms error x,y {s['rms_xy_mm']:.4f} mm "
                 f"({s['rms_xy_vox']:.3f} vox), z {s['rms_z_mm']:.4f} mm ({s['rms_z_vox']:.3f} vox), mean z error "
                 f"{s['mean_z_mm']:+.4f} mm; residual {a['residual_norm'][0]:.3f} -> {a['residual_norm'][-1]:.3f}\n"
-                f"    IPR {t_ipr:.1f} s (x{t_ipr / t_ref:.2f} the defaults): MART candidates {a['seconds_mart']:.1f} s "
+                f"    IPR {t_ipr:.1f} s (x{t_ipr / t_ref:.2f} the defaults; CPU {c_ipr:.1f} s): "
+                f"MART candidates {a['seconds_mart']:.1f} s "
                 f"({a['mart_volumes']} volumes), {a['particle_images']} particle images {a['seconds_patches']:.1f} s "
                 f"({1e3 * a['seconds_patches'] / max(a['particle_images'], 1):.2f} ms each), "
                 f"fit {a['seconds_fit']:.1f} s, rest {rest:.1f} s; "

@@ -167,6 +167,8 @@ def test_ipr_parameters_and_bad_input(scene):
         ipr_particles(inputs, jacobian="backward")
     with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr\.batch = 0"):
         ipr_particles(inputs, batch=0)
+    with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr\.residual_mart_iterations = -1: allowed range"):
+        ipr_particles(inputs, residual_mart_iterations=-1)
 
 
 def test_ipr_particles_states_the_methods_defaults():

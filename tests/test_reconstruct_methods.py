@@ -32,7 +32,7 @@ from lfstudy.reconstruct import (
 )
 from lfstudy.reconstruct.deconvolution import richardson_lucy
 from lfstudy.reconstruct.ipr import ipr
-from lfstudy.reconstruct.mart import mart
+from lfstudy.reconstruct.mart import mart, mart_plan
 from lfstudy.reconstruct.projector import PlenopticProjector
 from lfstudy.reconstruct.registry import BUILTIN, ENTRY_POINT_GROUP, detect_parameters
 from lfstudy.simulate import make_field, render
@@ -176,6 +176,17 @@ def test_mart_is_non_negative_and_its_residual_falls_on_noise_free_data(frame):
     assert np.all(np.diff(res) < 0), res
     assert res[-1] < 0.5 * res[0]
     assert float(vol.min()) >= 0.0
+
+
+def test_mart_plan_gives_the_same_bytes_and_is_checked(frame):
+    """A plan (the geometry-only part, made once: IPR's candidate volumes reuse it) changes no byte of
+    MART's volume, for any light field of that layout; a plan for other settings is refused."""
+    plan = mart_plan(frame.lightfield, CAM, frame.grid)
+    for lf, init in ((frame.lightfield, "mlos"), (0.5 * frame.lightfield + 3.0, "mlos"), (frame.lightfield, "uniform")):
+        ref = mart(lf, CAM, frame.grid, iterations=1, init=init).values
+        np.testing.assert_array_equal(mart(lf, CAM, frame.grid, iterations=1, init=init, plan=plan).values, ref)
+    with pytest.raises(ReconstructionError, match=r"plan was made for another grid or other settings"):
+        mart(frame.lightfield, CAM, frame.grid, iterations=1, subsets=2, plan=plan)
 
 
 def test_reconstruction_bad_input(frame):

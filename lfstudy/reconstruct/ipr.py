@@ -55,17 +55,27 @@ Candidates: the peaks of a MART volume (:func:`lfstudy.reconstruct.mart.mart`) a
 particles than voxels and MART's peaks find 7 % of them within half a voxel; on the refined grid
 48 %). With ``residual_candidates`` more are taken after each of the first iterations from the
 MART volume of the positive residual (Wieneke's "add candidates from the residual"), except
-within ``_MIN_SEPARATION`` voxels of a particle.
+within ``_MIN_SEPARATION`` voxels of a particle. Every candidate volume is reconstructed on one
+MART plan (:func:`lfstudy.reconstruct.mart.mart_plan`: the refined grid's weight tables and the
+views' coverage, made once per fit; each volume is byte for byte that of a MART run of its own);
+the residual's volumes take ``residual_mart_iterations`` MART iterations (0: the multiplicative
+first guess alone, four times cheaper, but see the measurements below).
 
 Measured (``benchmarks/bench_ipr.py --crop 400 400``, Table 4.3 camera, seeds 0 and 1 used to
 set the defaults): 0.001 ppp 88.8 % found within half a voxel, 8–10 % ghosts; 0.005 ppp
 80–81 % found, 15–18 % ghosts; 17–50 s per crop on 2 shared cores. Where the time goes
-(``--crop 300 300 --ppp 0.005``, 450 particles, seed 0): about half in the 11 candidate MART
-volumes on the refined grid (the first and one per residual-candidate round), about 40 % in the
-32,381 exact particle images (40,862 before the residual was kept incrementally: x0.79, same
-particles found, 79.3 %, and ghosts, 19.2 %), the fit kernels ~5 %. Both dominant costs scale with
-the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp stays far above the issue's
-10 minutes on 2 cores (the attrs ``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
+(``--crop 300 300 --ppp 0.005``, 450 particles, seed 7, load ~1.5 on 2 cores, before the MART
+plan): 13.6 s of 23.0 s in the 11 candidate MART volumes on the refined grid (the first and one
+per residual-candidate round), 7.8 s in the 31,424 exact particle images (0.25 ms each), the fit
+kernels 1.4 s. The plan (the tables and coverage made once per fit, not per volume) takes 10 % off
+the fit's CPU time (seeds 7 and 8: 32.2 -> 29.0 s and 31.7 -> 28.9 s of CPU, the MART part 13 % and
+9 %; the same particles, byte for byte). Cheaper residual volumes trade quality for time (CPU
+time; seeds 7 / 8 / 9 / 10, change of found in points): ``residual_mart_iterations=0`` x0.59–0.82,
+found −0.3 / −1.6 / −5.1 / −4.4 (ghosts up to +4.6); ``residual_candidates=5`` x0.70–0.74, found
+−0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the defaults are unchanged). Both
+dominant costs scale with the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp
+stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine; the attrs
+``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
 
 Output: :func:`ipr_particles` returns the particle list; the method ``ipr`` returns the
 volume on the grid rendered from the particles with :func:`render_particles` (Gaussians of
@@ -694,6 +704,7 @@ def ipr_particles(
     background: float = 0.0,
     residual_candidates: int = 10,
     mart_iterations: int = 3,
+    residual_mart_iterations: int = 3,
     jacobian: str = "central",
     batch: int = 2048,
     progress: bool = False,
@@ -724,7 +735,9 @@ def ipr_particles(
     residual_candidates : int
         After each of this many first iterations, MART peaks of the positive residual add candidates.
     mart_iterations : int
-        MART iterations of the candidate volumes.
+        MART iterations of the first candidate volume (of the data).
+    residual_mart_iterations : int
+        MART iterations of the residual's candidate volumes (0: its MLOS first guess alone).
     jacobian : {"central", "forward"}
         Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
         particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
@@ -757,12 +770,15 @@ def ipr_particles(
     _check("max_step", max_step, 0.0, 5.0, lo_open=True)
     _check("damping", damping, 0.0, 1e6)
     _check("background", background, 0.0, math.inf)
+    for name, val in (("mart_iterations", mart_iterations), ("residual_mart_iterations", residual_mart_iterations)):
+        if not isinstance(val, (int, np.integer)) or not 0 <= val <= 50:
+            raise ReconstructionError(f"reconstruct.ipr.{name} = {val!r}: allowed range is [0, 50]")
     if jacobian not in _JACOBIANS:
         allowed = ", ".join(_JACOBIANS)
         raise ReconstructionError(f"reconstruct.ipr.jacobian = {jacobian!r}: allowed values are {allowed}")
     if not isinstance(batch, (int, np.integer)) or batch < 1:
         raise ReconstructionError(f"reconstruct.ipr.batch = {batch!r}: allowed range is integers >= 1")
-    from lfstudy.reconstruct.mart import mart
+    from lfstudy.reconstruct.mart import mart, mart_plan
 
     lf, grid = inputs.lightfield, inputs.grid
     cam, ginfo = calibrated_camera(inputs.camera, inputs.centers)
@@ -779,12 +795,14 @@ def ipr_particles(
     tr = np.array([[d * delta[i] if a == i else 0.0 for a in range(3)] for i in range(3) for d in signs])
     clock = {"mart": 0.0, "patches": 0.0, "fit": 0.0, "images": 0, "volumes": 0}
     cgrid = _refined(grid, _REFINE_XY, _REFINE_Z)
-
+    t0 = time.perf_counter()
     vcal = inputs.calibration
+    plan = mart_plan(lf, inputs.camera, cgrid, calibration=vcal)  # tables and coverage, once for every volume
+    clock["mart"] += time.perf_counter() - t0
 
-    def candidates(light: xr.DataArray) -> np.ndarray:
+    def candidates(light: xr.DataArray, iters: int) -> np.ndarray:
         t0 = time.perf_counter()
-        vol = mart(light, inputs.camera, cgrid, iterations=mart_iterations, calibration=vcal).values
+        vol = mart(light, inputs.camera, cgrid, iterations=iters, plan=plan, calibration=vcal).values
         clock["mart"] += time.perf_counter() - t0
         clock["volumes"] += 1
         peaks = _peaks(vol, cgrid, peak_threshold)
@@ -792,7 +810,7 @@ def ipr_particles(
             peaks = volumetric_frame(peaks, lf, inputs.camera, vcal, to="nominal")
         return peaks
 
-    xyz = candidates(lf)
+    xyz = candidates(lf, mart_iterations)
     n_cand = len(xyz)
     inten = np.zeros(len(xyz))
     sig = np.full((len(xyz), 3), np.inf)
@@ -883,7 +901,7 @@ def ipr_particles(
             add_images(xyz[gone], inten[gone], res, 1.0)
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
         if it < residual_candidates:
-            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf))
+            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations)
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
@@ -932,6 +950,7 @@ def ipr_particles(
             "jacobian": jacobian,
             "residual_candidates": int(residual_candidates),
             "mart_iterations": int(mart_iterations),
+            "residual_mart_iterations": int(residual_mart_iterations),
             "seconds": float(time.perf_counter() - t_start),
             "seconds_mart": float(clock["mart"]),
             "seconds_patches": float(clock["patches"]),
@@ -993,6 +1012,7 @@ def ipr(
     background: float = 0.0,
     residual_candidates: int = 10,
     mart_iterations: int = 3,
+    residual_mart_iterations: int = 3,
     jacobian: str = "central",
     blob_sigma: float = 0.0,
     batch: int = 2048,
@@ -1015,6 +1035,7 @@ def ipr(
         background=background,
         residual_candidates=residual_candidates,
         mart_iterations=mart_iterations,
+        residual_mart_iterations=residual_mart_iterations,
         jacobian=jacobian,
         batch=batch,
         progress=progress,
@@ -1082,7 +1103,13 @@ class IPR(ReconstructionMethod):
             "type": "integer",
             "minimum": 0,
             "maximum": 50,
-            "description": "MART iterations of the candidate volumes",
+            "description": "MART iterations of the first candidate volume (of the data)",
+        },
+        "residual_mart_iterations": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 50,
+            "description": "MART iterations of the residual's candidate volumes (0: its MLOS first guess alone)",
         },
         "jacobian": {
             "type": "string",
@@ -1110,6 +1137,7 @@ class IPR(ReconstructionMethod):
         background: float = 0.0,
         residual_candidates: int = 10,
         mart_iterations: int = 3,
+        residual_mart_iterations: int = 3,
         jacobian: str = "central",
         blob_sigma: float = 0.0,
         progress: bool = False,
@@ -1125,6 +1153,7 @@ class IPR(ReconstructionMethod):
             background=background,
             residual_candidates=residual_candidates,
             mart_iterations=mart_iterations,
+            residual_mart_iterations=residual_mart_iterations,
             jacobian=jacobian,
             blob_sigma=blob_sigma,
             progress=progress,

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -52,7 +53,7 @@ from lfstudy.reconstruct.grid import ReconstructionGrid
 from lfstudy.reconstruct.projector import PlenopticProjector
 from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs, ReconstructionMethod
 
-__all__ = ["MART", "mart"]
+__all__ = ["MART", "MartPlan", "mart", "mart_plan"]
 
 _INITS = ("mlos", "stack", "uniform")
 
@@ -65,6 +66,71 @@ def _spread_order(n: int) -> list[int]:
     while math.gcd(step, n) != 1:
         step += 1
     return [(i * step) % n for i in range(n)]
+
+
+@dataclass
+class MartPlan:
+    """What :func:`mart` computes from the geometry alone, kept for several light fields of one camera.
+
+    The projector's weight tables, the subsets of views, the coverage of each subset and the voxels
+    seen; the uniform projection A·1 of the MLOS first guess is made on first use. Made by
+    :func:`mart_plan`; :func:`mart` with ``plan=`` gives the same bytes as without, minus the setup's
+    time (IPR's candidate volumes reconstruct a residual on one grid many times).
+    """
+
+    proj: PlenopticProjector
+    subsets: int
+    min_coverage: float
+    blocks: list[list[tuple[int, np.ndarray]]]
+    act_c: dict[int, np.ndarray]
+    dens: list[np.ndarray]
+    seen: np.ndarray
+    calibration: xr.Dataset | None = None
+    _p1: np.ndarray | None = field(default=None, repr=False)
+
+    def uniform_projection(self) -> np.ndarray:
+        """A·1, computed once."""
+        if self._p1 is None:
+            self._p1 = self.proj.uniform_projection()
+        return self._p1
+
+
+def mart_plan(
+    lightfield: xr.DataArray,
+    camera: PlenopticCamera,
+    grid: ReconstructionGrid,
+    *,
+    subsets: int = 4,
+    min_coverage: float = 0.5,
+    min_vignetting: float = 0.25,
+    calibration: xr.Dataset | None = None,
+) -> MartPlan:
+    """The geometry-only part of :func:`mart` (parameters as there; only ``lightfield``'s coordinates
+    are read), for :func:`mart`'s ``plan``."""
+    if subsets < 1:
+        raise ReconstructionError("reconstruct.mart: iterations must be >= 0 and subsets >= 1")
+    proj = PlenopticProjector(lightfield, camera, grid, min_vignetting=min_vignetting, calibration=calibration)
+    active = proj.gain > 0
+    if not active.any():
+        raise ReconstructionError("no light-field sample lies inside the main-lens aperture: check the calibration")
+    # Sub-aperture views grouped by pixel column (they share their x weights); the columns
+    # are visited in an order that spreads consecutive ones over the aperture.
+    cols = proj.columns()
+    order = _spread_order(len(cols))
+    cols = [cols[k] for k in order]
+    n_sub = max(1, min(int(subsets), len(cols)))
+    blocks = [cols[s::n_sub] for s in range(n_sub)]
+    act_c = {pc: proj.column_values(active, pc, prs) for pc, prs in cols}
+    # per-subset coverage (Σ of beam fractions over the used samples)
+    acc = np.zeros((n_sub, *grid.shape))
+    for s, block in enumerate(blocks):
+        for pc, prs in block:
+            proj.column_accumulate_many(pc, prs, act_c[pc].astype(np.float64)[None], np.array([s]), acc)
+    dens = list(acc)
+    cover = np.sum(dens, axis=0)
+    # voxels that too few views see cannot be placed in depth: they stay empty
+    seen = cover >= min_coverage * float(np.percentile(cover[cover > 0], 90)) if (cover > 0).any() else cover > 0
+    return MartPlan(proj, int(subsets), float(min_coverage), blocks, act_c, dens, seen, calibration)
 
 
 def mart(
@@ -85,6 +151,7 @@ def mart(
     track_residual: bool = False,
     progress: bool = False,
     calibration: xr.Dataset | None = None,
+    plan: MartPlan | None = None,
 ) -> xr.DataArray:
     """Reconstruct a volume on ``grid`` from a registered light field by MART.
 
@@ -134,6 +201,10 @@ def mart(
         A volumetric calibration (:func:`lfstudy.lightfield.volcal.fit_volumetric`): the beams'
         centres come from its fitted mapping instead of the thin-lens model
         (:class:`~lfstudy.reconstruct.projector.PlenopticProjector`).
+    plan : MartPlan, optional
+        The geometry-only part made once by :func:`mart_plan` (same ``camera``, ``grid``, ``subsets``,
+        ``min_coverage``, ``min_vignetting``, ``calibration`` and lenslet layout): the same result
+        without redoing it.
 
     Returns
     -------
@@ -164,53 +235,54 @@ def mart(
     if iterations < 0 or subsets < 1:
         raise ReconstructionError("reconstruct.mart: iterations must be >= 0 and subsets >= 1")
     t0 = time.perf_counter()
-    proj = PlenopticProjector(lightfield, camera, grid, min_vignetting=min_vignetting, calibration=calibration)
+    if plan is None:
+        plan = mart_plan(
+            lightfield,
+            camera,
+            grid,
+            subsets=subsets,
+            min_coverage=min_coverage,
+            min_vignetting=min_vignetting,
+            calibration=calibration,
+        )
+    elif (
+        plan.proj.grid is not grid
+        or plan.subsets != int(subsets)
+        or plan.min_coverage != float(min_coverage)
+        or plan.proj.min_vignetting != float(min_vignetting)
+        or plan.calibration is not calibration
+    ):
+        raise ReconstructionError("reconstruct.mart: the plan was made for another grid or other settings")
+    proj, blocks, act_c, dens, seen = plan.proj, plan.blocks, plan.act_c, plan.dens, plan.seen
+    n_sub = len(blocks)
     meas = proj._lf_array(lightfield)
     if not np.all(np.isfinite(meas)):
         raise ReconstructionError("light field has non-finite samples")
     meas = np.maximum(meas - noise_floor, 0.0)  # the floor (dark level, noise) carries no light
     active = proj.gain > 0
-    if not active.any():
-        raise ReconstructionError("no light-field sample lies inside the main-lens aperture: check the calibration")
     # The background b bounds every ratio (I + b)/(P + b): a dark ray removes what a voxel
     # puts into it, but cannot drive a voxel it barely touches to zero (points are smaller
     # than voxels), and a ray nothing projects into cannot blow a voxel up.
     b = max(float(offset) * float(meas[active].mean()), 1e-30)
     logm = np.log(meas + b)
     lens = proj.lenses
-    # Sub-aperture views grouped by pixel column (they share their x weights); the columns
-    # are visited in an order that spreads consecutive ones over the aperture.
-    cols = proj.columns()
-    order = _spread_order(len(cols))
-    cols = [cols[k] for k in order]
-    n_sub = max(1, min(int(subsets), len(cols)))
-    blocks = [cols[s::n_sub] for s in range(n_sub)]
-    # per column: measured log (I + b), I and the active mask, as (views, lenslets)
+    cols = [c for block in blocks for c in block]
+    # per column: measured log (I + b) and I, as (views, lenslets)
     logm_c = {pc: proj.column_values(logm, pc, prs) for pc, prs in cols}
-    act_c = {pc: proj.column_values(active, pc, prs) for pc, prs in cols}
     meas_c = {pc: proj.column_values(meas, pc, prs) for pc, prs in cols}
-    # MLOS values log(I + b) − log(A·1) of every used sample; A·1 from the tables alone
+    num = np.zeros(grid.shape)
+    cover = np.sum(dens, axis=0)
     if init == "mlos":
-        p1 = proj.uniform_projection()
+        # MLOS values log(I + b) − log(A·1) of every used sample (A·1 from the tables alone), their
+        # coverage-weighted sum over every view in num
+        p1 = plan.uniform_projection()
         use = active & (p1 > 0)
         mlos = np.where(use, logm - np.log(np.where(use, p1, 1.0)), 0.0)
-        del p1, use
-
-    # ---- one pass over the tables: per-subset coverage (Σ of beam fractions, geometry
-    # only) in acc[s], the MLOS numerator in acc[n_sub]
-    acc = np.zeros((n_sub + 1, *grid.shape))
-    for s, block in enumerate(blocks):
-        for pc, prs in block:
-            if init == "mlos":
-                vals = np.stack([act_c[pc].astype(np.float64), proj.column_values(mlos, pc, prs)])
-                proj.column_accumulate_many(pc, prs, vals, np.array([s, n_sub]), acc)
-            else:
-                proj.column_accumulate_many(pc, prs, act_c[pc].astype(np.float64)[None], np.array([s]), acc)
-    dens = list(acc[:n_sub])
-    num = acc[n_sub]
-    cover = np.sum(dens, axis=0)
-    # voxels that too few views see cannot be placed in depth: they stay empty
-    seen = cover >= min_coverage * float(np.percentile(cover[cover > 0], 90)) if (cover > 0).any() else cover > 0
+        del use
+        for block in blocks:
+            for pc, prs in block:
+                vals = proj.column_values(mlos, pc, prs)[None]
+                proj.column_accumulate_many(pc, prs, vals, np.zeros(1, np.int64), num[None])
     if init == "uniform":
         vol = np.ones(grid.shape)
     elif init == "stack":
