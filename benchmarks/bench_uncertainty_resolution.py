@@ -62,7 +62,8 @@ on the thesis camera, Γ 1.5, R 1.2, r_c 0.6 on the demo; the demo's lamb_oseen 
   (4 voxels = 1 mm) is shorter than a particle's e^-2 length in z (4 x 0.355 mm).
 
 So no term is wired into ``piv.uncertainty``: none predicts the resolution error from the data
-without inflating σ on uniform motion.
+without inflating σ on uniform motion. The two-window (Richardson) estimate from WIDIM's two
+levels fails too: benchmarks/bench_uncertainty_richardson.py.
 
 The final pass's windows are read by wrapping :func:`lfstudy.piv.engine.window_uncertainty` for the
 duration of the run (a benchmark's probe: the engine itself is unchanged).
