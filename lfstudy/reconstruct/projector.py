@@ -126,13 +126,20 @@ def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, st
         for l in range(nl):
             for p in range(n):
                 xc = alpha[k] * centre[l] - beta[k] * slope[l, p]
-                q0 = math.floor((xc - a - b - c0) / dc)
-                if q0 > nc - kk:
-                    q0 = nc - kk
-                if q0 < 0:
-                    q0 = 0
-                start[k, l, p] = q0
-                _tent_weights(xc, a, b, c0, dc, q0, kk, w[k, l, p])
+                start[k, l, p] = _beam_row(xc, a, b, c0, dc, nc, kk, w[k, l, p])
+
+
+@njit(inline="always", cache=True)
+def _beam_row(xc, a, b, c0, dc, nc, kk, w):
+    """One beam's table row on one plane: its first voxel (the ``kk`` it can touch kept inside the
+    ``nc`` of the axis) and their weights in ``w``, for a beam centred at ``xc``."""
+    q0 = math.floor((xc - a - b - c0) / dc)
+    if q0 > nc - kk:
+        q0 = nc - kk
+    if q0 < 0:
+        q0 = 0
+    _tent_weights(xc, a, b, c0, dc, q0, kk, w)
+    return q0
 
 
 @njit(inline="always", cache=True)
@@ -158,14 +165,7 @@ def _axis_tables_at(xcs, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w)
         b = abs(beta[k]) * half_t
         for l in range(nl):
             for p in range(n):
-                xc = xcs[k, l, p]
-                q0 = math.floor((xc - a - b - c0) / dc)
-                if q0 > nc - kk:
-                    q0 = nc - kk
-                if q0 < 0:
-                    q0 = 0
-                start[k, l, p] = q0
-                _tent_weights(xc, a, b, c0, dc, q0, kk, w[k, l, p])
+                start[k, l, p] = _beam_row(xcs[k, l, p], a, b, c0, dc, nc, kk, w[k, l, p])
 
 
 @njit(inline="always", cache=True)

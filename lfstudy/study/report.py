@@ -517,11 +517,18 @@ def _limits_block(study: xr.Dataset) -> Block:
     return Block(
         "answer",
         "limits",
-        html="<h4>What each tolerance costs each design</h4><p>Per design: the total RMS error at the ideal "
-        "camera, what each imperfection alone adds at its worst level (+, the other imperfections ideal), the "
-        "worst case over the whole tolerance sweep (combinations included) and the tolerance that costs the "
-        'most (<i>limited_by</i>; "nothing" where no imperfection raises the error).</p>' + _table(lim, index=False),
+        html=_LIMITS_HEAD
+        + 'most (<i>limited_by</i>; "nothing" where no imperfection raises the error).</p>'
+        + _table(lim, index=False),
     )
+
+
+#: The opening of the "What each tolerance costs each design" block, with or without replicates.
+_LIMITS_HEAD = (
+    "<h4>What each tolerance costs each design</h4><p>Per design: the total RMS error at the ideal camera, what "
+    "each imperfection alone adds at its worst level (+, the other imperfections ideal), the worst case over the "
+    "whole tolerance sweep (combinations included) and the tolerance that costs the "
+)
 
 
 def _limits_block_replicates(study: xr.Dataset, lim: pd.DataFrame) -> Block:
@@ -537,10 +544,10 @@ def _limits_block_replicates(study: xr.Dataset, lim: pd.DataFrame) -> Block:
     return Block(
         "answer",
         "limits",
-        html="<h4>What each tolerance costs each design</h4><p>Per design: the total RMS error at the ideal "
-        "camera, what each imperfection alone adds at its worst level (+, the other imperfections ideal), the "
-        "worst case over the whole tolerance sweep (combinations included) and the tolerance that costs the "
-        "most (<i>limited_by</i>)." + _replicates_note(study) + " A cost is the mean over the seeds of the "
+        html=_LIMITS_HEAD
+        + "most (<i>limited_by</i>)."
+        + _replicates_note(study)
+        + " A cost is the mean over the seeds of the "
         "difference to the ideal camera at the same seed (the levels of one seed share their particles, rays and "
         f"noise), ± its standard error; one below {SEPARATION:g} standard errors is <i>within noise</i>: the "
         "study cannot tell it from no cost. <i>limited_by</i> is the costliest imperfection beyond noise "
