@@ -240,3 +240,22 @@ def test_ipr_frame_correction_recovers_a_known_frame_change(ideal):
     np.testing.assert_allclose(x_cal, truth, atol=0.02 * d)  # ...and the correction recovers it
     back = volumetric_frame(x_cal, lf, CAM, fake, to="nominal")
     np.testing.assert_allclose(back, x_nom, atol=0.02 * d)
+
+
+def test_a_refocus_model_sweep_shares_the_camera_stage():
+    """refocus.model swept beside an imperfection (config/tolerances_volcal.yaml's layout): the camera
+    file is made once per design, the stacks and reconstructions once per model, and only the
+    volumetric cases read a dot-target calibration."""
+    from pathlib import Path
+
+    import yaml
+
+    from lfstudy.study.config import expand_cases, sweep_of, validate_config
+
+    raw = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "demo.yaml").read_text())
+    raw["sweep"] = {"refocus.model": ["thin_lens", "volumetric"], "camera.imperfections.distortion_k1": [0.0, 0.06]}
+    cfg = validate_config(raw)
+    sw = sweep_of(cfg)
+    assert len(expand_cases(cfg)) == 4
+    assert len(sw.stage_ids("camera")) == 1
+    assert len(sw.stage_ids("refocus")) == 4 and len(sw.stage_ids("reconstruct")) == 4

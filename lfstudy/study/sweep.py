@@ -100,7 +100,8 @@ class _Stage:
 #: a stage's outputs live at the case-id prefix holding every setting it depends on.
 STAGES: dict[str, _Stage] = {
     # camera.imperfections reach the images only (the processing keeps the nominal camera)
-    "camera": _Stage(("camera", "refocus"), (), ("camera.imperfections",)),
+    # (and the refocus planes it lays out do not depend on the refocus model)
+    "camera": _Stage(("camera", "refocus"), (), ("camera.imperfections", "refocus.model")),
     "particles": _Stage(("seed", "camera", "particles"), (), ("camera.imperfections",)),
     "displace": _Stage(("flow",), ("particles",)),
     # the light volume dims each exposure's particles at their own depth
