@@ -35,18 +35,25 @@ ROOT = Path(__file__).resolve().parents[1]
 TARGET_COV, TARGET_RATIO = (0.55, 0.80), (0.7, 1.4)
 
 
-def _config(args: argparse.Namespace) -> dict[str, Any]:
+def read_config(path: Path, sets: list[str]) -> dict[str, Any]:
+    """The raw config at ``path`` with each ``--set PATH=VALUE`` (dotted path, YAML value) applied."""
     from lfstudy.config import read_yaml
-    from lfstudy.study.config import validate_config
 
-    raw = read_yaml(args.config)
-    for item in args.set:
+    raw = read_yaml(path)
+    for item in sets:
         key, _, val = item.partition("=")
         node = raw
         *parents, leaf = key.split(".")
         for p in parents:
             node = node.setdefault(p, {})
         node[leaf] = yaml.safe_load(val)
+    return raw
+
+
+def _config(args: argparse.Namespace) -> dict[str, Any]:
+    from lfstudy.study.config import validate_config
+
+    raw = read_config(args.config, args.set)
     sweep = raw.setdefault("sweep", {})
     for item in args.sweep:
         key, _, vals = item.partition("=")

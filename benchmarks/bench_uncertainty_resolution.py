@@ -90,17 +90,11 @@ AXES = (("x", "u", 2), ("y", "v", 1), ("z", "w", 0))  # axis, component, array a
 
 
 def _config(args: argparse.Namespace) -> dict[str, Any]:
-    from lfstudy.config import read_yaml
+    from bench_uncertainty import read_config
+
     from lfstudy.study.config import validate_config
 
-    raw = read_yaml(args.config)
-    for item in args.set:
-        key, _, val = item.partition("=")
-        node = raw
-        *parents, leaf = key.split(".")
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = yaml.safe_load(val)
+    raw = read_config(args.config, args.set)
     for item in args.add_flow:
         name, _, spec = item.partition("=")
         raw.setdefault("flows", {})[name] = yaml.safe_load(spec)
