@@ -130,6 +130,17 @@ def at(name, of):
     return path
 
 
+def fitted_input(stage):
+    """Input function: the particle lists of both frames where the case's method fits particles
+    (the errors stage reads them beside the volumes; none for other methods)."""
+    def files(wildcards):
+        case = _case(stage, wildcards)
+        if not gives_particles(SWEEP.apply(case)["reconstruct"]["method"]):
+            return []
+        return [f"{OUT}/{SWEEP.locate(case, f'volume_{f}.particles.zarr')}" for f in "ab"]
+    return files
+
+
 def flow_files(stage):
     """Input function: the files the case's flow reads (a file flow's zarr store or netCDF file;
     none for an analytic flow), so that editing them reruns the rules that use the flow."""
@@ -375,6 +386,7 @@ rule errors:
         # the oracle (the case's PIV on the true volumes of both frames) runs here: seconds
         particles_b=at("particles_b.zarr", "errors"),
         flow=flow_files("errors"),  # the truth: a file flow's field
+        fitted=fitted_input("errors"),  # a particle method's lists, read beside the volumes
     output: directory(f"{OUT}/{{sid}}/errors.zarr")
     log: f"{LOG}/errors/{{sid}}.log"
     benchmark: f"{BENCH}/errors/{{sid}}.tsv"

@@ -248,17 +248,31 @@ def run_errors(
     """Errors of one case against the known flow, its field of view, Q and depth gain
     (:func:`lfstudy.study.metrics.case_metrics`); given the second frame's particles
     (``particles_b``), also the oracle (:func:`lfstudy.study.case.oracle_piv`: the case's PIV
-    on the true volumes) and the error budget."""
+    on the true volumes) and the error budget. For a method that fits particles (``ipr``) the
+    particle lists written beside both volumes (``volume_a.particles.zarr``, ``volume_b...``) are
+    scored against the true particles too (:func:`lfstudy.study.particle_metrics.particle_metrics`:
+    found, ghosts, the found particles' own crosstalk; needs ``particles_b``)."""
+    from lfstudy.reconstruct import gives_particles
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study.metrics import case_metrics
+    from lfstudy.study.particle_metrics import particle_metrics
 
     spec = ccfg["flow"]
     cam = cl.case_camera(ccfg)
     parts = io.open_zarr(particles).load()
     oracle = None
+    found: dict[str, float] = {}
     if particles_b:  # '' or None: no oracle
-        oracle = cl.oracle_piv(ccfg, parts, io.open_zarr(particles_b).load(), progress=True)
+        parts_b = io.open_zarr(particles_b).load()
+        oracle = cl.oracle_piv(ccfg, parts, parts_b, progress=True)
         print(f"oracle (PIV on the true volumes): {oracle.attrs['oracle_seconds']:.2f} s", flush=True)
+        if gives_particles(ccfg["reconstruct"]["method"]):
+            vol = Path(volume)
+            fitted = [io.open_zarr(vol.with_name(f"volume_{f}.particles.zarr")).load() for f in "ab"]
+            grid = cl.case_grid(ccfg, cam)
+            bounds = [(float(c[0]), float(c[-1])) for c in (grid.x, grid.y, grid.z)]
+            found = particle_metrics(fitted, [parts, parts_b], grid.voxel_size()[::-1], bounds)
+            print(f"particles: {found['found_percent']:.1f} % found, {found['ghost_percent']:.1f} % ghosts", flush=True)
     err = case_metrics(
         io.open_zarr(piv).load(),
         flow_from_config(spec),
@@ -269,6 +283,7 @@ def run_errors(
         dt=spec.get("dt", 1.0),
         n_steps=spec.get("n_steps", 100),
         oracle=oracle,
+        extra=found,
     )
     err.attrs.update(io.provenance(ccfg, None), case_id=ccfg["case_id"])
     io.write_zarr(err, out)

@@ -323,7 +323,13 @@ def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
     # with the oracle (here exact, the case 0.1 voxel off in w): its metrics, the budget and its vectors
     case_piv = synthetic_piv(4.5, 0.0, 0.1).assign_attrs(final_window=[16, 32, 32])
     oracle = synthetic_piv(4.5, 0.0, 0.0).assign_attrs(oracle_seconds=1.5)
-    out = case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle)
+    # a particle method's list (here the true particles themselves) adds its rows through ``extra``
+    from lfstudy.study.particle_metrics import particle_metrics
+
+    moved = parts.assign(x=parts.x + 0.5625)
+    found = particle_metrics([parts, moved], [parts, moved], (0.2, 0.2, 0.2), [(-1, 1)] * 3)
+    out = case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle, extra=found)
+    assert float(out["found_percent"]) == 100.0 and float(out["particle_crosstalk_z"]) == 0.0
     zero = pytest.approx(0, abs=1e-12)
     assert float(out["oracle_rms_total_mm"]) == zero and float(out["oracle_mean_x_mm"]) == pytest.approx(0.5625)
     assert float(out["recon_added_rms_total_mm"]) == pytest.approx(0.1 * VOX)  # all of the case's error

@@ -429,6 +429,12 @@ def test_an_ipr_case_plans_its_particle_list(tmp_path):
     planned = set(re.findall(r"\S*volume_[ab]\.particles\.zarr", out))
     assert {Path(p).parent.name for p in planned} == {"reconstruct.method~ipr"} and len(planned) == 2
     assert not re.search(r"reconstruct.method~mart/volume_[ab]\.particles", out)
+    # the ipr case's errors job reads both lists (found particles, ghosts); the mart case's none
+    errors = {b.split("output:")[1].split()[0]: b for b in re.split(r"\n(?=rule )", out) if b.startswith("rule errors")}
+    assert len(errors) == 2
+    for target, block in errors.items():
+        reads = set(re.findall(r"volume_[ab]\.particles\.zarr", block.split("output:")[0]))
+        assert reads == ({"volume_a.particles.zarr", "volume_b.particles.zarr"} if "~ipr" in target else set())
     tiny = _snakemake(tmp_path / "tiny", "-n", config=TINY)
     assert tiny.returncode == 0 and "particles.zarr" not in tiny.stdout + tiny.stderr
     assert "reconstruct_particles" not in _planned_jobs(tmp_path / "tiny")

@@ -225,6 +225,28 @@ METRICS: tuple[Metric, ...] = (
     ),
     Metric("oracle_valid_percent", "percent", "oracle valid vectors", False, {"budget"}, "quality",
            description="valid vectors " + _ORACLE),
+    # a particle reconstruction's list against the true particles (lfstudy.study.particle_metrics; ipr only)
+    Metric(
+        "found_percent", "percent", "true particles found within half a voxel", False, {"budget"}, "quality",
+        description="true particles inside the grid with a fitted particle within half a voxel (per-axis voxel "
+        "units), both frames (a method that fits particles only)",
+    ),
+    Metric(
+        "ghost_percent", "percent", "fitted particles that are ghosts", True, {"budget"}, "quality",
+        description="fitted particles with no true particle within half a voxel, both frames",
+    ),
+    Metric("particle_rms_x_mm", "mm", "position error x of the found particles", True, (), "error"),
+    Metric("particle_rms_y_mm", "mm", "position error y of the found particles", True, (), "error"),
+    Metric("particle_rms_z_mm", "mm", "position error z of the found particles", True, (), "error"),
+    Metric(
+        "particle_bias_w_mm", "mm", "mean w error of the particles found in both frames", None, (), "error",
+        description="mean of (fitted − true) z displacement over the true particles found in both frames",
+    ),
+    Metric(
+        "particle_crosstalk_z", "1", "found particles' spurious w per unit lateral shift", None, {"budget"}, "error",
+        description="crosstalk_z of the particles found in both frames (their fitted displacement, not the PIV's): "
+        "near crosstalk_z, the found particles carry it; near 0, the ghosts and missed particles do",
+    ),
     # resolution in mm
     Metric(
         "spacing_mm_x", "mm", "vector spacing along x", True,

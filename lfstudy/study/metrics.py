@@ -663,6 +663,7 @@ def case_metrics(
     dt: float = 1.0,
     n_steps: int = 100,
     oracle: xr.Dataset | None = None,
+    extra: Mapping[str, float] | None = None,
 ) -> xr.Dataset:
     """Every metric of one case: :func:`case_errors`, the field of view, Q, the depth gain and,
     given the oracle's PIV result, the error budget.
@@ -686,6 +687,9 @@ def case_metrics(
     oracle : xarray.Dataset, optional
         The case's PIV on the true volumes (:func:`lfstudy.study.case.oracle_piv`), on the case's
         PIV grid.
+    extra : mapping, optional
+        Further scalars computed elsewhere, each a row of the metric table (e.g. the particle
+        metrics of :func:`lfstudy.study.particle_metrics.particle_metrics`).
 
     Returns
     -------
@@ -705,6 +709,7 @@ def case_metrics(
         case = {str(n): float(v) for n, v in err.data_vars.items() if v.ndim == 0}
         values.update(orc, **error_budget(case, orc), time_oracle=float(oracle.attrs.get("oracle_seconds", math.nan)))
         err = _with_oracle_vectors(err, oracle)
+    values.update(extra or {})
     return with_metrics(err, values, Q={"truth_sigma_mm": sigma})
 
 

@@ -669,6 +669,14 @@ def _budget_blocks(study: xr.Dataset) -> Iterator[Block]:
         "(sqrt(case² − oracle²)). <i>limited_by</i> names the larger of the two. The crosstalk columns give, for "
         "a uniform flow, the spurious w per unit of lateral shift."
         + (
+            " For a method that fits particles, <i>found_percent</i> and <i>ghost_percent</i> score its particle "
+            "lists against the true particles (within half a voxel), and <i>particle_crosstalk_z</i> is the "
+            "crosstalk of the particles found in both frames alone: where it is near 0 and crosstalk_z is not, the "
+            "crosstalk rides on the ghosts and the mislocated particles, not on the particles the fit found."
+            if "found_percent" in bt
+            else ""
+        )
+        + (
             _replicates_note(study) + " The crosstalk is shown with its standard error: one case's crosstalk is a "
             f"random draw, so only a mean at least {SEPARATION:g} s.e. away from 0 is a systematic crosstalk."
             if replicate_dim(study) is not None

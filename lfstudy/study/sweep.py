@@ -142,9 +142,11 @@ STAGES: dict[str, _Stage] = {
     ),
     "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "depthcal")),
     # the errors stage also runs the oracle: the case's PIV on the true volumes, on the case's grid
-    # (the true particles lit as in the images)
+    # (the true particles lit as in the images); it reads reconstruct.method to know whether a
+    # particle list lies beside the volumes (found particles and ghosts)
     "errors": _Stage(
-        ("flow", "camera", "illumination", "refocus", "grid", "piv"), ("piv", "reconstruct", "particles", "displace")
+        ("flow", "camera", "illumination", "refocus", "grid", "reconstruct", "piv"),
+        ("piv", "reconstruct", "particles", "displace"),
     ),
 }
 

@@ -1,0 +1,73 @@
+"""Particles found, ghosts and the found particles' own crosstalk (lfstudy.study.particle_metrics)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lfstudy.study.particle_metrics import particle_metrics
+
+VOX = (0.1, 0.1, 0.25)  # dx, dy, dz [mm]
+BOUNDS = ((0.0, 10.0), (0.0, 10.0), (-2.0, 2.0))
+
+
+def _ds(xyz: np.ndarray) -> xr.Dataset:
+    return xr.Dataset({k: ("particle", xyz[:, i]) for i, k in enumerate("xyz")})
+
+
+def _scene(seed: int = 0, n: int = 400):
+    rng = np.random.default_rng(seed)
+    ta = np.column_stack([rng.uniform(0, 10, n), rng.uniform(0, 10, n), rng.uniform(-2, 2, n)])
+    shift = np.array([0.3, 0.4, 0.0])  # a lateral shift of 0.5 mm
+    return ta, ta + shift, rng
+
+
+def test_found_ghosts_and_position_errors_are_counted():
+    ta, tb, rng = _scene()
+    n = len(ta)
+    # frame a: the first 300 found (0.1 voxel off in z), the rest missed; 100 ghosts far from any particle
+    fa = ta[:300] + np.array([0.0, 0.0, 0.025])
+    ghosts = np.column_stack([rng.uniform(0, 10, 100), rng.uniform(0, 10, 100), np.full(100, 5.0)])
+    # frame b: every particle found, one 0.6 voxel off in x (not found: beyond half a voxel)
+    fb = tb.copy()
+    fb[0, 0] += 0.06
+    m = particle_metrics([_ds(np.vstack([fa, ghosts])), _ds(fb)], [_ds(ta), _ds(tb)], VOX, BOUNDS)
+    inside_b = int(np.all((tb >= [0, 0, -2]) & (tb <= [10, 10, 2]), axis=1).sum())  # the shift moves some out
+    found_b = inside_b - int(np.all((tb[0] >= [0, 0, -2]) & (tb[0] <= [10, 10, 2])))
+    assert m["found_percent"] == pytest.approx(100 * (300 + found_b) / (n + inside_b))
+    # ghosts: the 100 placed ones, plus frame b's displaced one (no true particle within half a voxel)
+    assert m["ghost_percent"] == pytest.approx(100 * 101 / (400 + n))
+    assert m["particle_rms_z_mm"] == pytest.approx(0.025 * math.sqrt(300 / (300 + found_b)))
+    assert m["particle_rms_x_mm"] == pytest.approx(0.0)
+
+
+def test_found_particles_crosstalk_is_their_own_spurious_w():
+    ta, tb, rng = _scene(1)
+    fa = ta + rng.normal(0, 0.01, ta.shape)
+    fb = tb + rng.normal(0, 0.01, tb.shape) + [0.0, 0.0, 0.05]  # every found particle reads w = +0.05 mm
+    m = particle_metrics([_ds(fa), _ds(fb)], [_ds(ta), _ds(tb)], VOX, BOUNDS)
+    assert m["particle_bias_w_mm"] == pytest.approx(0.05, abs=0.003)
+    assert m["particle_crosstalk_z"] == pytest.approx(0.05 / 0.5, abs=0.006)
+    # ghosts that move in depth do not enter the found particles' crosstalk
+    gh = np.column_stack([rng.uniform(0, 10, 200), rng.uniform(0, 10, 200), np.full(200, 4.0)])
+    m2 = particle_metrics([_ds(np.vstack([fa, gh])), _ds(np.vstack([fb, gh + 0.4]))], [_ds(ta), _ds(tb)], VOX, BOUNDS)
+    assert m2["particle_crosstalk_z"] == pytest.approx(m["particle_crosstalk_z"])
+    assert m2["ghost_percent"] > m["ghost_percent"] + 20
+
+
+def test_a_non_uniform_flow_has_no_crosstalk_and_empty_lists_give_nan():
+    ta, _, _ = _scene(2)
+    tb = ta + np.column_stack([0.1 * ta[:, 1], np.zeros(len(ta)), np.zeros(len(ta))])  # shear
+    m = particle_metrics([_ds(ta), _ds(tb)], [_ds(ta), _ds(tb)], VOX, BOUNDS)
+    assert m["found_percent"] == pytest.approx(100.0) and m["ghost_percent"] == 0.0
+    assert math.isnan(m["particle_crosstalk_z"])
+    empty = _ds(np.zeros((0, 3)))
+    e = particle_metrics([empty, empty], [_ds(ta), _ds(tb)], VOX, BOUNDS)
+    assert e["found_percent"] == 0.0 and math.isnan(e["ghost_percent"]) and math.isnan(e["particle_rms_z_mm"])
+    with pytest.raises(ValueError, match="voxel_mm"):
+        particle_metrics([_ds(ta), _ds(tb)], [_ds(ta), _ds(tb)], (0.1, 0.0, 0.2), BOUNDS)
+    with pytest.raises(ValueError, match="particle count"):
+        particle_metrics([_ds(ta), _ds(tb)], [_ds(ta), _ds(tb[:10])], VOX, BOUNDS)
