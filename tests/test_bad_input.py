@@ -148,6 +148,10 @@ def test_frames_of_different_shapes_and_windows_too_large(files, cli_error, tmp_
             r"sweep\.reconstruct\.methd': not a setting",
         ),
         (
+            lambda c: c.setdefault("particles", {}).update(z_center=40.0),
+            r"config key 'particles\.z_center' = 40\.0 .*outside the reconstruction grid's depth",
+        ),
+        (
             lambda c: c["camera"]["sensor"].update(n_pixels_x=60000, n_pixels_y=60000),
             r"config key 'camera\.sensor'.*needs about .* GB .*more than this machine's",
         ),

@@ -22,6 +22,21 @@ def test_seeding_reproducible_and_bounded(table43_camera):
     assert a["z"].attrs["units"] == "mm"
 
 
+def test_a_slab_off_the_focal_plane_is_the_centred_one_moved(table43_camera):
+    """particles.z_center moves the slab (and its margin) in depth; every other draw is unchanged."""
+    kw = {"count": 2000, "z_span": 4.0, "seed": 5, "depth_margin": 0.5}
+    a = seed_particles(table43_camera, **kw)
+    b = seed_particles(table43_camera, z_center=3.0, **kw)
+    assert np.array_equal(b["x"].values, a["x"].values) and np.array_equal(b["intensity"], a["intensity"])
+    assert np.allclose(b["z"].values, a["z"].values + 3.0, rtol=0, atol=1e-12)
+    assert float(b["z"].min()) >= 0.5 and float(b["z"].max()) <= 5.5 and b.attrs["z_center"] == 3.0
+    assert seed_particles(table43_camera, z_center=0.0, **kw).identical(a)
+    with pytest.raises(ParticleError, match="z_center"):
+        seed_particles(table43_camera, count=10, z_center=float("nan"))
+    with pytest.raises(ParticleError, match="focal length"):
+        seed_particles(table43_camera, count=10, z_span=2.0, z_center=-(table43_camera.so - 50.0))
+
+
 def test_pinhole_field_is_planar(table43_camera):
     p = pinhole_field(table43_camera, count=1000)
     assert float(abs(p["z"]).max()) == 0.0 and p.sizes["particle"] == 1000

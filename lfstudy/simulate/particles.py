@@ -145,6 +145,7 @@ def seed_particles(
     diameter: str = "fixed",
     diameter_mean_um: float | None = None,
     diameter_sd_um: float = 0.0,
+    z_center: float = 0.0,
 ) -> xr.Dataset:
     """Uniformly seeded particle field (sec. 4.3.2), optionally with a depth margin and diameters.
 
@@ -159,7 +160,7 @@ def seed_particles(
     x_span, y_span : float, optional
         Extents centred on the optical axis [mm]; default the field of view.
     z_span : float
-        Depth extent centred on the focal plane [mm] (thesis: 0–7 mm).
+        Depth extent [mm] centred on ``z_center`` (thesis: 0–7 mm, on the focal plane).
     intensity : (float, float)
         Bounds imin, imax of the uniform intensity coefficient.
     seed : int
@@ -177,6 +178,11 @@ def seed_particles(
     diameter_mean_um, diameter_sd_um : float
         Arithmetic mean (default: the camera's ``particle_diameter``) and standard
         deviation of the diameters [µm].
+    z_center : float
+        Depth of the slab's centre from the focal plane [mm] (+z away from the camera). 0, the
+        default, centres the slab on the focal plane (the thesis). A slab clear of the focal
+        plane avoids its depth ambiguity: in focus a particle's image is one lenslet's spot,
+        whose size changes only to second order with depth. The margin follows the slab.
 
     Notes
     -----
@@ -194,11 +200,14 @@ def seed_particles(
     for name, v in (("x_span", xs), ("y_span", ys), ("z_span", z_span), ("depth_margin", depth_margin)):
         if not (isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(v) and v >= 0):
             raise ParticleError(f"{name} = {v!r}: must be a finite number >= 0 mm")
+    if not (isinstance(z_center, (int, float, np.integer, np.floating)) and math.isfinite(z_center)):
+        raise ParticleError(f"z_center = {z_center!r}: must be a finite number [mm]")
     reach = z_span / 2 + depth_margin
-    if reach >= camera.so - camera.main_focal_length:
+    if reach - min(z_center, 0.0) >= camera.so - camera.main_focal_length:
         raise ParticleError(
-            f"z_span = {z_span}, depth_margin = {depth_margin}: particles would reach the main lens' focal "
-            f"length; allowed range is z_span/2 + depth_margin < {camera.so - camera.main_focal_length:.4g} mm"
+            f"z_span = {z_span}, depth_margin = {depth_margin}, z_center = {z_center}: particles would reach the "
+            "main lens' focal length; allowed range is z_span/2 + depth_margin - z_center < "
+            f"{camera.so - camera.main_focal_length:.4g} mm"
         )
     if depth_margin > 0 and z_span == 0:
         raise ParticleError(
@@ -222,6 +231,9 @@ def seed_particles(
         z = np.concatenate([z, zm])
         inten = np.concatenate([inten, lo + (hi - lo) * v[3]])
         extra.update(depth_margin=float(depth_margin), n_margin=int(n_margin))
+    if z_center != 0.0:  # (0: the centred slab's bytes, unchanged)
+        z = z + float(z_center)
+        extra.update(z_center=float(z_center))
     d = None
     if diameter != "fixed" or diameter_mean_um is not None or diameter_sd_um:
         # validated whatever the distribution; only a lognormal one changes the field

@@ -133,6 +133,7 @@ def case_particles(ccfg: Mapping[str, Any], *, seed: int | None = None) -> xr.Da
         diameter=d.get("distribution", "fixed"),
         diameter_mean_um=d.get("mean_um"),
         diameter_sd_um=d.get("sd_um", 0.0),
+        z_center=p.get("z_center", 0.0),
     )
     field.attrs.update(io.provenance(ccfg, seed))
     return field

@@ -111,9 +111,16 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
                 "particles.z_span > 0 (the margin is seeded at the slab's number density)"
             )
         try:  # the grid a case reconstructs on (grid.z_range, voxel sizes, its memory cap)
-            case_grid(ccfg)
+            grid = case_grid(ccfg)
         except GridError as exc:
             raise ConfigError(f"config key 'grid' (case {case.case_id}): {exc}") from None
+        zc = par.get("z_center", 0.0)
+        if zc != 0.0 and not grid.z[0] - 1e-9 <= zc <= grid.z[-1] + 1e-9:
+            raise ConfigError(
+                f"config key 'particles.z_center' = {zc!r} (case {case.case_id}): the slab's centre lies outside "
+                f"the reconstruction grid's depth [{grid.z[0]:.4g}, {grid.z[-1]:.4g}] mm; set grid.z_range to the "
+                "seeded slab"
+            )
         check_memory(ccfg, where=f"case {case.case_id}")
     return cfg
 
