@@ -1,0 +1,99 @@
+"""The error budget of study configs side by side: each case beside its oracle, with the particle scores.
+
+Runs every case of each ``--config`` through the workflow's stage functions (the runner of
+``bench_uncertainty.py``: no Snakemake needed, each shared output made once, ``--jobs`` tasks side
+by side), then prints per case: total RMS error, the oracle's (PIV on the true volumes) and the
+reconstruction's share, the crosstalk (spurious w per unit lateral shift) of the PIV and of the
+particles found in both frames, particles found and ghosts (a method that fits particles: ipr),
+valid vectors, and the seeded slab's depth. Written for issue 27's question whether the
+lateral->axial crosstalk and IPR's misses come from the focal plane lying inside the volume:
+
+    python benchmarks/bench_budget.py --configs config/demo_ipr.yaml config/demo_focus.yaml \\
+        --flows diag --jobs 16 --threads 1 [--out DIR]
+
+Targets (issue 27, coarse designs, lateral shifts, depth calibration off): |crosstalk| <= 0.05,
+total RMS <= max(1.5 x oracle, oracle + 0.01 mm), >= 90 % valid vectors; printed as ok/miss.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+
+def _row(name: str, e) -> str:
+    def g(k: str) -> float:
+        return float(e[k]) if k in e else math.nan
+
+    rms, orc, ct, valid = g("rms_total_mm"), g("oracle_rms_total_mm"), g("crosstalk_z"), g("valid_percent")
+    ok = [
+        abs(ct) <= 0.05 if np.isfinite(ct) else None,
+        rms <= max(1.5 * orc, orc + 0.01),
+        valid >= 90.0,
+    ]
+    verdict = "/".join("-" if o is None else ("ok" if o else "miss") for o in ok)
+    return (
+        f"{name:<44} {rms:7.4f} {orc:7.4f} {g('recon_added_rms_total_mm'):7.4f} {ct:+7.3f} "
+        f"{g('particle_crosstalk_z'):+7.3f} {g('found_percent'):6.1f} {g('ghost_percent'):6.1f} {valid:6.1f}  {verdict}"
+    )
+
+
+def main() -> None:
+    from bench_uncertainty import _run, _tasks, _written
+
+    from lfstudy import io
+    from lfstudy.config import read_yaml
+    from lfstudy.study.config import validate_config
+    from lfstudy.study.sweep import Sweep
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--configs", type=Path, nargs="+", required=True)
+    ap.add_argument("--flows", nargs="*", default=None, help="keep these flows of each sweep (default: all)")
+    ap.add_argument("--jobs", type=int, default=1, help="tasks run side by side")
+    ap.add_argument("--threads", type=int, default=1, help="threads per task")
+    ap.add_argument("--out", type=Path, default=None, help="working directory (default: a temp dir)")
+    args = ap.parse_args()
+    out = args.out or Path(tempfile.mkdtemp(prefix="lfstudy-bench-budget-"))
+    runs = []
+    for path in args.configs:
+        raw = read_yaml(path)
+        if args.flows:
+            sweep = raw.setdefault("sweep", {})
+            sweep["flow"] = [f for f in sweep.get("flow", []) if f in args.flows] or list(args.flows)
+        runs.append((path, validate_config(raw, base=path.resolve().parent), out / path.stem))
+    waves = [[] for _ in range(8)]
+    for _, cfg, where in runs:
+        for i, wave in enumerate(_tasks(cfg, where)):
+            waves[i] += wave
+    print(f"{sum(map(len, waves))} tasks, {args.jobs} jobs x {args.threads} threads, in {out}", flush=True)
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        for wave in waves:
+            todo = [(label, fn, a) for label, fn, a in wave if not _written(label, fn, a)]
+            for f in [pool.submit(_run, label, fn, a, args.threads) for label, fn, a in todo]:
+                label, secs = f.result()
+                if secs > 20:
+                    print(f"  {secs:8.1f} s  {label}", flush=True)
+    print(f"all stages {time.perf_counter() - t0:.0f} s\n")
+    head = "case (config: slab z)                         rms_mm  oracle   added     ct   ct_part found% ghost%  valid%"
+    print(head + "  ct/rms/valid")
+    for path, cfg, where in runs:
+        sw = Sweep(cfg)
+        p = cfg["particles"]
+        zc, half = float(p.get("z_center", 0.0)), float(p["z_span"]) / 2
+        print(f"{path.stem}: slab {zc - half:+.2f} .. {zc + half:+.2f} mm")
+        keys = [s.key for s in sw.swept if s.key != "flow" or len(s.values) > 1]
+        for c in sw.cases():
+            e = io.open_zarr(where / sw.locate(c, "errors.zarr")).load()
+            name = " ".join(f"{k.split('.')[-1][:5]}={c[k]}" for k in keys)
+            print("  " + _row(name, e))
+
+
+if __name__ == "__main__":
+    main()
