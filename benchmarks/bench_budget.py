@@ -4,7 +4,8 @@ Runs every case of each ``--config`` through the workflow's stage functions (the
 ``bench_uncertainty.py``: no Snakemake needed, each shared output made once, ``--jobs`` tasks side
 by side), then prints per case: total RMS error, the oracle's (PIV on the true volumes) and the
 reconstruction's share, the crosstalk (spurious w per unit lateral shift) of the PIV and of the
-particles found in both frames, particles found and ghosts (a method that fits particles: ipr),
+particles found in both frames, particles found (all, and within the depth of field about the
+focal plane, eq. 4.18) and ghosts (a method that fits particles: ipr),
 valid vectors, and the seeded slab's depth. Written for issue 27's question whether the
 lateral->axial crosstalk and IPR's misses come from the focal plane lying inside the volume:
 
@@ -40,7 +41,8 @@ def _row(name: str, e) -> str:
     verdict = "/".join("-" if o is None else ("ok" if o else "miss") for o in ok)
     return (
         f"{name:<44} {rms:7.4f} {orc:7.4f} {g('recon_added_rms_total_mm'):7.4f} {ct:+7.3f} "
-        f"{g('particle_crosstalk_z'):+7.3f} {g('found_percent'):6.1f} {g('ghost_percent'):6.1f} {valid:6.1f}  {verdict}"
+        f"{g('particle_crosstalk_z'):+7.3f} {g('found_percent'):6.1f} {g('found_in_focus_percent'):6.1f} "
+        f"{g('ghost_percent'):6.1f} {valid:6.1f}  {verdict}"
     )
 
 
@@ -81,7 +83,7 @@ def main() -> None:
                 if secs > 20:
                     print(f"  {secs:8.1f} s  {label}", flush=True)
     print(f"all stages {time.perf_counter() - t0:.0f} s\n")
-    head = "case (config: slab z)                         rms_mm  oracle   added     ct   ct_part found% ghost%  valid%"
+    head = "case (config: slab z)                         rms_mm  oracle   added     ct   ct_part found% infoc% ghost%  valid%"
     print(head + "  ct/rms/valid")
     for path, cfg, where in runs:
         sw = Sweep(cfg)

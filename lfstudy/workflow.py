@@ -271,7 +271,9 @@ def run_errors(
             fitted = [io.open_zarr(vol.with_name(f"volume_{f}.particles.zarr")).load() for f in "ab"]
             grid = cl.case_grid(ccfg, cam)
             bounds = [(float(c[0]), float(c[-1])) for c in (grid.x, grid.y, grid.z)]
-            found = particle_metrics(fitted, [parts, parts_b], grid.voxel_size()[::-1], bounds)
+            dof = cam.depth_of_field(0.0)
+            focus = (float(dof["z_near"][0]), float(dof["z_far"][0]))
+            found = particle_metrics(fitted, [parts, parts_b], grid.voxel_size()[::-1], bounds, focus)
             print(f"particles: {found['found_percent']:.1f} % found, {found['ghost_percent']:.1f} % ghosts", flush=True)
     err = case_metrics(
         io.open_zarr(piv).load(),

@@ -327,7 +327,7 @@ def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
     from lfstudy.study.particle_metrics import particle_metrics
 
     moved = parts.assign(x=parts.x + 0.5625)
-    found = particle_metrics([parts, moved], [parts, moved], (0.2, 0.2, 0.2), [(-1, 1)] * 3)
+    found = particle_metrics([parts, moved], [parts, moved], (0.2, 0.2, 0.2), [(-1, 1)] * 3, (-0.5, 0.5))
     out = case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle, extra=found)
     assert float(out["found_percent"]) == 100.0 and float(out["particle_crosstalk_z"]) == 0.0
     zero = pytest.approx(0, abs=1e-12)

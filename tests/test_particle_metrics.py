@@ -58,6 +58,16 @@ def test_found_particles_crosstalk_is_their_own_spurious_w():
     assert m2["ghost_percent"] > m["ghost_percent"] + 20
 
 
+def test_found_in_focus_counts_the_depth_of_field_alone():
+    """Particles within the depth of field about the focal plane missed, the others found."""
+    ta, tb, _ = _scene(3)
+    focus = (-0.4, 0.4)
+    keep = lambda t: t[np.abs(t[:, 2]) > 0.4]  # noqa: E731
+    m = particle_metrics([_ds(keep(ta)), _ds(keep(tb))], [_ds(ta), _ds(tb)], VOX, BOUNDS, focus)
+    assert m["found_in_focus_percent"] == 0.0 and 75.0 < m["found_percent"] < 85.0
+    assert math.isnan(particle_metrics([_ds(ta), _ds(tb)], [_ds(ta), _ds(tb)], VOX, BOUNDS)["found_in_focus_percent"])
+
+
 def test_a_non_uniform_flow_has_no_crosstalk_and_empty_lists_give_nan():
     ta, _, _ = _scene(2)
     tb = ta + np.column_stack([0.1 * ta[:, 1], np.zeros(len(ta)), np.zeros(len(ta))])  # shear

@@ -232,6 +232,13 @@ METRICS: tuple[Metric, ...] = (
         "units), both frames (a method that fits particles only)",
     ),
     Metric(
+        "found_in_focus_percent", "percent", "true particles found within the depth of field at focus", False,
+        {"budget"}, "quality",
+        description="found_percent of the true particles within the depth of field about the focal plane (eq. 4.18), "
+        "where a particle's image is one lenslet's spot: far below found_percent, the focal plane inside the "
+        "volume limits the design (particles.z_center moves the volume off it)",
+    ),
+    Metric(
         "ghost_percent", "percent", "fitted particles that are ghosts", True, {"budget"}, "quality",
         description="fitted particles with no true particle within half a voxel, both frames",
     ),

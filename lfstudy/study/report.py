@@ -672,7 +672,11 @@ def _budget_blocks(study: xr.Dataset) -> Iterator[Block]:
             " For a method that fits particles, <i>found_percent</i> and <i>ghost_percent</i> score its particle "
             "lists against the true particles (within half a voxel), and <i>particle_crosstalk_z</i> is the "
             "crosstalk of the particles found in both frames alone: where it is near 0 and crosstalk_z is not, the "
-            "crosstalk rides on the ghosts and the mislocated particles, not on the particles the fit found."
+            "crosstalk rides on the ghosts and the mislocated particles, not on the particles the fit found. "
+            "<i>found_in_focus_percent</i> counts the true particles within the depth of field about the focal "
+            "plane (eq. 4.18), where a particle's image is one lenslet's spot whose size changes only to second "
+            "order with depth: far below found_percent, the focal plane inside the volume limits the design, and "
+            "a volume off it (<code>particles.z_center</code>) avoids that."
             if "found_percent" in bt
             else ""
         )
