@@ -83,7 +83,7 @@ def main() -> None:
                 if secs > 20:
                     print(f"  {secs:8.1f} s  {label}", flush=True)
     print(f"all stages {time.perf_counter() - t0:.0f} s\n")
-    head = "case (config: slab z)                         rms_mm  oracle   added     ct   ct_part found% infoc% ghost%  valid%"
+    head = f"{'case (config: slab z)':<46}rms_mm  oracle   added     ct   ct_part found% infoc% ghost%  valid%"
     print(head + "  ct/rms/valid")
     for path, cfg, where in runs:
         sw = Sweep(cfg)
