@@ -87,7 +87,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import xarray as xr
@@ -110,6 +110,9 @@ from lfstudy.simulate._render_common import (
     solid_angle,
 )
 from lfstudy.simulate.exact import _K, _ST_BIG, _ST_SIZE, _ST_SPILL, _render_particle, _scratch
+
+if TYPE_CHECKING:
+    from lfstudy.reconstruct.mart import MartPlan
 
 __all__ = [
     "IPR",
@@ -705,6 +708,7 @@ def ipr_particles(
     residual_candidates: int = 10,
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
+    residual_plane_step: int = 1,
     jacobian: str = "central",
     batch: int = 2048,
     progress: bool = False,
@@ -738,6 +742,10 @@ def ipr_particles(
         MART iterations of the first candidate volume (of the data).
     residual_mart_iterations : int
         MART iterations of the residual's candidate volumes (0: its MLOS first guess alone).
+    residual_plane_step : int
+        The residual's candidate volumes are reconstructed on every ``residual_plane_step``-th plane of
+        the candidate grid (:meth:`lfstudy.reconstruct.mart.MartPlan.planes`: the same weight tables,
+        that many times fewer planes and about that many times cheaper); 1: every plane.
     jacobian : {"central", "forward"}
         Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
         particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
@@ -773,6 +781,10 @@ def ipr_particles(
     for name, val in (("mart_iterations", mart_iterations), ("residual_mart_iterations", residual_mart_iterations)):
         if not isinstance(val, (int, np.integer)) or not 0 <= val <= 50:
             raise ReconstructionError(f"reconstruct.ipr.{name} = {val!r}: allowed range is [0, 50]")
+    if not isinstance(residual_plane_step, (int, np.integer)) or not 1 <= residual_plane_step <= 4:
+        raise ReconstructionError(
+            f"reconstruct.ipr.residual_plane_step = {residual_plane_step!r}: allowed range is [1, 4]"
+        )
     if jacobian not in _JACOBIANS:
         allowed = ", ".join(_JACOBIANS)
         raise ReconstructionError(f"reconstruct.ipr.jacobian = {jacobian!r}: allowed values are {allowed}")
@@ -798,14 +810,17 @@ def ipr_particles(
     t0 = time.perf_counter()
     vcal = inputs.calibration
     plan = mart_plan(lf, inputs.camera, cgrid, calibration=vcal)  # tables and coverage, once for every volume
+    # the residual's volumes: every residual_plane_step-th plane, on views into the same tables
+    rplan = plan.planes(int(residual_plane_step)) if residual_plane_step > 1 else plan
     clock["mart"] += time.perf_counter() - t0
 
-    def candidates(light: xr.DataArray, iters: int) -> np.ndarray:
+    def candidates(light: xr.DataArray, iters: int, p: MartPlan = plan) -> np.ndarray:
         t0 = time.perf_counter()
-        vol = mart(light, inputs.camera, cgrid, iterations=iters, plan=plan, calibration=vcal).values
+        g = p.proj.grid
+        vol = mart(light, inputs.camera, g, iterations=iters, plan=p, calibration=vcal).values
         clock["mart"] += time.perf_counter() - t0
         clock["volumes"] += 1
-        peaks = _peaks(vol, cgrid, peak_threshold)
+        peaks = _peaks(vol, g, peak_threshold)
         if vcal is not None:  # the exact renderer fits in the nominal camera's frame
             peaks = volumetric_frame(peaks, lf, inputs.camera, vcal, to="nominal")
         return peaks
@@ -901,7 +916,7 @@ def ipr_particles(
             add_images(xyz[gone], inten[gone], res, 1.0)
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
         if it < residual_candidates:
-            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations)
+            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations, rplan)
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
@@ -951,6 +966,7 @@ def ipr_particles(
             "residual_candidates": int(residual_candidates),
             "mart_iterations": int(mart_iterations),
             "residual_mart_iterations": int(residual_mart_iterations),
+            "residual_plane_step": int(residual_plane_step),
             "seconds": float(time.perf_counter() - t_start),
             "seconds_mart": float(clock["mart"]),
             "seconds_patches": float(clock["patches"]),
@@ -1013,6 +1029,7 @@ def ipr(
     residual_candidates: int = 10,
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
+    residual_plane_step: int = 1,
     jacobian: str = "central",
     blob_sigma: float = 0.0,
     batch: int = 2048,
@@ -1036,6 +1053,7 @@ def ipr(
         residual_candidates=residual_candidates,
         mart_iterations=mart_iterations,
         residual_mart_iterations=residual_mart_iterations,
+        residual_plane_step=residual_plane_step,
         jacobian=jacobian,
         batch=batch,
         progress=progress,
@@ -1111,6 +1129,12 @@ class IPR(ReconstructionMethod):
             "maximum": 50,
             "description": "MART iterations of the residual's candidate volumes (0: its MLOS first guess alone)",
         },
+        "residual_plane_step": {
+            "type": "integer",
+            "minimum": 1,
+            "maximum": 4,
+            "description": "the residual's candidate volumes on every n-th plane of the candidate grid (n x cheaper)",
+        },
         "jacobian": {
             "type": "string",
             "enum": list(_JACOBIANS),
@@ -1138,6 +1162,7 @@ class IPR(ReconstructionMethod):
         residual_candidates: int = 10,
         mart_iterations: int = 3,
         residual_mart_iterations: int = 3,
+        residual_plane_step: int = 1,
         jacobian: str = "central",
         blob_sigma: float = 0.0,
         progress: bool = False,
@@ -1154,6 +1179,7 @@ class IPR(ReconstructionMethod):
             residual_candidates=residual_candidates,
             mart_iterations=mart_iterations,
             residual_mart_iterations=residual_mart_iterations,
+            residual_plane_step=residual_plane_step,
             jacobian=jacobian,
             blob_sigma=blob_sigma,
             progress=progress,
