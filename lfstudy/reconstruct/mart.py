@@ -97,10 +97,11 @@ class MartPlan:
     def planes(self, step: int, start: int = 0) -> MartPlan:
         """The plan of the grid's every ``step``-th plane from ``start`` (its grid is ``.proj.grid``).
 
-        The weight tables are views into this plan's (:meth:`PlenopticProjector.planes`) and the
-        coverage is this plan's on those planes, so it costs no new table memory and no setup, and
-        :func:`mart` with it gives the bytes of a plan made for the thinned grid (``step`` times
-        fewer planes: about ``step`` times cheaper per volume).
+        The weight tables are views into this plan's
+        (:meth:`~lfstudy.reconstruct.projector.PlenopticProjector.planes`) and the coverage is this
+        plan's on those planes, so it costs no new table memory and no setup, and :func:`mart` with it
+        gives the bytes of a plan made for the thinned grid (``step`` times fewer planes: about ``step``
+        times cheaper per volume).
         """
         proj = self.proj.planes(step, start)
         sl = slice(int(start), None, int(step))
