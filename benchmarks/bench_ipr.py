@@ -98,9 +98,10 @@ def main() -> None:
     numba.set_num_threads(args.threads)
     w, h = args.crop
     print(f"Table 4.3 camera cropped to {w} x {h} px (full: {WIDTH} x {HEIGHT}); {args.threads} threads")
-    field, inputs = _scene(160, 160, 0.002, 200, args.photons, 99)  # warm-up: compile the kernels
-    ipr_particles(inputs, iterations=1)
     runs = [("defaults", {})] + [(c, _setting(c)) for c in args.compare]
+    field, inputs = _scene(160, 160, 0.002, 200, args.photons, 99)  # warm-up: compile the kernels
+    for _, setting in runs:  # of every setting (another one may compile other kernel specialisations)
+        ipr_particles(inputs, **(setting | {"iterations": 1}))
     for ppp in args.ppp:
         t0 = time.perf_counter()
         field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed)

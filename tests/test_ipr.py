@@ -169,6 +169,8 @@ def test_ipr_parameters_and_bad_input(scene):
         ipr_particles(inputs, batch=0)
     with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr\.residual_mart_iterations = -1: allowed range"):
         ipr_particles(inputs, residual_mart_iterations=-1)
+    with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr\.residual_plane_step = 0: allowed range"):
+        ipr_particles(inputs, residual_plane_step=0)
 
 
 def test_ipr_particles_states_the_methods_defaults():

@@ -189,6 +189,28 @@ def test_mart_plan_gives_the_same_bytes_and_is_checked(frame):
         mart(frame.lightfield, CAM, frame.grid, iterations=1, subsets=2, plan=plan)
 
 
+def test_mart_plan_planes_are_the_thinned_grid_s_plan(frame):
+    """A plan's every-other-plane plan (IPR's residual candidate volumes) reads views of the same weight tables
+    (no new table memory) and gives the bytes of a plan made for the thinned grid; MART on it touches only
+    those planes' voxels (its volume is the thinned grid's)."""
+    plan = mart_plan(frame.lightfield, CAM, frame.grid)
+    for start in (0, 1):
+        sub = plan.planes(2, start)
+        g = sub.proj.grid
+        assert np.array_equal(g.z, frame.grid.z[start::2]) and g.shape[1:] == frame.grid.shape[1:]
+        assert np.shares_memory(sub.proj.wxs, plan.proj.wxs) and np.shares_memory(sub.proj.sys, plan.proj.sys)
+        fresh = mart_plan(frame.lightfield, CAM, g)
+        np.testing.assert_array_equal(sub.seen, fresh.seen)
+        ref = mart(frame.lightfield, CAM, g, iterations=1, plan=fresh)
+        got = mart(frame.lightfield, CAM, g, iterations=1, plan=sub)
+        np.testing.assert_array_equal(got.values, ref.values)
+        assert got.shape == g.shape and float(got.max()) > 0
+    with pytest.raises(ReconstructionError, match=r"plan was made for another grid"):
+        mart(frame.lightfield, CAM, frame.grid, iterations=1, plan=plan.planes(2))
+    with pytest.raises(ValueError, match=r"planes: step = 0 must be >= 1"):
+        plan.planes(0)
+
+
 def test_reconstruction_bad_input(frame):
     with pytest.raises(ReconstructionError, match=r"reconstruct\.method = 'nosuch'.*available"):
         reconstruct(frame, "nosuch")

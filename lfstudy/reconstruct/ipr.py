@@ -72,7 +72,22 @@ the fit's CPU time (seeds 7 and 8: 32.2 -> 29.0 s and 31.7 -> 28.9 s of CPU, the
 9 %; the same particles, byte for byte). Cheaper residual volumes trade quality for time (CPU
 time; seeds 7 / 8 / 9 / 10, change of found in points): ``residual_mart_iterations=0`` x0.59–0.82,
 found −0.3 / −1.6 / −5.1 / −4.4 (ghosts up to +4.6); ``residual_candidates=5`` x0.70–0.74, found
-−0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the defaults are unchanged). Both
+−0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the defaults are unchanged).
+``residual_plane_step=2`` reconstructs the residual's volumes on every other plane of the candidate
+grid, on views into the same tables (no new memory): each residual volume costs half (seed 7, the
+same ten residual light fields, 1 thread: 9.7 -> 4.7 s CPU), the fit x0.67–0.73 of the defaults' CPU
+time (seeds 7 / 8 / 9 at 0.005 ppp: 24.0 -> 17.5, 22.6 -> 15.8, 22.5 -> 15.5 s; 400 x 400 at 0.001
+ppp, seed 7: 25.7 -> 17.2 s), found −1.6 / +0.6 / −0.9 and +0.7 points, ghosts +1.8 / −0.5 / −0.3 and
++0.5: the trade of ``residual_candidates=5``, so the default stays 1. A separate 3 x 3 x 1 grid on the
+case's own planes did better on seed 7 (found −0.3, ghosts +0.5, CPU x0.74) but adds half the tables'
+memory. What did not help: MART restricted to the lenslets the residual lights (at 0.005 ppp the
+median lenslet holds 12–37 % of the brightest lenslet's positive-residual energy, at 0.001 ppp 3–8 %;
+the residual's first guess is above 3 % of its maximum in 70–75 % of the voxels, so every lenslet's
+beam box holds signal), nor pruning the voxels below 1 % of the maximum after one iteration (the
+pruned volume still meets 6–100 % of the beam boxes); screened on seed 7's residuals against the full
+volumes' peaks (388 over ten rounds; found / extra): every other view column 240 / 199, every other
+view row 305 / 230, a 2 x 2 x 2 grid 298 / 136, a warm start from the previous residual's volume with
+one iteration 317 / 166 (two: 361 / 140), against 363 / 110 on every other plane. Both
 dominant costs scale with the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp
 stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine; the attrs
 ``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
@@ -87,7 +102,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import xarray as xr
@@ -110,6 +125,9 @@ from lfstudy.simulate._render_common import (
     solid_angle,
 )
 from lfstudy.simulate.exact import _K, _ST_BIG, _ST_SIZE, _ST_SPILL, _render_particle, _scratch
+
+if TYPE_CHECKING:
+    from lfstudy.reconstruct.mart import MartPlan
 
 __all__ = [
     "IPR",
@@ -705,6 +723,7 @@ def ipr_particles(
     residual_candidates: int = 10,
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
+    residual_plane_step: int = 1,
     jacobian: str = "central",
     batch: int = 2048,
     progress: bool = False,
@@ -738,6 +757,10 @@ def ipr_particles(
         MART iterations of the first candidate volume (of the data).
     residual_mart_iterations : int
         MART iterations of the residual's candidate volumes (0: its MLOS first guess alone).
+    residual_plane_step : int
+        The residual's candidate volumes are reconstructed on every ``residual_plane_step``-th plane of
+        the candidate grid (:meth:`lfstudy.reconstruct.mart.MartPlan.planes`: the same weight tables,
+        that many times fewer planes and about that many times cheaper); 1: every plane.
     jacobian : {"central", "forward"}
         Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
         particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
@@ -773,6 +796,10 @@ def ipr_particles(
     for name, val in (("mart_iterations", mart_iterations), ("residual_mart_iterations", residual_mart_iterations)):
         if not isinstance(val, (int, np.integer)) or not 0 <= val <= 50:
             raise ReconstructionError(f"reconstruct.ipr.{name} = {val!r}: allowed range is [0, 50]")
+    if not isinstance(residual_plane_step, (int, np.integer)) or not 1 <= residual_plane_step <= 4:
+        raise ReconstructionError(
+            f"reconstruct.ipr.residual_plane_step = {residual_plane_step!r}: allowed range is [1, 4]"
+        )
     if jacobian not in _JACOBIANS:
         allowed = ", ".join(_JACOBIANS)
         raise ReconstructionError(f"reconstruct.ipr.jacobian = {jacobian!r}: allowed values are {allowed}")
@@ -798,14 +825,17 @@ def ipr_particles(
     t0 = time.perf_counter()
     vcal = inputs.calibration
     plan = mart_plan(lf, inputs.camera, cgrid, calibration=vcal)  # tables and coverage, once for every volume
+    # the residual's volumes: every residual_plane_step-th plane, on views into the same tables
+    rplan = plan.planes(int(residual_plane_step)) if residual_plane_step > 1 else plan
     clock["mart"] += time.perf_counter() - t0
 
-    def candidates(light: xr.DataArray, iters: int) -> np.ndarray:
+    def candidates(light: xr.DataArray, iters: int, p: MartPlan = plan) -> np.ndarray:
         t0 = time.perf_counter()
-        vol = mart(light, inputs.camera, cgrid, iterations=iters, plan=plan, calibration=vcal).values
+        g = p.proj.grid
+        vol = mart(light, inputs.camera, g, iterations=iters, plan=p, calibration=vcal).values
         clock["mart"] += time.perf_counter() - t0
         clock["volumes"] += 1
-        peaks = _peaks(vol, cgrid, peak_threshold)
+        peaks = _peaks(vol, g, peak_threshold)
         if vcal is not None:  # the exact renderer fits in the nominal camera's frame
             peaks = volumetric_frame(peaks, lf, inputs.camera, vcal, to="nominal")
         return peaks
@@ -901,7 +931,7 @@ def ipr_particles(
             add_images(xyz[gone], inten[gone], res, 1.0)
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
         if it < residual_candidates:
-            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations)
+            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations, rplan)
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
@@ -951,6 +981,7 @@ def ipr_particles(
             "residual_candidates": int(residual_candidates),
             "mart_iterations": int(mart_iterations),
             "residual_mart_iterations": int(residual_mart_iterations),
+            "residual_plane_step": int(residual_plane_step),
             "seconds": float(time.perf_counter() - t_start),
             "seconds_mart": float(clock["mart"]),
             "seconds_patches": float(clock["patches"]),
@@ -1013,6 +1044,7 @@ def ipr(
     residual_candidates: int = 10,
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
+    residual_plane_step: int = 1,
     jacobian: str = "central",
     blob_sigma: float = 0.0,
     batch: int = 2048,
@@ -1036,6 +1068,7 @@ def ipr(
         residual_candidates=residual_candidates,
         mart_iterations=mart_iterations,
         residual_mart_iterations=residual_mart_iterations,
+        residual_plane_step=residual_plane_step,
         jacobian=jacobian,
         batch=batch,
         progress=progress,
@@ -1111,6 +1144,12 @@ class IPR(ReconstructionMethod):
             "maximum": 50,
             "description": "MART iterations of the residual's candidate volumes (0: its MLOS first guess alone)",
         },
+        "residual_plane_step": {
+            "type": "integer",
+            "minimum": 1,
+            "maximum": 4,
+            "description": "the residual's candidate volumes on every n-th plane of the candidate grid (n x cheaper)",
+        },
         "jacobian": {
             "type": "string",
             "enum": list(_JACOBIANS),
@@ -1138,6 +1177,7 @@ class IPR(ReconstructionMethod):
         residual_candidates: int = 10,
         mart_iterations: int = 3,
         residual_mart_iterations: int = 3,
+        residual_plane_step: int = 1,
         jacobian: str = "central",
         blob_sigma: float = 0.0,
         progress: bool = False,
@@ -1154,6 +1194,7 @@ class IPR(ReconstructionMethod):
             residual_candidates=residual_candidates,
             mart_iterations=mart_iterations,
             residual_mart_iterations=residual_mart_iterations,
+            residual_plane_step=residual_plane_step,
             jacobian=jacobian,
             blob_sigma=blob_sigma,
             progress=progress,

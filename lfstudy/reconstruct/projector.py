@@ -42,6 +42,7 @@ depend on the thread count.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
@@ -797,6 +798,26 @@ class PlenopticProjector:
         self._partial: np.ndarray | None = None
         self._gain_columns: dict[tuple[int, bytes], np.ndarray] = {}
         self.min_vignetting = float(min_vignetting)
+
+    def planes(self, step: int, start: int = 0) -> PlenopticProjector:
+        """The projector of the grid's planes ``start``, ``start + step``, ... (z every ``step``-th plane).
+
+        Each plane's tables depend on that plane's depth alone, so the new projector's are views into
+        this one's (no copy, no new memory) and its projections are those of a projector built for the
+        thinned grid, byte for byte.
+        """
+        nz = self.grid.shape[0]
+        if not (isinstance(step, (int, np.integer)) and step >= 1 and 0 <= start < nz):
+            raise ProjectorError(f"planes: step = {step!r} must be >= 1 and start = {start!r} in [0, {nz})")
+        sl = slice(int(start), None, int(step))
+        g = self.grid
+        other = copy.copy(self)
+        other.grid = ReconstructionGrid(g.x, g.y, g.z[sl], spacing=g.spacing)
+        other.alpha, other.beta = self.alpha[sl], self.beta[sl]
+        other.kxs, other.kys = self.kxs[sl], self.kys[sl]
+        other.sxs, other.wxs, other.sys, other.wys = self.sxs[sl], self.wxs[sl], self.sys[sl], self.wys[sl]
+        other._partial = None
+        return other
 
     # ---------------------------------------------------------------- info
     @property
