@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import xarray as xr
 
 from lfstudy.study.particle_metrics import particle_metrics
 
+ROOT = Path(__file__).resolve().parents[1]
 VOX = (0.1, 0.1, 0.25)  # dx, dy, dz [mm]
 BOUNDS = ((0.0, 10.0), (0.0, 10.0), (-2.0, 2.0))
 
@@ -81,3 +83,42 @@ def test_a_non_uniform_flow_has_no_crosstalk_and_empty_lists_give_nan():
         particle_metrics([_ds(ta), _ds(tb)], [_ds(ta), _ds(tb)], (0.1, 0.0, 0.2), BOUNDS)
     with pytest.raises(ValueError, match="particle count"):
         particle_metrics([_ds(ta), _ds(tb)], [_ds(ta), _ds(tb[:10])], VOX, BOUNDS)
+
+
+def test_the_errors_stage_scores_the_lists_beside_an_ipr_case_s_volumes(tmp_path):
+    """run_errors of an ipr case reads volume_{a,b}.particles.zarr beside the volume (here the true
+    particles with a third of frame b's moved 1 voxel in z, the rest exact) and writes the particle
+    metrics."""
+    from lfstudy import io
+    from lfstudy import workflow as wf
+    from lfstudy.study import case as cl
+    from lfstudy.study.config import load_config, stage_config
+    from lfstudy.study.sweep import Sweep
+
+    cfg = load_config(ROOT / "tests" / "data" / "tiny.yaml")
+    cfg["sweep"] = {"ppp": [0.002], "flow": ["uniform_x"], "reconstruct.method": ["ipr"]}
+    sweep = Sweep(cfg)
+    for case in sweep.cases():
+        sc, full = stage_config(cfg, case, "errors"), sweep.apply(case)
+        d = tmp_path / case["reconstruct.method"]
+        d.mkdir()
+        pa = cl.case_particles(full)
+        pb = cl.case_displaced(full, pa)
+        va, vb = cl.oracle_volumes(full, pa, pb)  # the true volumes stand for the reconstruction
+        io.write_zarr(pa, d / "particles_a.zarr")
+        io.write_zarr(pb, d / "particles_b.zarr")
+        io.write_zarr(va, d / "volume_a.zarr")
+        io.write_zarr(cl.case_piv(full, va, vb), d / "piv.zarr")
+        moved = pb.copy(deep=True)
+        dz = float(np.median(np.diff(cl.case_grid(full).z)))
+        moved["z"][::3] = moved["z"][::3] + dz
+        io.write_zarr(pa, d / "volume_a.particles.zarr")
+        io.write_zarr(moved, d / "volume_b.particles.zarr")
+        wf.run_errors(
+            sc, d / "piv.zarr", d / "volume_a.zarr", d / "particles_a.zarr", d / "errors.zarr", d / "particles_b.zarr"
+        )
+        e = io.open_zarr(d / "errors.zarr")
+        n = pa.sizes["particle"]
+        assert float(e["ghost_percent"]) == pytest.approx(100 * len(range(0, n, 3)) / (2 * n))
+        assert 75.0 < float(e["found_percent"]) < 90.0 and float(e["particle_rms_x_mm"]) == 0.0
+        assert float(e["particle_bias_w_mm"]) == pytest.approx(0.0, abs=1e-12)  # only exact pairs count
