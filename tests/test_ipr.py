@@ -217,7 +217,8 @@ def test_ipr_particles_states_the_methods_defaults():
 
 def test_ipr_residual_is_kept_exact(scene, fitted):
     """The fit keeps its residual incrementally (moves, ghosts added back, rejected candidates added back):
-    its last ``residual_norm`` is that of the particle list rendered afresh, to 1e-9."""
+    its last ``residual_norm`` is that of the particle list rendered afresh with the fit's images (the fast
+    quadrature by default), to 1e-9."""
     from lfstudy.reconstruct.ipr import _raw_from_lightfield
 
     _, inputs = scene
@@ -225,7 +226,9 @@ def test_ipr_residual_is_kept_exact(scene, fitted):
     cam, _ = calibrated_camera(CAM, inputs.centers)
     data, mask = _raw_from_lightfield(inputs.lightfield, (cam.n_pixels_y, cam.n_pixels_x))
     data = np.where(mask > 0, data, 0.0)
-    buf, offs, r0, c0, shp = particle_patches(cam, parts["x"].values, parts["y"].values, parts["z"].values)
+    acc = parts.attrs["image_accuracy"]
+    assert acc == "fast"
+    buf, offs, r0, c0, shp = particle_patches(cam, *(parts[v].values for v in "xyz"), accuracy=acc)
     model = np.zeros_like(data)
     for i, amp in enumerate(parts["intensity"].values):
         h, w = shp[i]

@@ -138,7 +138,18 @@ _S_KSL      4   K·σl, the support of a blurred pixel edge                     
 _S_AK       5   abs(κ)                                                        1
 _S_S        6   S = sqrt(σm² + κ²σl²)                                         mm
 _S_RHO      7   ρ, radius of the aperture image behind a lenslet              mm
+_S_NGB      8   arc nodes per panel of L blur widths: ceil(NGB + DENS·L) ..   count
+_S_DENS     9   .. (``_NG_BASE``, ``_DENS``)                                  1/σ
+_S_NGMIN    10  .. but at least NGMIN (``_NG_MIN``)                           count
+_S_PANEL    11  longest panel (``_PANEL``)                                    σ
+_S_NGN      12  nodes per panel of the numeric band integrals (``_NGN``)      count
+_S_K        13  Gaussian cut-off (``_K``)                                     σ
+_S_KS       14  half-width of the σs-bands (``_KS``)                          σs
 ==========  ==  ============================================================  =============
+
+Slots 8–14 are the quadrature, set once per scratch (:func:`_scratch`): :data:`_QUAD_EXACT` (the
+constants above, the error budget below) for :func:`render_exact`; IPR's per-particle images may
+take a coarser one (:func:`lfstudy.reconstruct.ipr.particle_patches`, ``accuracy="fast"``).
 
 Kernel counters ``stats[chunk]`` (``_ST_*``): 0 ``_ST_W`` expected intensity traced,
 1 ``_ST_IN`` recorded on the sensor, 2 ``_ST_ALL`` on the lenslet array, 3 ``_ST_SPILL``
@@ -1887,7 +1898,7 @@ def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats, quad):  # pragma:
     ``_ST_*`` counters (intensity expected / on the sensor / on the lenslet array /
     outside the chunk's rows (must stay 0), lenslets refused (rotated grid out of
     focus), lenslet images, interior ones, arc nodes, band nodes, patches too big).
-    Each particle is :func:`_render_particle`.
+    Each particle is :func:`_render_particle`, with the quadrature ``quad`` (:data:`_QUAD_EXACT`).
     """
     px, py, pz, wt, order = parts
     starts, ends, boff, brow0, brow1 = chunks
