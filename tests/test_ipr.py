@@ -79,6 +79,36 @@ def test_particle_patches_are_the_exact_render():
     )
 
 
+def test_fast_patches_are_within_their_stated_bound():
+    """``accuracy="fast"`` (IPR's default images) against the exact quadrature, patch by patch and trial by
+    trial: max |diff| <= 1e-4 of the patch's peak and |sum diff| <= 1e-5 of its sum, for particles in and out
+    of focus, at several depths and with the spot's centre on, near and between lenslet edges."""
+    rng = np.random.default_rng(11)
+    zs = np.array([-3.4, -2.2, -1.1, -0.4, -0.05, 0.0, 0.02, 0.3, 0.9, 1.7, 2.6, 3.4])
+    pl, ox, oy = CAM.lenslet_pitch, CAM.lenslet_offset_x, CAM.lenslet_offset_y
+    ex = (rng.integers(3, 15, zs.size) - 9.0) * pl + rng.choice([0.0, 1e-4, 2e-3, 0.03, 0.0625], zs.size)
+    ey = (rng.integers(3, 15, zs.size) - 9.0) * pl + rng.choice([0.0, -1e-4, 5e-3, 0.0625], zs.size)
+    d = CAM.so + zs  # spot centre on the lenslet plane at e: object x = -(e + o)·d/si
+    x, y = -(ex + ox) * d / CAM.si, -(ey + oy) * d / CAM.si
+    tr = np.array([[0.0125, 0.0, 0.0], [0.0, -0.0125, 0.0], [0.0, 0.0, 0.04]])
+    exact, offs, r0, c0, shp = particle_patches(CAM, x, y, zs, trials=tr, accuracy="exact")
+    fast, offs_f, r0_f, c0_f, shp_f = particle_patches(CAM, x, y, zs, trials=tr, accuracy="fast")
+    assert np.array_equal(offs, offs_f) and np.array_equal(r0, r0_f) and np.array_equal(c0, c0_f)
+    assert np.array_equal(shp, shp_f)
+    worst = [0.0, 0.0]
+    for i in range(zs.size):
+        for k, (a, b) in enumerate(
+            zip(np.split(exact[offs[i] : offs[i + 1]], 4), np.split(fast[offs[i] : offs[i + 1]], 4))
+        ):
+            assert a.max() > 0.0, (i, k)
+            worst[0] = max(worst[0], np.abs(b - a).max() / a.max())
+            worst[1] = max(worst[1], abs(b.sum() - a.sum()) / a.sum())
+    assert worst[0] <= 1e-4 and worst[1] <= 1e-5, worst
+    assert worst[0] > 0.0  # the fast quadrature is another one
+    with pytest.raises(ReconstructionError, match="accuracy = 'coarse'; allowed values are exact, fast"):
+        particle_patches(CAM, x[:1], y[:1], zs[:1], accuracy="coarse")
+
+
 def test_calibrated_camera_finds_the_offset_grid():
     cen = find_lenslet_centers(synthetic_pinhole(CAM, amplitude=3000, seed=1), CAM)
     cam, info = calibrated_camera(CAM.with_(lenslet_offset_x=0.0, lenslet_offset_y=0.0), cen)
@@ -189,7 +219,8 @@ def test_ipr_particles_states_the_methods_defaults():
 
 def test_ipr_residual_is_kept_exact(scene, fitted):
     """The fit keeps its residual incrementally (moves, ghosts added back, rejected candidates added back):
-    its last ``residual_norm`` is that of the particle list rendered afresh, to 1e-9."""
+    its last ``residual_norm`` is that of the particle list rendered afresh with the fit's images (the fast
+    quadrature by default), to 1e-9."""
     from lfstudy.reconstruct.ipr import _raw_from_lightfield
 
     _, inputs = scene
@@ -197,7 +228,9 @@ def test_ipr_residual_is_kept_exact(scene, fitted):
     cam, _ = calibrated_camera(CAM, inputs.centers)
     data, mask = _raw_from_lightfield(inputs.lightfield, (cam.n_pixels_y, cam.n_pixels_x))
     data = np.where(mask > 0, data, 0.0)
-    buf, offs, r0, c0, shp = particle_patches(cam, parts["x"].values, parts["y"].values, parts["z"].values)
+    acc = parts.attrs["image_accuracy"]
+    assert acc == "fast"
+    buf, offs, r0, c0, shp = particle_patches(cam, *(parts[v].values for v in "xyz"), accuracy=acc)
     model = np.zeros_like(data)
     for i, amp in enumerate(parts["intensity"].values):
         h, w = shp[i]

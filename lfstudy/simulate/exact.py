@@ -138,7 +138,18 @@ _S_KSL      4   K·σl, the support of a blurred pixel edge                     
 _S_AK       5   abs(κ)                                                        1
 _S_S        6   S = sqrt(σm² + κ²σl²)                                         mm
 _S_RHO      7   ρ, radius of the aperture image behind a lenslet              mm
+_S_NGB      8   arc nodes per panel of L blur widths: ceil(NGB + DENS·L) ..   count
+_S_DENS     9   .. (``_NG_BASE``, ``_DENS``)                                  1/σ
+_S_NGMIN    10  .. but at least NGMIN (``_NG_MIN``)                           count
+_S_PANEL    11  longest panel (``_PANEL``)                                    σ
+_S_NGN      12  nodes per panel of the numeric band integrals (``_NGN``)      count
+_S_K        13  Gaussian cut-off (``_K``)                                     σ
+_S_KS       14  half-width of the σs-bands (``_KS``)                          σs
 ==========  ==  ============================================================  =============
+
+Slots 8–14 are the quadrature, set once per scratch (:func:`_scratch`): :data:`_QUAD_EXACT` (the
+constants above, the error budget below) for :func:`render_exact`; IPR's per-particle images may
+take a coarser one (:func:`lfstudy.reconstruct.ipr.particle_patches`, ``accuracy="fast"``).
 
 Kernel counters ``stats[chunk]`` (``_ST_*``): 0 ``_ST_W`` expected intensity traced,
 1 ``_ST_IN`` recorded on the sensor, 2 ``_ST_ALL`` on the lenslet array, 3 ``_ST_SPILL``
@@ -253,6 +264,10 @@ _DENS = 1.5
 _NG_MIN = 4
 _NGN = 16  # Gauss–Legendre nodes per ≤ _PANEL σ panel of the numeric (corner) antiderivatives (8e-11·σ)
 _PANEL = 8.0  # longest panel, in units of the narrowest blur active on it
+#: The quadrature settings the kernels read from the scalars ``sc`` (``_S_NGB`` ..): the exact
+#: renderer's (:func:`render_exact`, every image of the study) are the constants above; a coarser
+#: set is an option of :func:`lfstudy.reconstruct.ipr.particle_patches` only (``_QUAD`` there).
+_QUAD_EXACT = np.array([_NG_BASE, _DENS, _NG_MIN, _PANEL, _NGN, _K, _KS])
 #: Largest |sin θ| of a rotated lenslet grid rendered out of focus (in sub-squares, see
 #: :func:`_lenslet_axes`); beyond it those particles are refused (use the Monte-Carlo tracer).
 _ROT_APPROX = 0.005
@@ -266,7 +281,6 @@ _GL_X = np.zeros((_NG_MAX + 1, _NG_MAX))  # row n: the n-point rule on [−1, 1]
 _GL_W = np.zeros((_NG_MAX + 1, _NG_MAX))
 for _n in range(1, _NG_MAX + 1):
     _GL_X[_n, :_n], _GL_W[_n, :_n] = np.polynomial.legendre.leggauss(_n)
-_GN_X, _GN_W = np.polynomial.legendre.leggauss(_NGN)
 _G4_X, _G4_W = np.polynomial.legendre.leggauss(4)
 
 # ------------------------------------------------------------------ Φ, φ and IΦ
@@ -626,7 +640,8 @@ _A_ELO, _A_EHI, _A_SLO = range(10, 13)
 _A_E0, _A_N, _A_T0 = range(13, 16)
 _A_SIZE = 16
 _S_KAP, _S_SM, _S_SL, _S_PP, _S_KSL, _S_AK, _S_S, _S_RHO = range(8)
-_S_SIZE = 8
+_S_NGB, _S_DENS, _S_NGMIN, _S_PANEL, _S_NGN, _S_K, _S_KS = range(8, 15)  # the quadrature (_QUAD_EXACT's order)
+_S_SIZE = 15
 _ST_W, _ST_IN, _ST_ALL, _ST_SPILL, _ST_REFUSED, _ST_LENS, _ST_INTERIOR, _ST_NODES, _ST_BAND, _ST_BIG = range(10)
 _ST_SIZE = 10
 _LOW, _BLO, _MID, _BHI, _HIGH = range(5)
@@ -806,7 +821,8 @@ def _num_int(ax, sc, k, a, b):  # pragma: no cover - jitted
     ssx = sc[_S_SM] / sc[_S_AK] if sc[_S_AK] > 0.0 else 0.0
     if ssx > 0.0 and (sig <= 0.0 or ssx < sig):
         sig = ssx
-    lmax = _PANEL * sig if sig > 0.0 else np.inf
+    lmax = sc[_S_PANEL] * sig if sig > 0.0 else np.inf
+    ngn = int(sc[_S_NGN])
     acc = 0.0
     lo = a
     while lo < b:
@@ -819,9 +835,9 @@ def _num_int(ax, sc, k, a, b):  # pragma: no cover - jitted
         h = 0.5 * step
         for j in range(m):
             c = lo + (j + 0.5) * step
-            for g in range(_NGN):
-                x = c + h * _GN_X[g]
-                acc += _GN_W[g] * h * _m(ax, sc, x) * _b(ax, sc, k, x)
+            for g in range(ngn):
+                x = c + h * _GL_X[ngn, g]
+                acc += _GL_W[ngn, g] * h * _m(ax, sc, x) * _b(ax, sc, k, x)
         lo = hi
     return acc
 
@@ -1255,6 +1271,7 @@ def _arc(curx, cury, sc, work, ia, cnt):  # pragma: no cover - jitted
     isx = rho / sigx if sigx > 0.0 else 0.0
     isy = rho / sigy if sigy > 0.0 else 0.0
     cap = nodv.shape[2]
+    panel, ngb, dens, ngmin = sc[_S_PANEL], sc[_S_NGB], sc[_S_DENS], int(sc[_S_NGMIN])
     t0 = ta
     c0 = ca
     s0 = sa
@@ -1265,10 +1282,10 @@ def _arc(curx, cury, sc, work, ia, cnt):  # pragma: no cover - jitted
         c1 = brk[1, i]
         s1 = brk[2, i]
         dd = max(abs(c1 - c0) * isx, abs(s1 - s0) * isy)
-        m = max(1, math.ceil(dd / _PANEL))
+        m = max(1, math.ceil(dd / panel))
         step = (t1 - t0) / m
         h = 0.5 * step
-        ng = min(max(math.ceil(_NG_BASE + _DENS * dd / m), _NG_MIN), _NG_MAX)
+        ng = min(max(math.ceil(ngb + dens * dd / m), ngmin), _NG_MAX)
         chs, shs = _cs_small(h)  # the first sub-panel centre is t0 + h, the next ones a step further
         cst, sst = _cs_small(step)
         cc = c0 * chs - s0 * shs
@@ -1535,13 +1552,14 @@ def _particle(geo, x, y, z, sc):  # pragma: no cover - jitted
     sc[_S_SM] = sm
     sc[_S_SL] = sl
     sc[_S_PP] = geo[_G_PP]
-    sc[_S_KSL] = _K * sl
+    kcut = sc[_S_K]
+    sc[_S_KSL] = kcut * sl
     sc[_S_AK] = abs(kap)
     sc[_S_S] = math.sqrt(sm * sm + kap * kap * sl * sl)
     sc[_S_RHO] = rad * fl * abs(c1) if q == 0.0 else rad * abs(beta)  # the aperture's image on the sensor
-    bh = _KS * sm / abs(kap) if (not focus and kap != 0.0) else 0.0
+    bh = sc[_S_KS] * sm / abs(kap) if (not focus and kap != 0.0) else 0.0
     heff = gap + q * sip  # sensor shift per chief-ray slope (fl for g = fl)
-    return g0x, g0y, t0x, t0y, rs, rs + _K * sm, focus, bh, heff, gap * tly, gap * tlx
+    return g0x, g0y, t0x, t0y, rs, rs + kcut * sm, focus, bh, heff, gap * tly, gap * tlx
 
 
 @njit(inline="always", cache=True)
@@ -1720,8 +1738,9 @@ def _lenslet_image(geo, sc, spot, fac, curx, nangx, cury, nangy, work, chunk, cn
     v1, v2 = ay[_A_E1], ay[_A_E2]
     interior = False
     if not focus and ax[_A_A1] * ax[_A_A2] * ay[_A_A1] * ay[_A_A2] != 0.0:
-        ex = max(abs(u1 - _K * sm - g0x), abs(u2 + _K * sm - g0x))
-        ey = max(abs(v1 - _K * sm - g0y), abs(v2 + _K * sm - g0y))
+        ksm = sc[_S_K] * sm
+        ex = max(abs(u1 - ksm - g0x), abs(u2 + ksm - g0x))
+        ey = max(abs(v1 - ksm - g0y), abs(v2 + ksm - g0y))
         interior = ex * ex + ey * ey <= rs * rs
     if interior:
         tot, ins, sp = _write_outer(fullx, ax, fully, ay, geo, chunk, fac)
@@ -1774,10 +1793,14 @@ def _workspace(geo, psz):  # pragma: no cover - jitted
 
 
 @njit(inline="always", cache=True)
-def _scratch(geo, psz, nlmax):  # pragma: no cover - jitted
-    """One thread's scratch for :func:`_render_particle`: (sc, cols, rows, curx, cury, tmp, work)."""
+def _scratch(geo, psz, nlmax, quad):  # pragma: no cover - jitted
+    """One thread's scratch for :func:`_render_particle`: (sc, cols, rows, curx, cury, tmp, work); ``sc``
+    holds the quadrature ``quad`` (:data:`_QUAD_EXACT` or a coarser one; ``_K`` at most 6, the workspace's size)."""
+    sc = np.zeros(_S_SIZE)
+    for q in range(quad.size):
+        sc[_S_NGB + q] = quad[q]
     return (
-        np.zeros(_S_SIZE),
+        sc,
         _axis_store(nlmax, psz),
         _axis_store(nlmax, psz),
         _axis_current(psz),
@@ -1862,7 +1885,7 @@ def _render_particle(geo, rotated, x, y, z, w, scr, chunk, cnt):  # pragma: no c
 
 
 @njit(parallel=True, fastmath=False, error_model="numpy", cache=True)
-def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats):  # pragma: no cover - jitted
+def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats, quad):  # pragma: no cover - jitted
     """Render particles ``order[starts[c]:ends[c]]`` of chunk c into its rows of the image; chunks in parallel.
 
     ``parts``: (px, py, pz, wt, order), the particles' positions (mm), expected intensities and
@@ -1875,13 +1898,13 @@ def _render_kernel(parts, chunks, geo, buf, psz, nlmax, stats):  # pragma: no co
     ``_ST_*`` counters (intensity expected / on the sensor / on the lenslet array /
     outside the chunk's rows (must stay 0), lenslets refused (rotated grid out of
     focus), lenslet images, interior ones, arc nodes, band nodes, patches too big).
-    Each particle is :func:`_render_particle`.
+    Each particle is :func:`_render_particle`, with the quadrature ``quad`` (:data:`_QUAD_EXACT`).
     """
     px, py, pz, wt, order = parts
     starts, ends, boff, brow0, brow1 = chunks
     rotated = geo[_G_SIN] != 0.0 or geo[_G_COS] != 1.0
     for c in prange(starts.shape[0]):
-        scr = _scratch(geo, psz, nlmax)
+        scr = _scratch(geo, psz, nlmax, quad)
         cnt = np.zeros(_ST_SIZE)
         chunk = (buf[boff[c, 0] : boff[c, 1]], brow0[c], brow1[c])  # the chunk's rows of the image
         for idx in range(starts[c], ends[c]):
@@ -2107,7 +2130,7 @@ def render_exact(
             for w in waves:  # disjoint row bands within a wave: its parallel chunks never write one pixel
                 st = np.zeros((w.size, _ST_SIZE))
                 chunks = (starts[w], ends[w], boff[w], r0[w], r1[w])
-                _render_kernel(parts, chunks, geo, flat, psz, nlmax, st)
+                _render_kernel(parts, chunks, geo, flat, psz, nlmax, st, _QUAD_EXACT)
                 stats[w] += st
             bar.update(int((ends - starts).sum()))
     tot = stats.sum(axis=0)
