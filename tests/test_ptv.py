@@ -270,3 +270,31 @@ def test_the_piv_stage_tracks_the_particle_lists(tmp_path):
         wf.run_piv(ccfg, va, vb, tmp_path / "p2.zarr")
     with pytest.raises(ValueError, match="tracks no particles"):
         wf.run_piv({**ccfg, "piv": {**piv, "particles": "none"}}, va, vb, tmp_path / "p3.zarr", "", *paths.values())
+
+
+def test_the_benchmarks_pass_the_lists_to_a_ptv_piv_task(tmp_path, monkeypatch):
+    """bench_uncertainty's task building (bench_budget runs it): a ptv case's piv task gets both lists."""
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    from lfstudy.study.config import validate_config
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.syspath_prepend(str(root / "benchmarks"))
+    sys.modules.pop("bench_uncertainty", None)
+    from bench_uncertainty import _tasks
+
+    raw = yaml.safe_load((root / "tests" / "data" / "tiny.yaml").read_text())
+    raw |= {"reconstruct": {"method": "ipr"}, "depth_calibration": {"enabled": False}}
+    raw["sweep"] = {"ppp": [0.004], "piv.particles": ["none", "ptv"]}
+    piv = {t[0]: t[2] for t in _tasks(validate_config(raw), tmp_path)[6]}
+    assert len(piv) == 2
+    for label, args in piv.items():
+        lists = [str(a) for a in args[5:]]
+        if "ptv" in label:
+            assert [Path(p).name for p in lists] == ["volume_a.particles.zarr", "volume_b.particles.zarr"]
+            assert args[4] is None  # no depth calibration
+        else:
+            assert not lists
