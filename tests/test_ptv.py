@@ -298,3 +298,28 @@ def test_the_benchmarks_pass_the_lists_to_a_ptv_piv_task(tmp_path, monkeypatch):
             assert args[4] is None  # no depth calibration
         else:
             assert not lists
+
+
+def test_weights_follow_the_tracks_sigma():
+    """weighted=True: a track's component counts by 1 / sigma^2 (both particles' sigma, from lists
+    that carry them); one with an infinite sigma is left out."""
+    grid = _grid(_uniform)
+    c = np.array([float(grid.x[2]), float(grid.y[2]), float(grid.z[2])])
+    rng = np.random.default_rng(4)
+    a = c + (rng.random((9, 3)) - 0.5) * VOXEL * [6, 6, 3]
+    b = a + np.array(_uniform(*a.T)).T
+    b[0] += [0.02, 0.0, 0.0]  # a bad track, flagged by a large sigma
+    sig = np.full((9, 3), 0.1 * VOXEL / np.sqrt(2))
+    sig[0] = 10 * VOXEL
+    sig[1, 2] = np.inf  # a particle without a finite fit covariance
+
+    def lst(x):
+        ds = xr.Dataset({k: ("particle", x[:, i]) for i, k in enumerate("xyz")})
+        return ds.assign({f"sigma_{k}": ("particle", sig[:, i]) for i, k in enumerate("xyz")})
+
+    tracks = match_particles(lst(a), lst(b), grid, voxel=VOXEL)
+    assert tracks.sizes["track"] == 9 and np.isinf(tracks.sigma_w_mm.values[1])
+    plain = bin_tracks(tracks, grid, voxel=VOXEL, order=0).isel(z=2, y=2, x=2)
+    wtd = bin_tracks(tracks, grid, voxel=VOXEL, order=0, weighted=True).isel(z=2, y=2, x=2)
+    assert float(plain.u_mm) == pytest.approx(0.13 + 0.02 / 9)
+    assert abs(float(wtd.u_mm) - 0.13) < 1e-3 * 0.02 and int(wtd.n_tracks) == 8

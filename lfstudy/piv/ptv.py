@@ -188,8 +188,10 @@ def match_particles(
     -------
     xarray.Dataset
         Over dimension ``track``: ``x, y, z`` (the pair's midpoint [mm]), ``u_mm, v_mm, w_mm``
-        (``x_b − x_a`` [mm]), ``index_a``, ``index_b`` (rows of the inputs) and ``miss`` (distance
-        of ``x_b`` from the predicted position, voxels). Attrs: ``search``, ``voxel_mm``, ``n_a``,
+        (``x_b − x_a`` [mm]), ``index_a``, ``index_b`` (rows of the inputs), ``miss`` (distance
+        of ``x_b`` from the predicted position, voxels) and, where both lists carry position
+        uncertainties (``sigma_x/y/z``, as IPR writes them), ``sigma_u_mm``, ``sigma_v_mm``,
+        ``sigma_w_mm``: ``sqrt(σ_a² + σ_b²)``. Attrs: ``search``, ``voxel_mm``, ``n_a``,
         ``n_b``, ``n_tracks``.
 
     Examples
@@ -225,6 +227,7 @@ def match_particles(
         ia, jb, miss = idx[mutual], j[hit][mutual], dist[hit][mutual]
     mid = 0.5 * (xa[ia] + xb[jb])
     disp = xb[jb] - xa[ia]
+    sig = _sigmas(a, b, ia, jb)
     T = "track"
     mm = lambda ln: {"units": "mm", "long_name": ln}  # noqa: E731
     return xr.Dataset(
@@ -237,6 +240,11 @@ def match_particles(
             "index_a": (T, ia.astype(np.int64), {"units": "1", "long_name": "particle of frame a"}),
             "index_b": (T, jb.astype(np.int64), {"units": "1", "long_name": "particle of frame b"}),
             "miss": (T, miss, {"units": "voxel", "long_name": "distance of b from the predicted position"}),
+            **{
+                f"sigma_{c}_mm": (T, sig[:, k], mm(f"{ax} displacement uncertainty (both particles' sigma)"))
+                for k, (c, ax) in enumerate(zip(_COMP, _XYZ))
+                if sig is not None
+            },
         },
         attrs={
             "search": float(search),
@@ -258,19 +266,46 @@ def _design(dx: np.ndarray, order: int) -> np.ndarray:
     return np.column_stack(cols)
 
 
-def _fit(dx: np.ndarray, y: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """Least squares of ``y`` (n, 3) on the local polynomial of ``order`` in ``dx``: the value at
-    dx = 0 and its standard uncertainty per component; None where the design is rank deficient."""
-    X = _design(dx, order)
-    n, p = X.shape
-    xtx = X.T @ X
-    if np.linalg.matrix_rank(xtx) < p:
+def _sigmas(a: Any, b: Any, ia: np.ndarray, jb: np.ndarray) -> np.ndarray | None:
+    """``sqrt(σ_a² + σ_b²)`` per track and axis from the lists' ``sigma_x/y/z`` [mm] (IPR's fit
+    covariance), or None where either list has none."""
+    names = [f"sigma_{ax}" for ax in _XYZ]
+    if not all(isinstance(p, xr.Dataset) and all(nm in p for nm in names) for p in (a, b)):
         return None
-    inv = np.linalg.inv(xtx)
-    coef = inv @ (X.T @ y)
-    res = y - X @ coef
-    s2 = np.sum(res * res, axis=0) / (n - p)
-    return coef[0], np.sqrt(s2 * inv[0, 0])
+    sa = np.column_stack([np.asarray(a[nm].values, float) for nm in names]).reshape(-1, 3)[ia]
+    sb = np.column_stack([np.asarray(b[nm].values, float) for nm in names]).reshape(-1, 3)[jb]
+    return np.sqrt(sa * sa + sb * sb)
+
+
+def _fit(dx: np.ndarray, y: np.ndarray, w: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Weighted least squares of ``y`` (n, 3) on the local polynomial of ``order`` in ``dx``, weights
+    ``w`` (n, 3) per component: the value at dx = 0 and its standard uncertainty per component
+    (``s² [(XᵀWX)⁻¹]₀₀``, ``s²`` the weighted residual variance); None where the design is rank
+    deficient. Order 0 is the weighted mean."""
+    X = _design(dx, order) if order else np.ones((len(dx), 1))
+    n, p = X.shape
+    value, sd = np.empty(3), np.empty(3)
+    for k in range(3):
+        xtwx = X.T @ (X * w[:, k, None])
+        if np.linalg.matrix_rank(xtwx) < p:
+            return None
+        inv = np.linalg.inv(xtwx)
+        coef = inv @ (X.T @ (w[:, k] * y[:, k]))
+        res = y[:, k] - X @ coef
+        s2 = float(np.sum(w[:, k] * res * res)) / (n - p)
+        value[k], sd[k] = coef[0], math.sqrt(max(s2 * inv[0, 0], 0.0))
+    return value, sd
+
+
+def _weights(tracks: xr.Dataset, n: int, weighted: bool, vox: np.ndarray) -> np.ndarray:
+    """Per track and component, 1 / σ² of the displacement from the tracks' ``sigma_*_mm`` (a floor of
+    0.01 voxel; 0 where σ is not finite: the track does not count); ones without them or unweighted."""
+    names = [f"sigma_{c}_mm" for c in _COMP]
+    if not weighted or not all(nm in tracks for nm in names):
+        return np.ones((n, 3))
+    sd = np.column_stack([np.asarray(tracks[nm].values, float) for nm in names]).reshape(-1, 3)
+    sd = np.maximum(sd, 0.01 * vox)
+    return np.where(np.isfinite(sd), 1.0 / np.where(np.isfinite(sd), sd, 1.0) ** 2, 0.0)
 
 
 def bin_tracks(
@@ -280,18 +315,20 @@ def bin_tracks(
     window: Sequence[float] | None = None,
     voxel: Sequence[float] | None = None,
     order: int = 1,
+    weighted: bool = False,
 ) -> xr.Dataset:
     """The tracks' displacement at every vector of a PIV grid, by a local linear fit.
 
     At each window centre ``x_c`` the tracks whose midpoints lie in the box of the window (``window``
-    voxels per axis about ``x_c``) are fitted by ordinary least squares, per component,
+    voxels per axis about ``x_c``) are fitted by weighted least squares, per component,
     ``d = c0 + G·(x − x_c)``, and ``c0`` is the vector. Its standard uncertainty is
-    ``sqrt(s² [(XᵀX)⁻¹]₀₀)``, ``s²`` the residual variance over ``n − 4`` degrees of freedom:
+    ``sqrt(s² [(XᵀWX)⁻¹]₀₀)``, ``s²`` the weighted residual variance over ``n − 4`` degrees of
+    freedom (W: the tracks' inverse variances, or 1):
     the scatter of the tracks about the local linear field (position noise of both frames, the
     field's curvature), through the leverage of their layout. A fit of ``p`` parameters
     (:data:`FIT_PARAMETERS`) needs ``max(4, p + 2)`` tracks not all on a plane; with fewer the next
-    lower order is fitted, down to the mean (its uncertainty the standard error ``s / sqrt(n)``, with
-    at least 2 tracks); with fewer the vector is invalid. ``order=2`` adds the quadratic terms
+    lower order is fitted, down to the (weighted) mean (its uncertainty the standard error, with at
+    least 2 tracks); with fewer the vector is invalid. ``order=2`` adds the quadratic terms
     (second-order polynomial binning, as the ensemble PTV of Agüera, Cafiero, Astarita & Discetti
     2016, Meas. Sci. Technol. 27 124011): the box's curvature bias goes, at more noise.
 
@@ -309,6 +346,15 @@ def bin_tracks(
     order : {0, 1, 2}
         Order of the local polynomial: 0 the mean of the tracks (the top-hat average of a
         window), 1 linear (default), 2 quadratic.
+    weighted : bool
+        Weight each track's component by ``1 / σ²`` of its displacement where the tracks carry
+        ``sigma_u_mm`` ... (:func:`match_particles` from lists with position uncertainties, as IPR
+        writes them); a track with an infinite σ is left out. The uncertainty's scale is still the
+        weighted residual variance, so a σ that is right only in proportion does no harm. Off by
+        default: on the demo design (``config/demo_ptv.yaml``, M −1, pitch 0.0888, uniform flow)
+        IPR's σ tells the worse tracks apart (RMS w error 0.018 mm in the quarter of the tracks with
+        the smallest σ_w, 0.032 mm in the third), but the weighted fit's total RMS error is the same
+        to 1 % there and on Hill's vortex.
 
     Returns
     -------
@@ -342,24 +388,22 @@ def bin_tracks(
     unc = np.full((m, 3), np.nan)
     count = np.zeros(m, np.int64)
     kind = np.zeros(m, np.int8)
+    wts = _weights(tracks, len(pos), weighted, vox)
+    usable = np.all(wts > 0, axis=1)  # a track with an infinite sigma does not count
+    pos, disp, wts = pos[usable], disp[usable], wts[usable]
     if len(pos):
         # the box is the unit ball of the max norm on positions scaled by the half window
         near = cKDTree(pos / half).query_ball_point(centres / half, r=1.0, p=np.inf)
         for k, idx in enumerate(near):
             idx = np.sort(np.asarray(idx, int))
             count[k] = n = len(idx)
-            for o in range(int(order), 0, -1):
-                if n >= max(4, FIT_PARAMETERS[o] + 2):
-                    fit = _fit((pos[idx] - centres[k]) / half, disp[idx], o)
+            for o in range(int(order), -1, -1):
+                if n >= (max(4, FIT_PARAMETERS[o] + 2) if o else 2):
+                    fit = _fit((pos[idx] - centres[k]) / half, disp[idx], wts[idx], o)
                     if fit is not None:
                         val[k], unc[k] = fit
                         kind[k] = o + 1
                         break
-            else:
-                if n >= 2:
-                    val[k] = disp[idx].mean(axis=0)
-                    unc[k] = disp[idx].std(axis=0, ddof=1) / math.sqrt(n)
-                    kind[k] = 1
     shape = xx.shape
     valid = (kind > 0).reshape(shape)
     out = piv_grid.copy()
@@ -395,6 +439,7 @@ def bin_tracks(
         uncertainty="ptv_fit",
         ptv_window=[float(w) for w in win],
         ptv_order=int(order),
+        ptv_weighted=int(bool(weighted) and bool(np.any(wts != 1.0))),
         ptv_search=float(tracks.attrs.get("search", math.nan)),
         ptv_tracks=len(pos),
         ptv_particles_a=int(tracks.attrs.get("n_a", -1)),
