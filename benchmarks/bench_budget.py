@@ -96,7 +96,7 @@ def main() -> None:
         p = cfg["particles"]
         zc, half = float(p.get("z_center", 0.0)), float(p["z_span"]) / 2
         print(f"{path.stem}: slab {zc - half:+.2f} .. {zc + half:+.2f} mm")
-        keys = [s.key for s in sw.swept if s.key != "flow" or len(s.values) > 1]
+        keys = [s.key for s in sw.swept]  # the settings with more than one value
         for c in sw.cases():
             e = io.open_zarr(where / sw.locate(c, "errors.zarr")).load()
             name = " ".join(f"{k.split('.')[-1][:5]}={c[k]}" for k in keys)
