@@ -21,6 +21,7 @@
 import json
 import os
 import re
+import shlex
 import sys
 
 from snakemake.exceptions import WorkflowError
@@ -364,18 +365,37 @@ def depth_input(wildcards):
     return [f"{OUT}/{SWEEP.locate(case, 'depth_calibration.zarr')}"]
 
 
+def depth_arg(wildcards):
+    """params.depth of a PIV job: its depth calibration's path, or '' (always one shell word, so the
+    particle lists after it keep their place)."""
+    return " ".join(shlex.quote(p) for p in depth_input(wildcards)) or "''"
+
+
+def ptv_input(wildcards):
+    """Input function: both frames' particle lists where the PIV job tracks them (piv.particles: ptv;
+    validation admits it only for a method that fits particles), else none."""
+    case = _case("piv", wildcards)
+    if SWEEP.apply(case)["piv"].get("particles", "none") != "ptv":
+        return []
+    return [f"{OUT}/{SWEEP.locate(case, f'volume_{f}.particles.zarr')}" for f in "ab"]
+
+
 rule piv:
     input:
         a=at("volume_a.zarr", "piv"),
         b=at("volume_b.zarr", "piv"),
         depth=depth_input,
+        particles=ptv_input,  # piv.particles: ptv tracks the fitted particles of both frames
     output: directory(f"{OUT}/{{sid}}/piv.zarr")
     log: f"{LOG}/piv/{{sid}}.log"
     benchmark: f"{BENCH}/piv/{{sid}}.tsv"
     threads: HEAVY
-    params: cfg=stage_params("piv")
+    params:
+        cfg=stage_params("piv"),
+        depth=depth_arg,
     resources: mem_mb=mem_mb("piv")
-    shell: DASK_STAGE + " piv {input.a:q} {input.b:q} {output[0]:q} {input.depth:q}"
+    shell:
+        DASK_STAGE + " piv {input.a:q} {input.b:q} {output[0]:q} {params.depth} {input.particles:q}"
 
 
 rule errors:

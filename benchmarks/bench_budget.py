@@ -6,8 +6,11 @@ by side), then prints per case: total RMS error, the oracle's (PIV on the true v
 reconstruction's share, the crosstalk (spurious w per unit lateral shift) of the PIV and of the
 particles found in both frames, particles found (all, and within the depth of field about the
 focal plane, eq. 4.18) and ghosts (a method that fits particles: ipr),
-valid vectors, and the seeded slab's depth. Written for issue 27's question whether the
-lateral->axial crosstalk and IPR's misses come from the focal plane lying inside the volume:
+valid vectors, the seeded slab's depth, and how well the per-vector uncertainty measures the error
+(``unc_coverage_*``: fraction within one sigma, 0.68 if right; ``unc_ratio_*``: RMS error over RMS
+sigma). Written for issue 27's question whether the lateral->axial crosstalk and IPR's misses come
+from the focal plane lying inside the volume, and to compare piv.particles none and ptv
+(config/demo_ptv.yaml):
 
     python benchmarks/bench_budget.py --configs config/demo_ipr.yaml config/demo_focus.yaml \\
         --flows diag --jobs 16 --threads 1 [--out DIR]
@@ -42,7 +45,10 @@ def _row(name: str, e) -> str:
     return (
         f"{name:<44} {rms:7.4f} {orc:7.4f} {g('recon_added_rms_total_mm'):7.4f} {ct:+7.3f} "
         f"{g('particle_crosstalk_z'):+7.3f} {g('found_percent'):6.1f} {g('found_in_focus_percent'):6.1f} "
-        f"{g('ghost_percent'):6.1f} {valid:6.1f}  {verdict}"
+        f"{g('ghost_percent'):6.1f} {valid:6.1f}  {verdict:<12}"
+        + "/".join(f"{g(f'unc_coverage_{a}'):.2f}" for a in "xyz")
+        + "  "
+        + "/".join(f"{g(f'unc_ratio_{a}'):.2f}" for a in "xyz")
     )
 
 
@@ -84,7 +90,7 @@ def main() -> None:
                     print(f"  {secs:8.1f} s  {label}", flush=True)
     print(f"all stages {time.perf_counter() - t0:.0f} s\n")
     head = f"{'case (config: slab z)':<46}rms_mm  oracle   added     ct   ct_part found% infoc% ghost%  valid%"
-    print(head + "  ct/rms/valid")
+    print(head + "  ct/rms/valid  unc cover x/y/z  unc ratio x/y/z")
     for path, cfg, where in runs:
         sw = Sweep(cfg)
         p = cfg["particles"]

@@ -120,6 +120,8 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
     for sid, c, sc in each("piv"):
         depth = at(c, "depth_calibration.zarr") if depth_on else None
         args = (sc, at(c, "volume_a.zarr"), at(c, "volume_b.zarr"), at(c, "piv.zarr"), depth)
+        if sc["piv"].get("particles", "none") == "ptv":  # the fitted particles of both frames (IPR)
+            args += tuple(at(c, f"volume_{f}.particles.zarr") for f in "ab")
         waves[6].append((f"piv {sid}", wf.run_piv, args))
     for c in sw.cases():
         sc = stage_config(cfg, c, "errors")

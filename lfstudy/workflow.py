@@ -224,15 +224,47 @@ def run_depth_calibration(
 
 
 def run_piv(
-    ccfg: Mapping[str, Any], vol_a: str | Path, vol_b: str | Path, out: str | Path, depth: str | Path | None = None
+    ccfg: Mapping[str, Any],
+    vol_a: str | Path,
+    vol_b: str | Path,
+    out: str | Path,
+    depth: str | Path | None = None,
+    particles_a: str | Path | None = None,
+    particles_b: str | Path | None = None,
 ) -> None:
     """3-D WIDIM PIV between the two reconstructed volumes, the axial displacement mapped back
-    through the design's depth response when a depth calibration (``depth``) is given."""
+    through the design's depth response when a depth calibration (``depth``) is given.
+
+    With ``piv.particles: ptv`` the particle lists the reconstruction wrote beside the volumes
+    (``particles_a``, ``particles_b``: required then, refused otherwise) are tracked about the WIDIM
+    field and binned on its grid (:func:`lfstudy.study.case.case_ptv`): that is the stored result, the
+    WIDIM vectors kept beside it (``piv_u_mm``, ...). ``''`` (from the Snakefile) means none.
+    """
     from lfstudy.piv.depth import correct_depth
 
-    res = cl.case_piv(ccfg, io.open_array(vol_a).load(), io.open_array(vol_b).load(), progress=True)
+    ptv = ccfg["piv"].get("particles", "none") == "ptv"
+    lists = [p for p in (particles_a, particles_b) if p]
+    if ptv != bool(lists) or len(lists) not in (0, 2):
+        need = "needs both frames' particle lists" if ptv else "tracks no particles: no particle lists"
+        raise ValueError(f"piv stage: piv.particles = {ccfg['piv'].get('particles', 'none')!r} {need} (got {lists})")
+    if ptv and depth:
+        raise ValueError("piv stage: piv.particles = 'ptv' takes no depth calibration (depth_calibration.enabled)")
+    a, b = io.open_array(vol_a).load(), io.open_array(vol_b).load()
+    res = cl.case_piv(ccfg, a, b, progress=True)
     if depth:  # Snakemake passes '' where the calibration is disabled
         res = correct_depth(res, io.open_zarr(depth).load())
+    if ptv:
+        import numpy as np
+
+        voxel = tuple(float(np.median(np.abs(np.diff(a[d].values)))) for d in ("x", "y", "z"))
+        parts = [io.open_zarr(p).load() for p in lists]
+        res = cl.case_ptv(ccfg, res, *parts, voxel=voxel)
+        print(
+            f"PTV: {res.attrs['ptv_tracks']} tracks of {res.attrs['ptv_particles_a']} and "
+            f"{res.attrs['ptv_particles_b']} particles, {100 * float(res['valid'].mean()):.1f} % valid vectors "
+            f"({res.attrs['ptv_seconds']:.2f} s)",
+            flush=True,
+        )
     res.attrs.update(io.provenance(ccfg, None))
     io.write_zarr(res, out)
 

@@ -152,6 +152,18 @@ def test_frames_of_different_shapes_and_windows_too_large(files, cli_error, tmp_
             r"config key 'particles\.z_center' = 40\.0 .*outside the reconstruction grid's depth",
         ),
         (
+            lambda c: c.update(piv={"particles": "ptv"}, depth_calibration={"enabled": False}),
+            r"config key 'piv\.particles' = 'ptv' .*reconstruct\.method = 'threshold' fits none",
+        ),
+        (
+            lambda c: c.update(piv={"particles": "ptv"}, reconstruct={"method": "ipr"}),
+            r"config key 'depth_calibration\.enabled' = true .*not with piv\.particles = 'ptv'",
+        ),
+        (
+            lambda c: c.update(piv={"particles": "ptv", "ptv_order": 3}),
+            r"piv\.ptv_order' = 3",
+        ),
+        (
             lambda c: c["camera"]["sensor"].update(n_pixels_x=60000, n_pixels_y=60000),
             r"config key 'camera\.sensor'.*needs about .* GB .*more than this machine's",
         ),

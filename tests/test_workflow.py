@@ -438,3 +438,31 @@ def test_an_ipr_case_plans_its_particle_list(tmp_path):
     tiny = _snakemake(tmp_path / "tiny", "-n", config=TINY)
     assert tiny.returncode == 0 and "particles.zarr" not in tiny.stdout + tiny.stderr
     assert "reconstruct_particles" not in _planned_jobs(tmp_path / "tiny")
+
+
+def test_a_ptv_case_reads_the_particle_lists_in_its_piv_job(tmp_path):
+    """piv.particles swept over none and ptv on an ipr study: the ptv case's piv job reads both
+    frames' particle lists (inputs and command line, after the '' of the disabled depth calibration);
+    the none case's reads none. Both share one reconstruction."""
+    import yaml
+
+    raw = yaml.safe_load(TINY.read_text())
+    raw["reconstruct"] = {"method": "ipr"}
+    raw["depth_calibration"] = {"enabled": False}
+    raw["sweep"] = {"ppp": [0.004], "piv.particles": ["none", "ptv"]}
+    cfg_path = tmp_path / "ptv.yaml"
+    cfg_path.write_text(yaml.safe_dump(raw))
+    r = _snakemake(tmp_path / "work", "-n", "-p", config=cfg_path)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout + r.stderr
+    assert len(re.findall(r"\nrule reconstruct_particles:", out)) == 2  # one reconstruction per frame
+    blocks = {b.split("output:")[1].split()[0]: b for b in re.split(r"\n(?=rule )", out) if b.startswith("rule piv:")}
+    assert len(blocks) == 2
+    for target, block in blocks.items():
+        reads = set(re.findall(r"volume_[ab]\.particles\.zarr", block.split("output:")[0]))
+        command = block.split("resources:")[-1]
+        if "piv.particles~ptv" in target:
+            assert reads == {"volume_a.particles.zarr", "volume_b.particles.zarr"}
+            assert re.search(r"piv\.zarr'? '' \S*volume_a\.particles\.zarr'? \S*volume_b\.particles\.zarr", command)
+        else:
+            assert not reads and not re.search(r"particles\.zarr", command)

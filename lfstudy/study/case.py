@@ -511,6 +511,48 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
     return res
 
 
+def case_ptv(
+    ccfg: Mapping[str, Any],
+    piv: xr.Dataset,
+    particles_a: xr.Dataset,
+    particles_b: xr.Dataset,
+    voxel: tuple[float, float, float] | None = None,
+) -> xr.Dataset:
+    """PTV of a case (``piv.particles: ptv``): the fitted particles of both frames paired about the
+    case's WIDIM field, the outlier tracks dropped by the median test and the rest binned on its grid
+    (:mod:`lfstudy.piv.ptv`).
+
+    Parameters
+    ----------
+    ccfg : Mapping
+        The case's config (its ``piv`` section: ``ptv_search``, ``ptv_order``).
+    piv : xarray.Dataset
+        The case's WIDIM result (:func:`case_piv`): the predictor and the grid.
+    particles_a, particles_b : xarray.Dataset
+        The particle lists the reconstruction fitted (``volume_{a,b}.particles.zarr``).
+    voxel : (dx, dy, dz), optional
+        The reconstruction grid's voxel size [mm]; default the PIV grid's.
+
+    Returns
+    -------
+    xarray.Dataset
+        :func:`lfstudy.piv.ptv.bin_tracks`' result, with attrs ``piv_seconds`` (WIDIM's),
+        ``ptv_rejected`` (tracks the median test dropped) and ``ptv_seconds`` (matching and binning).
+    """
+    import time
+
+    from lfstudy.piv.ptv import SEARCH, bin_tracks, match_particles, validate_tracks
+
+    t0 = time.perf_counter()
+    search = float(ccfg["piv"].get("ptv_search", SEARCH))
+    tracks = match_particles(particles_a, particles_b, piv, search=search, voxel=voxel)
+    tracks = validate_tracks(tracks, voxel=tracks.attrs["voxel_mm"])
+    res = bin_tracks(tracks, piv, voxel=voxel, order=int(ccfg["piv"].get("ptv_order", 1)))
+    res.attrs["ptv_rejected"] = int(tracks.attrs["n_rejected"])
+    res.attrs["ptv_seconds"] = time.perf_counter() - t0
+    return res
+
+
 def oracle_volumes(
     ccfg: Mapping[str, Any], particles_a: xr.Dataset, particles_b: xr.Dataset
 ) -> tuple[xr.DataArray, xr.DataArray]:

@@ -16,6 +16,7 @@ from typing import Any
 
 from lfstudy.config import ConfigError, read_yaml, validate_section
 from lfstudy.optics import OpticsError, PlenopticCamera
+from lfstudy.reconstruct import gives_particles
 from lfstudy.reconstruct.grid import GridError
 from lfstudy.simulate.flows import check_flow_config, resolve_flow_paths
 from lfstudy.study.case import case_grid
@@ -110,6 +111,7 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
                 f"config key 'particles.depth_margin' = {par['depth_margin']!r} (case {case.case_id}): needs "
                 "particles.z_span > 0 (the margin is seeded at the slab's number density)"
             )
+        _check_particles_setting(ccfg, case.case_id)
         try:  # the grid a case reconstructs on (grid.z_range, voxel sizes, its memory cap)
             grid = case_grid(ccfg)
         except GridError as exc:
@@ -123,6 +125,26 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
             )
         check_memory(ccfg, where=f"case {case.case_id}")
     return cfg
+
+
+def _check_particles_setting(ccfg: Mapping[str, Any], case_id: str) -> None:
+    """``piv.particles: ptv`` needs the particle lists of a method that fits them, and no depth
+    calibration (the traverse measures WIDIM's depth gain on the volumes, not the tracks')."""
+    if ccfg["piv"].get("particles", "none") != "ptv":
+        return
+    method = ccfg["reconstruct"]["method"]
+    if not gives_particles(method):
+        raise ConfigError(
+            f"config key 'piv.particles' = 'ptv' (case {case_id}): tracks the particles a reconstruction "
+            f"fits, and reconstruct.method = {method!r} fits none; use a method that does (ipr) or "
+            "piv.particles: none"
+        )
+    if ccfg["depth_calibration"]["enabled"]:
+        raise ConfigError(
+            f"config key 'depth_calibration.enabled' = true (case {case_id}): not with piv.particles = 'ptv' "
+            "(the traverse calibration measures the correlation PIV's depth gain, not the tracks'); set "
+            "depth_calibration.enabled: false or piv.particles: none"
+        )
 
 
 def load_config(path: str | Path) -> dict[str, Any]:

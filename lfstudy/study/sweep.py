@@ -391,7 +391,8 @@ class Sweep:
             )
         )
         self.settings: tuple[Setting, ...] = tuple(settings)
-        self._lists = {s.key: lists.get(s.key, [self._base(s)]) for s in settings}
+        # the base config's value only for a setting not swept (a swept one may have no default)
+        self._lists = {s.key: lists[s.key] if s.key in lists else [self._base(s)] for s in settings}
         self._cases: list[Case] | None = None
 
     def _base(self, s: Setting) -> Any:

@@ -1,0 +1,335 @@
+"""PTV on fitted particle lists (lfstudy.piv.ptv): matching about a predictor, binning on a PIV grid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lfstudy.piv.ptv import bin_tracks, match_particles, predict, validate_tracks
+from lfstudy.simulate.flows import HillVortex
+
+VOXEL = np.array([0.0888, 0.0888, 0.25])  # x, y, z [mm]: the demo design's reconstruction grid
+WINDOW = (4, 8, 8)  # final window (z, y, x) in voxels
+SPACING = (2, 4, 4)
+
+
+def _grid(field, extent=((0.0, 3.2), (0.0, 3.2), (0.5, 4.5)), *, valid=None) -> xr.Dataset:
+    """A WIDIM-like result on window centres: ``field(x, y, z) -> (u, v, w)`` [mm] at each centre."""
+    axes = {}
+    for k, (ax, (lo, hi)) in enumerate(zip("xyz", extent)):
+        w, s = WINDOW[::-1][k], SPACING[::-1][k]
+        n = round((hi - lo) / VOXEL[k])
+        idx = np.arange(0, n - w + 1, s) + (w - 1) / 2
+        axes[ax] = (idx, lo + idx * VOXEL[k])
+    zz, yy, xx = np.meshgrid(axes["z"][1], axes["y"][1], axes["x"][1], indexing="ij")
+    u, v, w = field(xx, yy, zz)
+    dims = ("z", "y", "x")
+    ds = xr.Dataset(
+        {f"{c}_mm": (dims, np.broadcast_to(d, xx.shape).astype(float)) for c, d in zip("uvw", (u, v, w))},
+        coords={**{ax: (ax, axes[ax][1]) for ax in "zyx"}, **{f"{ax}_index": (ax, axes[ax][0]) for ax in "zyx"}},
+        attrs={"final_window": list(WINDOW), "final_spacing": list(SPACING), "method": "test grid"},
+    )
+    for c, k in zip("uvw", range(3)):
+        ds[c] = ds[f"{c}_mm"] / VOXEL[k]
+    ds["valid"] = (dims, np.ones(xx.shape, bool) if valid is None else valid)
+    return ds
+
+
+def _particles(rng, n, extent=((0.0, 3.2), (0.0, 3.2), (0.5, 4.5))) -> np.ndarray:
+    lo, hi = np.array(extent).T
+    return lo + rng.random((n, 3)) * (hi - lo)
+
+
+def _scenario(rng, field, n=1200, noise_vox=0.1, ghosts=0.1, missing=0.1):
+    """True pairs of a field (midpoint displacement), position noise, missed particles and ghosts in
+    both frames; returns the lists and the index in b of each a particle's true partner (-1: none)."""
+    xa = _particles(rng, n)
+    d = np.column_stack(field(*(xa + 0.5 * np.column_stack(field(*xa.T))).T))  # one midpoint step
+    xb = xa + d
+    xa = xa + rng.normal(0, noise_vox, xa.shape) * VOXEL
+    xb = xb + rng.normal(0, noise_vox, xb.shape) * VOXEL
+    keep_a = rng.random(n) > missing
+    keep_b = rng.random(n) > missing
+    partner = np.where(keep_a & keep_b, np.cumsum(keep_b) - 1, -1)[keep_a]
+    a = np.vstack([xa[keep_a], _particles(rng, int(ghosts * n))])
+    b = np.vstack([xb[keep_b], _particles(rng, int(ghosts * n))])
+    partner = np.concatenate([partner, np.full(int(ghosts * n), -1)])
+    return a, b, partner
+
+
+def _uniform(x, y, z):
+    return 0.13 + 0 * x, 0.075 + 0 * x, 0.05 + 0 * x
+
+
+def _rotation(x, y, z, omega=0.08):
+    """A small solid-body rotation about the z axis through (1.6, 1.6), plus a shear in depth."""
+    return -omega * (y - 1.6), omega * (x - 1.6), 0.02 * (x - 1.6)
+
+
+@pytest.mark.parametrize("field", [_uniform, _rotation], ids=["uniform", "rotation"])
+def test_matching_recovers_a_known_field_with_ghosts_and_missing_particles(field):
+    rng = np.random.default_rng(3)
+    a, b, partner = _scenario(rng, field)
+    # a predictor off by 0.3 voxel per axis (as a WIDIM field is off at the particles)
+    off = 0.3 * VOXEL
+
+    def shifted(x, y, z):
+        u, v, w = field(x, y, z)
+        return u + off[0], v + off[1], w + off[2]
+
+    tracks = match_particles(a, b, _grid(shifted), search=1.5, voxel=VOXEL)
+    ia, jb = tracks.index_a.values, tracks.index_b.values
+    right = partner[ia] == jb
+    pairs = int((partner >= 0).sum())
+    assert right.sum() >= 0.85 * pairs  # most true pairs found
+    # a particle whose partner is missing pairs with a neighbour: the median test drops most
+    valid = validate_tracks(tracks, voxel=VOXEL)
+    kept = partner[valid.index_a.values] == valid.index_b.values
+    assert (~right).sum() > 0.04 * len(ia) and (~kept).sum() <= 0.02 * len(kept)
+    assert kept.sum() >= 0.8 * pairs and valid.attrs["n_rejected"] == len(ia) - len(kept)
+    true_d = np.column_stack(field(*np.column_stack([tracks[k].values for k in "xyz"]).T))
+    got = np.column_stack([tracks[f"{c}_mm"].values for c in "uvw"])
+    err = (got - true_d)[right] / VOXEL
+    # the error of a right pair is the two frames' position noise: sqrt(2) x 0.1 voxel
+    assert np.all(np.abs(np.median(err, axis=0)) < 0.03)
+    assert np.all(np.abs(err.std(axis=0) - np.sqrt(2) * 0.1) < 0.03)
+
+
+def test_mutual_nearest_drops_ambiguous_pairs():
+    grid = _grid(lambda x, y, z: (0.0 * x, 0.0 * x, 0.0 * x))
+    v = VOXEL
+    c = np.array([1.6, 1.6, 2.5])
+    # a0 and a1 both predict near b0; b0's nearest a is a1: a0 keeps no partner (its nearest b is taken)
+    a = np.array([c - np.array([0.6 * v[0], 0, 0]), c + np.array([0.2 * v[0], 0, 0])])
+    b = np.array([c, c + np.array([3.0 * v[0], 0, 0])])
+    t = match_particles(a, b, grid, search=1.5, voxel=v)
+    assert t.index_a.values.tolist() == [1] and t.index_b.values.tolist() == [0]
+    # without the second candidate a0 is matched to b0
+    t0 = match_particles(a[:1], b, grid, search=1.5, voxel=v)
+    assert t0.index_a.values.tolist() == [0] and t0.index_b.values.tolist() == [0]
+    # beyond the search radius nothing pairs (distance in voxels per axis: 2 z voxels)
+    far = match_particles(c[None], (c + np.array([0, 0, 2.0 * v[2]]))[None], grid, search=1.5, voxel=v)
+    assert far.sizes["track"] == 0
+    with pytest.raises(ValueError, match="search"):
+        match_particles(a, b, grid, search=0.0, voxel=v)
+
+
+def test_predictor_skips_invalid_vectors():
+    valid = np.ones(_grid(_uniform).valid.shape, bool)
+    valid[:, :, 3] = False
+    bad = _grid(lambda x, y, z: (np.where(np.isclose(x, x), 0.13, 0.0), 0 * x, 0 * x), valid=valid)
+    bad["u_mm"][:, :, 3] = 9.0  # an outlier WIDIM marked invalid
+    x = float(bad.x[3])
+    d = predict(bad, np.array([[x, 1.6, 2.5], [x + 0.1, 1.6, 2.5], [-5.0, 1.6, 2.5]]))
+    np.testing.assert_allclose(d[:, 0], 0.13)
+
+
+def test_binning_a_linear_field_is_exact_and_a_curved_one_beats_the_window_mean():
+    rng = np.random.default_rng(5)
+    hill = HillVortex(radius=1.2, u0=0.1, center=(1.6, 1.6, 2.5))
+    grid = _grid(lambda x, y, z: hill.velocity(x, y, z))
+    x = _particles(rng, 1500)
+
+    def tracks_of(field):
+        d = np.column_stack(field(*x.T))
+        return xr.Dataset(
+            {
+                **{k: ("track", x[:, i]) for i, k in enumerate("xyz")},
+                **{f"{c}_mm": ("track", d[:, i]) for i, c in enumerate("uvw")},
+            }
+        )
+
+    lin = lambda x, y, z: (0.1 + 0.05 * (y - 1.0), -0.02 * (z - 2.0), 0.03 * (x - 1.0))  # noqa: E731
+    res = bin_tracks(tracks_of(lin), grid, voxel=VOXEL)
+    ok = res.valid.values & (res.ptv_fit.values == 2)
+    assert ok.mean() > 0.7
+    zz, yy, xx = np.meshgrid(res.z, res.y, res.x, indexing="ij")
+    for c, t in zip("uvw", lin(xx, yy, zz)):
+        np.testing.assert_allclose(res[f"{c}_mm"].values[ok], np.broadcast_to(t, xx.shape)[ok], atol=1e-12)
+
+    res = bin_tracks(tracks_of(hill.velocity), grid, voxel=VOXEL)
+    ok = res.valid.values & (res.ptv_fit.values == 2)
+    truth = np.stack(hill.velocity(xx, yy, zz))
+    fit = np.stack([res[f"{c}_mm"].values for c in "uvw"])
+    # the window's top-hat mean of the same tracks (what a correlation window averages)
+    half = 0.5 * np.array(WINDOW[::-1]) * VOXEL
+    centres = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    d = np.column_stack(hill.velocity(*x.T))
+    mean = np.stack([d[np.all(np.abs(x - p) <= half, axis=1)].mean(axis=0) for p in centres[ok.ravel()]], axis=1)
+    rms_fit = np.sqrt(np.mean((fit[:, ok] - truth[:, ok]) ** 2))
+    rms_mean = np.sqrt(np.mean((mean - truth[:, ok]) ** 2))
+    assert rms_fit < 0.95 * rms_mean  # the gradient's share of the box mean goes
+    # the quadratic fit (12 tracks or more in the box) takes the curvature's share too
+    quad = bin_tracks(tracks_of(hill.velocity), grid, voxel=VOXEL, order=2)
+    q = quad.ptv_fit.values[ok] == 3
+    assert q.mean() > 0.8
+    err_q = np.stack([quad[f"{c}_mm"].values for c in "uvw"])[:, ok][:, q] - truth[:, ok][:, q]
+    rms_mean_q = np.sqrt(np.mean((mean[:, q] - truth[:, ok][:, q]) ** 2))
+    assert np.sqrt(np.mean(err_q**2)) < 0.6 * rms_mean_q
+    with pytest.raises(ValueError, match="order"):
+        bin_tracks(tracks_of(hill.velocity), grid, voxel=VOXEL, order=3)
+    # the WIDIM vectors are kept beside
+    np.testing.assert_array_equal(res.piv_u_mm.values, grid.u_mm.values)
+
+
+def test_the_fit_uncertainty_covers_position_noise():
+    rng = np.random.default_rng(11)
+    grid = _grid(_rotation)
+    x = _particles(rng, 2500)
+    sd = 0.15 * VOXEL * np.sqrt(2)
+    d = np.column_stack(_rotation(*x.T)) + rng.normal(0, 1, x.shape) * sd
+    tr = xr.Dataset(
+        {
+            **{k: ("track", x[:, i]) for i, k in enumerate("xyz")},
+            **{f"{c}_mm": ("track", d[:, i]) for i, c in enumerate("uvw")},
+        }
+    )
+    res = bin_tracks(tr, grid, voxel=VOXEL)
+    zz, yy, xx = np.meshgrid(res.z, res.y, res.x, indexing="ij")
+    ok = res.valid.values
+    for c, t in zip("uvw", _rotation(xx, yy, zz)):
+        e = np.abs(res[f"{c}_mm"].values - t)[ok]
+        s = res[f"unc_{c}_mm"].values[ok]
+        assert np.all(np.isfinite(s)) and np.all(np.isnan(res[f"unc_{c}_mm"].values[~ok]))
+        assert 0.6 < np.mean(e <= s) < 0.8  # about 68 %
+        assert 0.8 < np.sqrt(np.mean(e**2)) / np.sqrt(np.mean(s**2)) < 1.25
+        np.testing.assert_allclose(res[c].values, res[f"{c}_mm"].values / VOXEL["uvw".index(c)])
+
+
+def test_few_tracks_fall_back_to_the_mean_then_invalid():
+    grid = _grid(_uniform)
+    c = np.array([float(grid.x[2]), float(grid.y[2]), float(grid.z[2])])
+    x = np.array([c, c + np.array([0.01, 0, 0]), c + np.array([0, 0.01, 0])])
+    tr = xr.Dataset(
+        {
+            **{k: ("track", x[:, i]) for i, k in enumerate("xyz")},
+            **{f"{k}_mm": ("track", [0.1, 0.2, 0.3]) for k in "uvw"},
+        }
+    )
+    res = bin_tracks(tr, grid, voxel=VOXEL)
+    v = res.isel(z=2, y=2, x=2)
+    assert int(v.ptv_fit) == 1 and bool(v.valid) and int(v.n_tracks) == 3
+    assert float(v.u_mm) == pytest.approx(0.2) and float(v.unc_u_mm) == pytest.approx(0.1 / np.sqrt(3))
+    far = res.isel(z=-1, y=-1, x=-1)
+    assert not bool(far.valid) and int(far.ptv_fit) == 0 and np.isnan(float(far.unc_u_mm))
+    assert float(far.u_mm) == float(grid.u_mm[-1, -1, -1])  # the WIDIM vector stays where invalid
+    with pytest.raises(ValueError, match="window"):
+        bin_tracks(tr, grid, window=(4, 8), voxel=VOXEL)
+
+
+def _blobs(xyz: np.ndarray, coords: dict[str, np.ndarray]) -> xr.DataArray:
+    """Particle images on a (z, y, x) grid with coordinates in mm: each particle splatted trilinearly,
+    blurred by a Gaussian of 0.8 voxel."""
+    from scipy.ndimage import gaussian_filter
+
+    shape = tuple(len(coords[d]) for d in "zyx")
+    f = (xyz[:, ::-1] - [coords[d][0] for d in "zyx"]) / VOXEL[::-1]
+    i0 = np.floor(f).astype(int)
+    vol = np.zeros(shape)
+    for corner in np.ndindex(2, 2, 2):
+        idx = i0 + corner
+        w = np.prod(np.where(corner, f - i0, 1 - (f - i0)), axis=1)
+        ok = np.all((idx >= 0) & (idx < shape), axis=1)
+        np.add.at(vol, tuple(idx[ok].T), w[ok])
+    return xr.DataArray(gaussian_filter(vol, 0.8).astype(np.float32), coords=coords, dims=("z", "y", "x"))
+
+
+def test_the_piv_stage_tracks_the_particle_lists(tmp_path):
+    """run_piv with piv.particles ptv: WIDIM on the volumes, then the lists tracked about it; the result
+    is the errors stage's input (u..w, valid, unc, final_window), WIDIM's vectors beside it."""
+    from lfstudy import io
+    from lfstudy import workflow as wf
+
+    rng = np.random.default_rng(2)
+    coords = {"z": 0.5 + VOXEL[2] * np.arange(16), "y": VOXEL[1] * np.arange(40), "x": VOXEL[0] * np.arange(40)}
+    lo = np.array([coords[k][0] for k in "xyz"])
+    hi = np.array([coords[k][-1] for k in "xyz"])
+    a = lo + rng.random((260, 3)) * (hi - lo)
+    shift = np.array([1.3, -0.7, 0.4]) * VOXEL
+    b = a + shift
+    paths = {}
+    for f, pts in (("a", a), ("b", b)):
+        io.write_zarr(_blobs(pts, coords), tmp_path / f"volume_{f}.zarr", name="intensity")
+        noisy = pts + rng.normal(0, 0.05, pts.shape) * VOXEL
+        io.write_zarr(xr.Dataset({k: ("particle", noisy[:, i]) for i, k in enumerate("xyz")}), tmp_path / f"p_{f}.zarr")
+        paths[f] = str(tmp_path / f"p_{f}.zarr")
+    piv = {"window": [8, 16, 16], "spacing": [4, 8, 8], "levels": 1, "mode": "offset", "subpixel": "auto"}
+    piv |= {"predictor_filter": 1.0, "uncertainty": "none", "particles": "ptv", "ptv_search": 1.5, "ptv_order": 1}
+    ccfg = {"stage_id": "t", "piv": piv}
+    va, vb, out = tmp_path / "volume_a.zarr", tmp_path / "volume_b.zarr", tmp_path / "piv.zarr"
+    wf.run_piv(ccfg, va, vb, out, "", paths["a"], paths["b"])
+    res = io.open_zarr(out).load()
+    assert res.attrs["particles"] == "ptv" and res.attrs["final_window"] == [8, 16, 16]
+    assert res.attrs["ptv_tracks"] >= 0.9 * len(a) and float(res.valid.mean()) > 0.9
+    ok = res.valid.values
+    for k, c in enumerate("uvw"):
+        assert np.abs(res[f"{c}_mm"].values[ok] - shift[k]).max() < 0.1 * VOXEL[k]
+        assert np.all(np.isfinite(res[f"unc_{c}_mm"].values[ok])) and f"piv_{c}_mm" in res
+    with pytest.raises(ValueError, match="needs both frames' particle lists"):
+        wf.run_piv(ccfg, va, vb, tmp_path / "p2.zarr")
+    with pytest.raises(ValueError, match="tracks no particles"):
+        wf.run_piv({**ccfg, "piv": {**piv, "particles": "none"}}, va, vb, tmp_path / "p3.zarr", "", *paths.values())
+
+
+def test_the_benchmarks_pass_the_lists_to_a_ptv_piv_task(tmp_path, monkeypatch):
+    """bench_uncertainty's task building (bench_budget runs it): a ptv case's piv task gets both lists."""
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    from lfstudy.study.config import validate_config
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.syspath_prepend(str(root / "benchmarks"))
+    sys.modules.pop("bench_uncertainty", None)
+    from bench_uncertainty import _tasks
+
+    raw = yaml.safe_load((root / "tests" / "data" / "tiny.yaml").read_text())
+    raw |= {"reconstruct": {"method": "ipr"}, "depth_calibration": {"enabled": False}}
+    raw["sweep"] = {"ppp": [0.004], "piv.particles": ["none", "ptv"]}
+    piv = {t[0]: t[2] for t in _tasks(validate_config(raw), tmp_path)[6]}
+    assert len(piv) == 2
+    for label, args in piv.items():
+        lists = [str(a) for a in args[5:]]
+        if "ptv" in label:
+            assert [Path(p).name for p in lists] == ["volume_a.particles.zarr", "volume_b.particles.zarr"]
+            assert args[4] is None  # no depth calibration
+        else:
+            assert not lists
+
+
+def test_weights_follow_the_tracks_sigma():
+    """weighted=True: a track's component counts by 1 / sigma^2 (both particles' sigma, from lists
+    that carry them); one with an infinite sigma is left out."""
+    grid = _grid(_uniform)
+    c = np.array([float(grid.x[2]), float(grid.y[2]), float(grid.z[2])])
+    rng = np.random.default_rng(4)
+    a = c + (rng.random((9, 3)) - 0.5) * VOXEL * [6, 6, 3]
+    b = a + np.array(_uniform(*a.T)).T
+    b[0] += [0.02, 0.0, 0.0]  # a bad track, flagged by a large sigma
+    sig = np.full((9, 3), 0.1 * VOXEL / np.sqrt(2))
+    sig[0] = 10 * VOXEL
+    sig[1, 2] = np.inf  # a particle without a finite fit covariance
+
+    def lst(x):
+        ds = xr.Dataset({k: ("particle", x[:, i]) for i, k in enumerate("xyz")})
+        return ds.assign({f"sigma_{k}": ("particle", sig[:, i]) for i, k in enumerate("xyz")})
+
+    tracks = match_particles(lst(a), lst(b), grid, voxel=VOXEL)
+    assert tracks.sizes["track"] == 9 and np.isinf(tracks.sigma_w_mm.values[1])
+    plain = bin_tracks(tracks, grid, voxel=VOXEL, order=0).isel(z=2, y=2, x=2)
+    wtd = bin_tracks(tracks, grid, voxel=VOXEL, order=0, weighted=True).isel(z=2, y=2, x=2)
+    assert float(plain.u_mm) == pytest.approx(0.13 + 0.02 / 9)
+    assert abs(float(wtd.u_mm) - 0.13) < 1e-3 * 0.02 and int(wtd.n_tracks) == 8
+
+
+def test_the_predictor_reads_a_descending_axis():
+    """A grid whose y coordinate decreases (image rows) predicts the same displacement at a point."""
+    grid = _grid(_rotation)
+    pts = np.array([[1.0, 1.3, 2.0], [2.2, 0.9, 3.1]])
+    up = predict(grid, pts)
+    down = predict(grid.isel(y=slice(None, None, -1)), pts)
+    np.testing.assert_allclose(down, up, atol=1e-12)
+    np.testing.assert_allclose(up[:, :2], np.column_stack(_rotation(*pts.T))[:, :2], atol=1e-12)  # linear: exact
