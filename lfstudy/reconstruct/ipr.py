@@ -129,6 +129,9 @@ _REFINE_XY = 3  # candidate MART grid: this many voxels per case voxel in x and 
 _REFINE_Z = 2  # and in z
 _GHOST_FROM = 0  # first iteration after which faint particles are removed
 _JACOBIANS = ("central", "forward")  # finite differences of the position Jacobian
+_POLISH_SPOT = 1.5  # the polish moves particles whose defocus spot (radius) is at most this many lenslet pitches
+_POLISH_XY = (-0.25, 0.0, 0.25)  # the polish stencil's offsets [voxels] in x and y
+_POLISH_Z = (-0.5, -0.25, 0.0, 0.25, 0.5)  # and in z
 
 
 # ------------------------------------------------------------------ the calibrated model camera
@@ -279,6 +282,14 @@ def _unit_weights(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.n
     rad = camera.aperture_diameter / 2.0
     ref = 2.0 * np.pi * (1.0 - camera.so / math.hypot(camera.so, rad))
     return solid_angle(camera, x, y, z) / ref
+
+
+def _spot_pitches(camera: PlenopticCamera, z: np.ndarray) -> np.ndarray:
+    """Radius of a particle's defocus spot on the lenslet array (the main lens' blur circle, geometric), in
+    lenslet pitches: below about one the image falls behind one to four lenslets and changes little with
+    the particle's position inside them."""
+    c1 = 1.0 / (camera.so + np.asarray(z, dtype=np.float64)) - 1.0 / camera.main_focal_length
+    return camera.aperture_diameter / 2.0 * np.abs(1.0 + camera.si * c1) / camera.lenslet_pitch
 
 
 def particle_patches(
@@ -537,6 +548,55 @@ def _choose(res, mask, buf, offs, r0, c0, shp, nimg, inten, bufn, offn, r0n, c0n
         out[i, 1] = amp
 
 
+@njit(cache=True)
+def _stencil(res, mask, buf, offs, r0, c0, shp, k, inten, out):  # pragma: no cover - jitted
+    """The exact residual's drop at each of ``k`` positions of every particle, the others held fixed.
+
+    ``buf`` holds k images per particle, each in its own patch (image j = i·k + c, ``offs[j]``, ``r0[j]``,
+    ``c0[j]``, ``shp[j]``), the first at the particle's current position (intensity ``inten[i]``). The
+    particle is added back to ``res``; for image c with a = ⟨R, U⟩ > 0, uu = ⟨U, U⟩ the best intensity
+    lowers ‖R‖² by a²/uu; then the particle is subtracted again (``res`` is left as it was).
+    ``out[i, c]`` = a²/uu (0 where a ≤ 0), ``out[i, k]`` the residual variance per pixel on the first
+    patch with the particle at its current position and best intensity.
+    """
+    for i in range(inten.size):
+        j0 = i * k
+        h, w = shp[j0, 0], shp[j0, 1]
+        o = offs[j0]
+        for r in range(h):
+            for c in range(w):
+                if mask[r0[j0] + r, c0[j0] + c] != 0:
+                    res[r0[j0] + r, c0[j0] + c] += inten[i] * buf[o + r * w + c]
+        for m in range(k):
+            j = j0 + m
+            h, w = shp[j, 0], shp[j, 1]
+            o = offs[j]
+            a = 0.0
+            uu = 0.0
+            rr2 = 0.0
+            npx = 0.0
+            for r in range(h):
+                for c in range(w):
+                    rr, cc = r0[j] + r, c0[j] + c
+                    if mask[rr, cc] == 0:
+                        continue
+                    u = buf[o + r * w + c]
+                    rv = res[rr, cc]
+                    a += rv * u
+                    uu += u * u
+                    rr2 += rv * rv
+                    npx += 1.0
+            out[i, m] = a * a / uu if (a > 0.0 and uu > 0.0) else 0.0
+            if m == 0:
+                out[i, k] = max(rr2 - out[i, 0], 0.0) / max(npx, 1.0)
+        h, w = shp[j0, 0], shp[j0, 1]
+        o = offs[j0]
+        for r in range(h):
+            for c in range(w):
+                if mask[r0[j0] + r, c0[j0] + c] != 0:
+                    res[r0[j0] + r, c0[j0] + c] -= inten[i] * buf[o + r * w + c]
+
+
 def _refined(grid: ReconstructionGrid, rxy: int, rz: int) -> ReconstructionGrid:
     """``grid`` with each voxel split into rxy x rxy x rz (same extent; the candidate grid)."""
 
@@ -706,6 +766,7 @@ def ipr_particles(
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
     jacobian: str = "central",
+    polish: int = 3,
     batch: int = 2048,
     progress: bool = False,
 ) -> xr.Dataset:
@@ -742,6 +803,10 @@ def ipr_particles(
         Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
         particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
         besides the current position: the three trials and the Gauss–Newton step).
+    polish : int
+        Rounds of the final polish (module docstring): each particle whose defocus spot on the lenslet array
+        is at most ``_POLISH_SPOT`` pitches is moved to the likelihood-weighted mean of a stencil of positions
+        around it (0: none).
     batch : int
         Particles rendered at once (bounds the patch memory).
     progress : bool
@@ -773,6 +838,8 @@ def ipr_particles(
     for name, val in (("mart_iterations", mart_iterations), ("residual_mart_iterations", residual_mart_iterations)):
         if not isinstance(val, (int, np.integer)) or not 0 <= val <= 50:
             raise ReconstructionError(f"reconstruct.ipr.{name} = {val!r}: allowed range is [0, 50]")
+    if not isinstance(polish, (int, np.integer)) or not 0 <= polish <= 20:
+        raise ReconstructionError(f"reconstruct.ipr.polish = {polish!r}: allowed range is [0, 20]")
     if jacobian not in _JACOBIANS:
         allowed = ", ".join(_JACOBIANS)
         raise ReconstructionError(f"reconstruct.ipr.jacobian = {jacobian!r}: allowed values are {allowed}")
@@ -874,6 +941,29 @@ def ipr_particles(
             moved[sl] = np.where((k == len(tr) + 1)[:, None], step, pos[sl] + offsets[np.minimum(k, len(tr))])
         return moved, pick[:, 1], out
 
+    stencil = np.array([(a, b, c) for a in _POLISH_XY for b in _POLISH_XY for c in _POLISH_Z]) * vox
+    stencil = np.vstack([np.zeros((1, 3)), stencil[np.any(stencil != 0.0, axis=1)]])  # the current position first
+
+    def polish_step(pos: np.ndarray, amp: np.ndarray, res: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each particle moved to the likelihood-weighted mean of the stencil positions around it (the others
+        held fixed: weights exp(−ΔC/2σ²), ΔC the rise of the exact residual's ‖R‖² over the stencil's best,
+        σ² the residual variance per pixel on the particle's patch), then the intensities refitted there."""
+        k = len(stencil)
+        drop = np.zeros((len(pos), k + 1))
+        for s in range(0, len(pos), max(1, batch // k)):
+            sl = slice(s, s + max(1, batch // k))
+            cand = (pos[sl][:, None, :] + stencil[None]).reshape(-1, 3)
+            buf, offs, r0, c0, shp = patches(cand)
+            t0 = time.perf_counter()
+            _stencil(res, mask, buf, offs, r0, c0, shp, k, amp[sl] * 1.0, drop[sl])
+            clock["fit"] += time.perf_counter() - t0
+        s2 = np.maximum(drop[:, k], 1e-300)
+        logw = (drop[:, :k] - drop[:, :k].max(axis=1, keepdims=True)) / (2.0 * s2[:, None])
+        wgt = np.exp(logw)
+        moved = pos + (wgt @ stencil) / wgt.sum(axis=1)[:, None]
+        add_images(pos, amp, res, 1.0)
+        return moved, fit_intensity(moved, res, -1.0)
+
     def norm(res: np.ndarray) -> float:
         return float(np.sqrt(np.sum(res**2))) / norm_d
 
@@ -917,6 +1007,17 @@ def ipr_particles(
         if res_hist:
             bar.set_postfix(particles=len(xyz), residual=f"{res_hist[-1]:.4f}")
     bar.close()
+    # the final polish: near the focal plane the image changes little with the position inside a lenslet (the
+    # residual is flat there, and the fit stops anywhere on the flat): the likelihood-weighted mean over a
+    # stencil around the particle is the estimate of least expected error; a few rounds walk it to the middle
+    near = np.nonzero(_spot_pitches(cam, xyz[:, 2]) <= _POLISH_SPOT)[0] if len(xyz) else np.zeros(0, int)
+    for _ in range(polish if len(near) else 0):
+        xyz[near], inten[near] = polish_step(xyz[near], inten[near], res)
+    if polish and len(near):  # pairs the polish brought within half a voxel are merged
+        keep = _unmerged(xyz, inten, vox)
+        ghosts += int((~keep).sum())
+        add_images(xyz[~keep], inten[~keep], res, 1.0)
+        xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
     if len(xyz):
         res_hist.append(norm(res))
     if vcal is not None:
@@ -951,6 +1052,8 @@ def ipr_particles(
             "residual_candidates": int(residual_candidates),
             "mart_iterations": int(mart_iterations),
             "residual_mart_iterations": int(residual_mart_iterations),
+            "polish": int(polish),
+            "polished": len(near),
             "seconds": float(time.perf_counter() - t_start),
             "seconds_mart": float(clock["mart"]),
             "seconds_patches": float(clock["patches"]),
@@ -1014,6 +1117,7 @@ def ipr(
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
     jacobian: str = "central",
+    polish: int = 3,
     blob_sigma: float = 0.0,
     batch: int = 2048,
     progress: bool = False,
@@ -1037,6 +1141,7 @@ def ipr(
         mart_iterations=mart_iterations,
         residual_mart_iterations=residual_mart_iterations,
         jacobian=jacobian,
+        polish=polish,
         batch=batch,
         progress=progress,
     )
@@ -1116,6 +1221,12 @@ class IPR(ReconstructionMethod):
             "enum": list(_JACOBIANS),
             "description": "finite differences of the position Jacobian: central (6 trial images) or forward (3)",
         },
+        "polish": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 20,
+            "description": "final rounds moving near-focus particles to their likelihood-weighted mean position",
+        },
         "blob_sigma": {
             "type": "number",
             "minimum": 0,
@@ -1139,6 +1250,7 @@ class IPR(ReconstructionMethod):
         mart_iterations: int = 3,
         residual_mart_iterations: int = 3,
         jacobian: str = "central",
+        polish: int = 3,
         blob_sigma: float = 0.0,
         progress: bool = False,
     ) -> xr.DataArray:
@@ -1155,6 +1267,7 @@ class IPR(ReconstructionMethod):
             mart_iterations=mart_iterations,
             residual_mart_iterations=residual_mart_iterations,
             jacobian=jacobian,
+            polish=polish,
             blob_sigma=blob_sigma,
             progress=progress,
         )
