@@ -23,7 +23,11 @@ same run. The CPU time (all threads) is printed beside the wall time: on a share
 less with the load.
 
 Targets (issue 27): >= 95 % found within half a voxel at 0.001 ppp, >= 80 % at 0.005 ppp,
-<= 10 % ghosts; a full frame at 0.005 ppp in <= 10 min on 2 cores and <= 8 GB.
+<= 10 % ghosts; a full frame at 0.005 ppp in <= 10 min on 2 cores and <= 8 GB. The targets are judged on
+``found`` over all the true particles of the crop. Printed besides: found over those inside the reconstruction
+grid (the grid holds the seeded field: none outside, the count says so) and split into the particles whose whole
+image lies on the crop (defocus spot plus a lenslet inside its edges) and those near its edges, whose light field
+the crop cuts: on a 400 x 400 px crop 40-45 % of the particles, on the full sensor about 5 %.
 """
 
 from __future__ import annotations
@@ -54,12 +58,30 @@ def _scene(width: int, height: int, ppp: float, rays: int, photons: int, seed: i
     return field, ReconstructionInputs(lightfield=lf, centers=cen, camera=cam, grid=grid)
 
 
-def _score(field, parts, grid) -> dict[str, float]:
+def _whole_image(cam, true: np.ndarray) -> np.ndarray:
+    """True where a particle's whole image lies on the sensor: its defocus spot on the lenslet array (around
+    where the chief ray meets it) plus one lenslet pitch inside the sensor's edges. The others, near the
+    crop's edges, lose part of their light field (on a crop many more than on the full sensor)."""
+    from lfstudy.reconstruct.ipr import _spot_pitches
+
+    x, y, z = true.T
+    d = cam.so + z
+    reach = (_spot_pitches(cam, z) + 1.0) * cam.lenslet_pitch
+    return (np.abs(cam.si * x / d) + reach <= cam.sensor_width / 2) & (
+        np.abs(cam.si * y / d) + reach <= cam.sensor_height / 2
+    )
+
+
+def _score(field, parts, grid, cam=None) -> dict[str, float]:
     from scipy.spatial import cKDTree
 
     vox = np.array(grid.voxel_size()[::-1])
     true = np.column_stack([field[v].values for v in ("x", "y", "z")])
     fit = np.column_stack([parts[v].values for v in ("x", "y", "z")])
+    lo = np.array([grid.x[0], grid.y[0], grid.z[0]]) - vox / 2
+    hi = np.array([grid.x[-1], grid.y[-1], grid.z[-1]]) + vox / 2
+    inside = np.all((true >= lo) & (true <= hi), axis=1)
+    whole = _whole_image(cam, true) if cam is not None else np.ones(len(true), bool)
     if not len(fit):
         return {"found": 0.0, "ghosts": 0.0, "n_fit": 0}
     d_true, j = cKDTree(fit / vox).query(true / vox)
@@ -70,6 +92,11 @@ def _score(field, parts, grid) -> dict[str, float]:
         "n_true": len(true),
         "n_fit": len(fit),
         "found": 100.0 * found.mean(),
+        "n_outside": int((~inside).sum()),
+        "found_inside": 100.0 * found[inside].mean() if inside.any() else float("nan"),
+        "n_whole": int(whole.sum()),
+        "found_whole": 100.0 * found[whole].mean() if whole.any() else float("nan"),
+        "found_cut": 100.0 * found[~whole].mean() if (~whole).any() else float("nan"),
         "ghosts": 100.0 * (d_fit >= 0.5).mean(),
         "rms_xy_mm": float(np.sqrt(np.mean(err[:, :2] ** 2))),
         "rms_z_mm": float(np.sqrt(np.mean(err[:, 2] ** 2))),
@@ -114,7 +141,7 @@ def main() -> None:
             parts = ipr_particles(inputs, **kw)
             t_ipr, c_ipr = time.perf_counter() - t0, time.process_time() - c0
             t_ref = t_ref or t_ipr
-            s = _score(field, parts, inputs.grid)
+            s = _score(field, parts, inputs.grid, inputs.camera)
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
             a = parts.attrs
             rest = t_ipr - a["seconds_mart"] - a["seconds_patches"] - a["seconds_fit"]
@@ -124,6 +151,9 @@ def main() -> None:
                 f"ghosts {s['ghosts']:.1f} % of fitted; rms error x,y {s['rms_xy_mm']:.4f} mm "
                 f"({s['rms_xy_vox']:.3f} vox), z {s['rms_z_mm']:.4f} mm ({s['rms_z_vox']:.3f} vox), mean z error "
                 f"{s['mean_z_mm']:+.4f} mm; residual {a['residual_norm'][0]:.3f} -> {a['residual_norm'][-1]:.3f}\n"
+                f"    found {s['found_inside']:.1f} % of the {s['n_true'] - s['n_outside']} inside the grid "
+                f"({s['n_outside']} outside); {s['found_whole']:.1f} % of the {s['n_whole']} whose whole image is on "
+                f"the crop, {s['found_cut']:.1f} % of the {s['n_true'] - s['n_whole']} near its edges\n"
                 f"    IPR {t_ipr:.1f} s (x{t_ipr / t_ref:.2f} the defaults; CPU {c_ipr:.1f} s): "
                 f"MART candidates {a['seconds_mart']:.1f} s "
                 f"({a['mart_volumes']} volumes), {a['particle_images']} particle images {a['seconds_patches']:.1f} s "
