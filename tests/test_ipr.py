@@ -135,6 +135,21 @@ def test_calibrated_camera_keeps_the_phase_when_the_lenslet_count_changes(height
         assert info["grid_residual_px"] < 1e-6, (oy, fit.lenslet_offset_y)
 
 
+def test_calibrated_camera_keeps_the_main_lens_f_number():
+    """A pitch fitted 8e-9 relative short of the thesis' 0.125 mm (seed 6 of bench_ipr at 400 x 400 calibrates
+    0.1249995) made the matched main lens round from f/2 up to f/2.8: the model's aperture image 0.71 of the
+    real one, the spot moved 2 px, half the light in the wrong place."""
+    import xarray as xr
+
+    cam = PlenopticCamera(400, 400, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_offset_x=0.013, lenslet_offset_y=-0.021)
+    assert cam.with_(lenslet_pitch=0.125 - 1e-9).main_fnumber > cam.main_fnumber  # the trap
+    cx, cy = cam.lenslet_centers()
+    s = (1 - 8e-9) * (cam.si + cam.lenslet_focal_length) / cam.si
+    fit, _ = calibrated_camera(cam, xr.Dataset({"x": (("row", "col"), cx * s), "y": (("row", "col"), cy * s)}))
+    assert fit.lenslet_pitch < 0.125 and fit.main_fnumber == cam.main_fnumber
+    assert fit.aperture_diameter == pytest.approx(cam.aperture_diameter, rel=1e-12)
+
+
 @pytest.mark.parametrize("scale", [1 - 2.7e-7, 1 - 1e-5])
 def test_calibrated_camera_when_the_sensor_is_a_whole_number_of_lenslets(scale):
     """The demo design M -0.8, pitch 0.1184 mm: 640 x 480 px of 7.4 um are exactly 40 x 30 lenslets. A pitch

@@ -223,7 +223,8 @@ def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[Ple
     Returns
     -------
     camera : PlenopticCamera
-        ``camera.with_(lenslet_pitch=..., lenslet_offset_x=..., lenslet_offset_y=..., lenslet_rotation=0)``.
+        ``camera.with_(lenslet_pitch=..., lenslet_offset_x=..., lenslet_offset_y=..., lenslet_rotation=0)``
+        with the nominal camera's main-lens f-number (never re-derived from the fitted pitch).
     info : dict
         ``grid_pitch_mm``, ``grid_offset_x_mm``, ``grid_offset_y_mm``, ``grid_rotation_rad`` (fitted,
         not used), ``grid_residual_px`` (largest distance of a calibrated centre from the model lattice).
@@ -264,6 +265,10 @@ def calibrated_camera(camera: PlenopticCamera, centers: xr.Dataset) -> tuple[Ple
     # lenslets (the demo's 640 x 480 px at pitch 0.1184 mm: 40 x 30), a fitted pitch a hair short needs one
     # more lenslet, whose lattice has the other phase at every offset: the pitches that make the sensor whole
     # (and the nominal one) are tried too, within the calibration's precision (the residual decides)
+    # the main lens keeps its f-number: a "matched" camera would re-derive it from the fitted pitch and round
+    # it to a standard stop, and at the thesis' pitch (0.125 mm, f/4 lenslets: the matched f/2 exactly) a
+    # pitch fitted 1e-9 mm short rounds up to f/2.8, a 1/sqrt(2) smaller aperture image behind every lenslet
+    camera = camera.with_(fnumber=camera.main_fnumber)
     pitches = {pitch, camera.lenslet_pitch}
     for size in (camera.sensor_width, camera.sensor_height):
         pitches.add(size / max(1, round(size / pitch)))
