@@ -611,3 +611,23 @@ def test_the_answer_names_a_cost_only_the_combination_of_imperfections_has():
     text = next(b.html for b in _answer_blocks(study, cfg) if b.name == "sentences")
     assert "No swept imperfection alone raises its error (0.01 mm at the ideal camera)" in text
     assert "their combination reaches 0.014 mm" in text
+
+
+def test_the_budget_points_to_the_focal_plane_where_the_fit_misses_the_particles_near_it(tmp_path):
+    """A particle method that finds 20 % of the particles within the depth of field about the focal plane
+    but 80 % of all is limited by the focal plane inside the volume: the budget says so and names the
+    design; at 60 % against 80 % it does not."""
+    from lfstudy.study.designs import budget_table, focus_limited
+
+    base = {"rms_total_mm": [0.02, 0.03], "spacing_mm_x": [0.7, 0.7], "spacing_mm_z": [0.7, 0.7]}
+    base |= {"valid_percent": [99.0, 98.0], "oracle_rms_total_mm": [0.005, 0.005]}
+    base |= {"recon_added_rms_total_mm": [0.019, 0.029], "found_percent": [80.0, 80.0], "ghost_percent": [9.0, 9.0]}
+    near = _study_with({**base, "found_in_focus_percent": [60.0, 20.0]})
+    fine = _study_with({**base, "found_in_focus_percent": [60.0, 45.0]})
+    assert focus_limited(budget_table(near)) == [budget_table(near)["design"].iloc[1]]
+    assert focus_limited(budget_table(fine)) == [] and focus_limited(budget_table(_study_with(base))) == []
+    cfg = load_config(ROOT / "config" / "demo.yaml")
+    text = write_report(near, {}, cfg, tmp_path / "near.html", progress=False).read_text()
+    assert "The focal plane limits" in text and "particles.z_center" in text
+    text = write_report(fine, {}, cfg, tmp_path / "fine.html", progress=False).read_text()
+    assert "The focal plane limits" not in text
