@@ -197,6 +197,7 @@ def match_particles(
     Examples
     --------
     >>> import numpy as np, xarray as xr
+    >>> from lfstudy.piv import match_particles
     >>> g = {"z": [0.0, 1.0], "y": [0.0, 1.0], "x": [0.0, 1.0]}
     >>> one = xr.DataArray(np.ones((2, 2, 2)), coords=g, dims=("z", "y", "x"))
     >>> pred = xr.Dataset({"u_mm": 0.1 * one, "v_mm": 0 * one, "w_mm": 0 * one, "valid": one > 0})
