@@ -150,8 +150,9 @@ of the 11 MART volumes, CPU x0.46–0.66 (13.8 / 14.7 / 15.8 / 15.8 / 11.6 s aga
 / 25.1 s); 0.005 ppp, 300 x 300 px: only seed 7 has a round adding none (the sixth): 79.3 / 17.3 against
 79.1 / 18.4, CPU 21.6 -> 17.0 s; seeds 5, 6, 8, 9 run every round (the fit of the defaults before). Seed 10:
 0.001 ppp 93.8 / 3.8 either way, CPU 25.8 -> 13.4 s (three rounds of ten); 0.005 ppp every round (82.0 /
-14.7). At 0.005 ppp the rounds keep adding a few particles to the end, so the frame's time there stays set
-by the particle images and the volumes.
+14.7). (The figures of seeds 5–9 at 0.001 ppp and of seed 7 at 0.005 are from runs at 0.003 that stopped at
+the same round: seed 7 rerun at 0.001 gave the same particles.) At 0.005 ppp the rounds keep adding a
+few particles to the end, so the frame's time there stays set by the particle images and the volumes.
 What did not help: MART restricted to the lenslets the residual lights (at 0.005 ppp the
 median lenslet holds 12–37 % of the brightest lenslet's positive-residual energy, at 0.001 ppp 3–8 %;
 the residual's first guess is above 3 % of its maximum in 70–75 % of the voxels, so every lenslet's
