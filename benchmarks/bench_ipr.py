@@ -159,7 +159,9 @@ def main() -> None:
                 f"({a['mart_volumes']} volumes), {a['particle_images']} particle images {a['seconds_patches']:.1f} s "
                 f"({1e3 * a['seconds_patches'] / max(a['particle_images'], 1):.2f} ms each), "
                 f"fit {a['seconds_fit']:.1f} s, rest {rest:.1f} s; "
-                f"full frame at this cost per particle {full / 60:.0f} min; peak RSS {rss:.2f} GB"
+                f"full frame at this cost per particle {full / 60:.0f} min; peak RSS {rss:.2f} GB\n"
+                f"    residual candidates: new particles per round {a['candidates_added']}, "
+                f"{a['skipped_candidate_rounds']} rounds skipped"
             )
 
 

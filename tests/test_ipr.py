@@ -217,6 +217,10 @@ def test_ipr_parameters_and_bad_input(scene):
         ipr_particles(inputs, residual_plane_step=0)
     with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr\.polish = 21: allowed range is \[0, 20\]"):
         ipr_particles(inputs, polish=21)
+    assert method_schemas()["ipr"]["properties"]["residual_candidates_min_gain"]["maximum"] == 1
+    for bad in (-0.01, 1.5, float("nan"), "0.01", True):
+        with pytest.raises(ReconstructionError, match=r"min_gain = .*: allowed range is \[0.0, 1.0\]"):
+            ipr_particles(inputs, residual_candidates_min_gain=bad)
 
 
 def test_ipr_particles_states_the_methods_defaults():
@@ -254,6 +258,12 @@ def test_ipr_residual_is_kept_exact(scene, fitted):
     fresh = np.sqrt(np.sum((np.where(mask > 0, data - model, 0.0)) ** 2)) / np.sqrt(np.sum(data**2))
     assert parts.attrs["residual_norm"][-1] == pytest.approx(fresh, rel=1e-9)
     assert parts.attrs["polished"] > 0  # the polish's moves are in it too
+    # the residual-candidate rounds: each round's new particles, then the rounds skipped once one added fewer
+    # than residual_candidates_min_gain of the list (with 12 particles: none); one MART volume per round run
+    gain, skipped = parts.attrs["candidates_added"], parts.attrs["skipped_candidate_rounds"]
+    assert len(gain) + skipped == parts.attrs["residual_candidates"] and parts.attrs["mart_volumes"] == 1 + len(gain)
+    assert 12 * parts.attrs["residual_candidates_min_gain"] < 1
+    assert all(g > 0 for g in gain[:-1]) and (gain[-1] == 0) == (skipped > 0)
     split = sum(parts.attrs[k] for k in ("seconds_mart", "seconds_patches", "seconds_fit"))
     assert 0 < split <= parts.attrs["seconds"]
 

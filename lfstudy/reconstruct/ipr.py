@@ -93,7 +93,12 @@ within ``_MIN_SEPARATION`` voxels of a particle. Every candidate volume is recon
 MART plan (:func:`lfstudy.reconstruct.mart.mart_plan`: the refined grid's weight tables and the
 views' coverage, made once per fit; each volume is byte for byte that of a MART run of its own);
 the residual's volumes take ``residual_mart_iterations`` MART iterations (0: the multiplicative
-first guess alone, four times cheaper, but see the measurements below).
+first guess alone, four times cheaper, but see the measurements below). Once a residual round adds
+fewer new particles than ``residual_candidates_min_gain`` of the list, the later rounds are skipped:
+the residual then changes little from round to round, and its next volumes give the same peaks, which
+are rejected again (fitted intensity below the ghost floor, or within ``_MIN_SEPARATION`` of a
+particle). The attrs ``candidates_added`` (new particles per round run) and
+``skipped_candidate_rounds`` say what happened.
 
 Measured (``benchmarks/bench_ipr.py --crop 400 400``, Table 4.3 camera, seeds 0 and 1 used to
 set the defaults): 0.001 ppp 88.8 % found within half a voxel, 8–10 % ghosts; 0.005 ppp
@@ -130,7 +135,25 @@ time (seeds 7 / 8 / 9 at 0.005 ppp: 24.0 -> 17.5, 22.6 -> 15.8, 22.5 -> 15.5 s; 
 ppp, seed 7: 25.7 -> 17.2 s), found −1.6 / +0.6 / −0.9 and +0.7 points, ghosts +1.8 / −0.5 / −0.3 and
 +0.5: the trade of ``residual_candidates=5``, so the default stays 1. A separate 3 x 3 x 1 grid on the
 case's own planes did better on seed 7 (found −0.3, ghosts +0.5, CPU x0.74) but adds half the tables'
-memory. What did not help: MART restricted to the lenslets the residual lights (at 0.005 ppp the
+memory. Skipping the residual rounds that repeat the last one (``residual_candidates_min_gain``; found /
+ghosts in %, CPU s, against ``--compare residual_candidates_min_gain=0`` in the same run, 1 thread, load 1–4
+on 2 cores; seeds 5–9 seen while choosing the value, 10 held out): with 0 the rounds after the fourth add
+0–2 particles each at 0.001 ppp and 0–10 at 0.005 ppp (every other peak of those volumes is rejected again).
+0.01 stopped too early (found −1.1 points at 0.005 ppp, seed 6, whose rounds 6–10 still added 11 particles;
+−0.6 at 0.001 ppp, seed 8), 0.003 too (seed 9 at 0.005 ppp: stopped after a round adding one of 419, found
+84.7 -> 84.0 %, ghosts 13.4 -> 14.1 %), so the default is 0.001 (the value chosen, then checked on seed 10):
+on these crops (150–450 particles) the rounds stop after one that adds none; on a full frame (~100 times the
+particles) it stops after a round adding fewer than 0.1 % of the list, which the crops cannot resolve (one
+particle is 0.2–0.7 % of theirs). 0.001 ppp, 400 x 400 px, seeds 5 / 6 / 7 / 8 / 9: 89.4 / 8.4, 90.6 / 8.5,
+88.1 / 9.0, 86.2 / 9.3, 90.6 / 5.8 (with 0: 89.4 / 8.4, 90.6 / 8.4, 88.1 / 9.6, 86.2 / 9.9, 90.6 / 5.8), 4–6
+of the 11 MART volumes, CPU x0.46–0.66 (13.8 / 14.7 / 15.8 / 15.8 / 11.6 s against 24.3 / 24.9 / 24.1 / 26.4
+/ 25.1 s); 0.005 ppp, 300 x 300 px: only seed 7 has a round adding none (the sixth): 79.3 / 17.3 against
+79.1 / 18.4, CPU 21.6 -> 17.0 s; seeds 5, 6, 8, 9 run every round (the fit of the defaults before). Seed 10:
+0.001 ppp 93.8 / 3.8 either way, CPU 25.8 -> 13.4 s (three rounds of ten); 0.005 ppp every round (82.0 /
+14.7). (The figures of seeds 5–9 at 0.001 ppp and of seed 7 at 0.005 are from runs at 0.003 that stopped at
+the same round: seed 7 rerun at 0.001 gave the same particles.) At 0.005 ppp the rounds keep adding a
+few particles to the end, so the frame's time there stays set by the particle images and the volumes.
+What did not help: MART restricted to the lenslets the residual lights (at 0.005 ppp the
 median lenslet holds 12–37 % of the brightest lenslet's positive-residual energy, at 0.001 ppp 3–8 %;
 the residual's first guess is above 3 % of its maximum in 70–75 % of the voxels, so every lenslet's
 beam box holds signal), nor pruning the voxels below 1 % of the maximum after one iteration (the
@@ -844,7 +867,8 @@ def volumetric_frame(
 
 # ------------------------------------------------------------------ the method
 def _check(name: str, value: float, lo: float, hi: float, *, lo_open: bool = False) -> None:
-    ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
+    number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    ok = number and math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi
     if not ok:
         br = "(" if lo_open else "["
         raise ReconstructionError(f"reconstruct.ipr.{name} = {value!r}: allowed range is {br}{lo}, {hi}]")
@@ -864,6 +888,7 @@ def ipr_particles(
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
+    residual_candidates_min_gain: float = 0.001,
     jacobian: str = "central",
     image_accuracy: str = "fast",
     polish: int = 3,
@@ -903,6 +928,10 @@ def ipr_particles(
         The residual's candidate volumes are reconstructed on every ``residual_plane_step``-th plane of
         the candidate grid (:meth:`lfstudy.reconstruct.mart.MartPlan.planes`: the same weight tables,
         that many times fewer planes and about that many times cheaper); 1: every plane.
+    residual_candidates_min_gain : float
+        The residual-candidate rounds stop after one that adds fewer new particles than this fraction of the
+        particle list (its remaining volumes would repeat the last one's rejected peaks; module docstring,
+        "Candidates"); 0: every one of the ``residual_candidates`` rounds runs.
     jacobian : {"central", "forward"}
         Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
         particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
@@ -949,6 +978,7 @@ def ipr_particles(
         raise ReconstructionError(
             f"reconstruct.ipr.residual_plane_step = {residual_plane_step!r}: allowed range is [1, 4]"
         )
+    _check("residual_candidates_min_gain", residual_candidates_min_gain, 0.0, 1.0)
     if not isinstance(polish, (int, np.integer)) or not 0 <= polish <= 20:
         raise ReconstructionError(f"reconstruct.ipr.polish = {polish!r}: allowed range is [0, 20]")
     if jacobian not in _JACOBIANS:
@@ -1002,6 +1032,8 @@ def ipr_particles(
     norm_d = float(np.sqrt(np.sum(data**2))) or 1.0
     res_hist: list[float] = []
     ghosts = 0
+    gain: list[int] = []  # new particles accepted per residual-candidate round
+    stop_after, skipped = iterations, 0  # residual-candidate rounds skipped from this iteration on
     inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
 
     def patches(pos: np.ndarray, trials: np.ndarray | None = None):
@@ -1107,7 +1139,9 @@ def ipr_particles(
         if gone.any():
             add_images(xyz[gone], inten[gone], res, 1.0)
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
-        if it < residual_candidates:
+        if it < residual_candidates and it >= stop_after:
+            skipped += 1
+        elif it < residual_candidates:
             new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations, rplan)
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
@@ -1120,6 +1154,9 @@ def ipr_particles(
                 inten = np.concatenate([inten, amp0[good]])
                 sig = np.vstack([sig, np.full((int(good.sum()), 3), np.inf)])
                 rel = np.concatenate([rel, np.full(int(good.sum()), np.inf)])
+            gain.append(int(good.sum()) if len(new) else 0)
+            if gain[-1] < residual_candidates_min_gain * len(xyz):  # the next volumes would repeat this one
+                stop_after = it + 1
         bar.update(1)
         if res_hist:
             bar.set_postfix(particles=len(xyz), residual=f"{res_hist[-1]:.4f}")
@@ -1171,6 +1208,9 @@ def ipr_particles(
             "mart_iterations": int(mart_iterations),
             "residual_mart_iterations": int(residual_mart_iterations),
             "residual_plane_step": int(residual_plane_step),
+            "residual_candidates_min_gain": float(residual_candidates_min_gain),
+            "candidates_added": gain,
+            "skipped_candidate_rounds": int(skipped),
             "polish": int(polish),
             "polished": len(near),
             "seconds": float(time.perf_counter() - t_start),
@@ -1236,6 +1276,7 @@ def ipr(
     mart_iterations: int = 3,
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
+    residual_candidates_min_gain: float = 0.001,
     jacobian: str = "central",
     image_accuracy: str = "fast",
     polish: int = 3,
@@ -1262,6 +1303,7 @@ def ipr(
         mart_iterations=mart_iterations,
         residual_mart_iterations=residual_mart_iterations,
         residual_plane_step=residual_plane_step,
+        residual_candidates_min_gain=residual_candidates_min_gain,
         jacobian=jacobian,
         image_accuracy=image_accuracy,
         polish=polish,
@@ -1345,6 +1387,12 @@ class IPR(ReconstructionMethod):
             "maximum": 4,
             "description": "the residual's candidate volumes on every n-th plane of the candidate grid (n x cheaper)",
         },
+        "residual_candidates_min_gain": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 1,
+            "description": "residual-candidate rounds stop after one adding fewer than this fraction of the particles",
+        },
         "jacobian": {
             "type": "string",
             "enum": list(_JACOBIANS),
@@ -1384,6 +1432,7 @@ class IPR(ReconstructionMethod):
         mart_iterations: int = 3,
         residual_mart_iterations: int = 3,
         residual_plane_step: int = 1,
+        residual_candidates_min_gain: float = 0.001,
         jacobian: str = "central",
         image_accuracy: str = "fast",
         polish: int = 3,
@@ -1403,6 +1452,7 @@ class IPR(ReconstructionMethod):
             mart_iterations=mart_iterations,
             residual_mart_iterations=residual_mart_iterations,
             residual_plane_step=residual_plane_step,
+            residual_candidates_min_gain=residual_candidates_min_gain,
             jacobian=jacobian,
             image_accuracy=image_accuracy,
             polish=polish,
