@@ -170,6 +170,10 @@ def error_limit(oracle_mm: float, added_mm: float) -> str:
     return "reconstruction" if a > o else "windows"
 
 
+#: A particle method's scores (rows of the metric table): true particles found, and found within the depth of
+#: field about the focal plane.
+FOUND = "found_percent"
+FOUND_IN_FOCUS = "found_in_focus_percent"
 #: A particle method is focus-limited where it finds fewer than this fraction of the particles within the
 #: depth of field about the focal plane than of all (issue 27: 0.17-0.37 on the demo designs at 0.005 ppp).
 FOCUS_LIMITED = 0.5
@@ -181,9 +185,9 @@ def focus_limited(table: pd.DataFrame) -> list[str]:
     plane (``found_in_focus_percent``) as of all (``found_percent``), in any case of ``table`` (a
     :func:`budget_table`): there a particle's image is one lenslet's spot and the focal plane inside the
     measured volume limits the design. Empty where the study holds no particle scores."""
-    if not {"found_percent", "found_in_focus_percent", "design"} <= set(table.columns):
+    if not {FOUND, FOUND_IN_FOCUS, "design"} <= set(table.columns):
         return []
-    hit = table["found_in_focus_percent"] < FOCUS_LIMITED * table["found_percent"]
+    hit = table[FOUND_IN_FOCUS] < FOCUS_LIMITED * table[FOUND]
     return list(dict.fromkeys(table.loc[hit.fillna(False).astype(bool), "design"].astype(str)))
 
 
