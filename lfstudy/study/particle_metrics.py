@@ -37,11 +37,8 @@ _XYZ = ("x", "y", "z")
 
 
 def _positions(ds: xr.Dataset) -> np.ndarray:
-    return (
-        np.column_stack([np.asarray(ds[k].values, float) for k in _XYZ])
-        if ds.sizes.get("particle")
-        else (np.zeros((0, 3)))
-    )
+    """(n, 3) positions [mm]; (0, 3) for an empty list."""
+    return np.column_stack([np.asarray(ds[k].values, float).ravel() for k in _XYZ])
 
 
 def _match(true: np.ndarray, fit: np.ndarray, voxel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -115,7 +112,7 @@ def particle_metrics(
             near = inside & (t[:, 2] >= focus_mm[0]) & (t[:, 2] <= focus_mm[1])
             n_focus += int(near.sum())
             n_found_focus += int((ok & near).sum())
-        errs.append(g[j[ok]] - t[ok] if len(g) else np.zeros((0, 3)))
+        errs.append(g[j[ok]] - t[ok])  # (0, 3) where nothing is found
         found.append(ok)
         nearest.append(g[j] if len(g) else np.full_like(t, np.nan))
     e = np.vstack(errs)
