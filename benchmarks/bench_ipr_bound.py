@@ -43,7 +43,8 @@ seed 61, 25 000 photons, 24 min):
   the focal plane: 100 % in each 0.2 mm bin, 60 particles x 4 noise draws. In focus the image does
   tell where the particle is: the diffraction-blurred spot and its split between neighbouring
   lenslets carry the position to well inside half a voxel. The bound on the 7 mm volume is 100 %.
-* The renderer IPR fits with agrees with the Monte-Carlo images the benchmark records: for single
+* The renderer IPR fits with agrees with the Monte-Carlo images the benchmark records (a one-off check,
+  not in this script): for single
   particles at z = -0.64 ... 0.9 mm imaged with 400 000 rays, the least-squares best of a trial grid
   (steps 0.02 mm in x, y, 0.02 mm in z) lies at the true position on the true camera and on the
   lenslet grid calibrated from bench_ipr's pinhole image (offsets within 6e-6 mm, pitch within 1e-6
