@@ -11,6 +11,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 import yaml
+from scipy import ndimage
 
 from lfstudy import plugins as plugins_module
 from lfstudy.config import ConfigError
@@ -440,3 +441,27 @@ def test_reconstruct_stage_writes_the_particle_list(ipr_case):
     with pytest.raises(ValueError, match=r"reconstruct.method = 'mart' fits no particles"):
         run_reconstruct(mart, *ins, d / "v3.zarr", d / "v3.particles.zarr")
     assert not (d / "v2.zarr").exists() and not (d / "v3.zarr").exists() and not (d / "v3.particles.zarr").exists()
+
+
+def test_mart_update_in_place_gives_the_expression_s_bytes():
+    """MART's multiplicative update, smoothing and coverage threshold run in place (no voxel-sized temporaries:
+    they set the peak memory of IPR's candidate grid on a full frame) and give the bytes of the expressions
+    they replace, with uncovered voxels, factors beyond the e^±20 bound and zero coverage among them."""
+    from lfstudy.reconstruct.mart import _seen, _update
+
+    rng = np.random.default_rng(5)
+    shape = (6, 9, 11)
+    vol = rng.uniform(0.0, 3.0, shape)
+    num = rng.normal(0.0, 8.0, shape)
+    d = np.where(rng.random(shape) < 0.2, 0.0, rng.uniform(0.01, 2.0, shape))
+    upd = (d > 0) & (rng.random(shape) < 0.9)
+    ref = vol.copy()
+    ref[upd] *= np.exp(np.clip(0.7 * num[upd] / d[upd], -20.0, 20.0))
+    got = vol.copy()
+    _update(got, num.copy(), d, upd, 0.7)
+    assert np.array_equal(got, ref) and not np.array_equal(got, vol)
+    sm = vol.copy()
+    ndimage.gaussian_filter(sm, 0.5, truncate=3.0, output=sm)
+    assert np.array_equal(sm, ndimage.gaussian_filter(vol, 0.5, truncate=3.0))
+    assert np.array_equal(_seen(d, 0.5), d >= 0.5 * np.percentile(d[d > 0], 90))
+    assert not _seen(np.zeros(shape), 0.5).any()
