@@ -31,11 +31,12 @@ from pathlib import Path
 import numpy as np
 
 
-def _row(name: str, e) -> str:
+def _row(name: str, e, true_w: float = math.nan) -> str:
     def g(k: str) -> float:
         return float(e[k]) if k in e else math.nan
 
     rms, orc, ct, valid = g("rms_total_mm"), g("oracle_rms_total_mm"), g("crosstalk_z"), g("valid_percent")
+    w_pct = 100.0 * (g("mean_z_mm") - true_w) / abs(true_w) if true_w else math.nan
     ok = [
         abs(ct) <= 0.05 if np.isfinite(ct) else None,
         rms <= max(1.5 * orc, orc + 0.01),
@@ -45,7 +46,7 @@ def _row(name: str, e) -> str:
     return (
         f"{name:<44} {rms:7.4f} {orc:7.4f} {g('recon_added_rms_total_mm'):7.4f} {ct:+7.3f} "
         f"{g('particle_crosstalk_z'):+7.3f} {g('found_percent'):6.1f} {g('found_in_focus_percent'):6.1f} "
-        f"{g('ghost_percent'):6.1f} {valid:6.1f}  {verdict:<12}"
+        f"{g('ghost_percent'):6.1f} {valid:6.1f} {g('Q'):6.3f} {w_pct:+6.1f}  {verdict:<12}"
         + "/".join(f"{g(f'unc_coverage_{a}'):.2f}" for a in "xyz")
         + "  "
         + "/".join(f"{g(f'unc_ratio_{a}'):.2f}" for a in "xyz")
@@ -53,10 +54,10 @@ def _row(name: str, e) -> str:
 
 
 def main() -> None:
-    from bench_uncertainty import _run, _tasks, _written
+    import yaml
+    from bench_uncertainty import _run, _tasks, _written, read_config
 
     from lfstudy import io
-    from lfstudy.config import read_yaml
     from lfstudy.study.config import validate_config
     from lfstudy.study.sweep import Sweep
 
@@ -66,11 +67,19 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="tasks run side by side")
     ap.add_argument("--threads", type=int, default=1, help="threads per task")
     ap.add_argument("--out", type=Path, default=None, help="working directory (default: a temp dir)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="config overrides (YAML values)")
+    ap.add_argument("--sweep", nargs="*", default=[], metavar="KEY=VALUES", help="sweep overrides (YAML lists)")
+    ap.add_argument("--seed", type=int, default=None, help="the configs' seed (default: theirs)")
     args = ap.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="lfstudy-bench-budget-"))
     runs = []
     for path in args.configs:
-        raw = read_yaml(path)
+        raw = read_config(path, args.set)
+        for item in args.sweep:
+            key, _, vals = item.partition("=")
+            raw.setdefault("sweep", {})[key] = yaml.safe_load(vals)
+        if args.seed is not None:
+            raw["seed"] = args.seed
         if args.flows:
             sweep = raw.setdefault("sweep", {})
             sweep["flow"] = [f for f in sweep.get("flow", []) if f in args.flows] or list(args.flows)
@@ -90,6 +99,7 @@ def main() -> None:
                     print(f"  {secs:8.1f} s  {label}", flush=True)
     print(f"all stages {time.perf_counter() - t0:.0f} s\n")
     head = f"{'case (config: slab z)':<46}rms_mm  oracle   added     ct   ct_part found% infoc% ghost%  valid%"
+    head += "      Q   dw%"
     print(head + "  ct/rms/valid  unc cover x/y/z  unc ratio x/y/z")
     for path, cfg, where in runs:
         sw = Sweep(cfg)
@@ -100,7 +110,9 @@ def main() -> None:
         for c in sw.cases():
             e = io.open_zarr(where / sw.locate(c, "errors.zarr")).load()
             name = " ".join(f"{k.split('.')[-1][:5]}={c[k]}" for k in keys)
-            print("  " + _row(name, e))
+            flow = cfg["flows"].get(c.get("flow"), {})
+            true_w = float(flow["displacement"][2]) if flow.get("kind") == "uniform" else math.nan
+            print("  " + _row(name, e, true_w))
 
 
 if __name__ == "__main__":

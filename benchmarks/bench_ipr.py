@@ -33,6 +33,7 @@ the crop cuts: on a 400 x 400 px crop 40-45 % of the particles, on the full sens
 from __future__ import annotations
 
 import argparse
+import inspect
 import resource
 import time
 
@@ -108,7 +109,9 @@ def _score(field, parts, grid, cam=None) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--crop", type=int, nargs=2, default=[600, 600], metavar=("W", "H"), help="sensor crop [px]")
+    ap.add_argument(
+        "--crop", type=int, nargs=2, default=None, metavar=("W", "H"), help="sensor crop [px] (600 600; --memory: none)"
+    )
     ap.add_argument("--ppp", type=float, nargs="+", default=[0.001, 0.005])
     ap.add_argument("--rays", type=int, default=2000, help="Monte-Carlo rays per particle")
     ap.add_argument("--photons", type=int, default=25_000, help="photons per particle (shot noise)")
@@ -116,6 +119,8 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=None, help="default: the method's")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--compare", nargs="*", default=[], metavar="K=V", help="ipr_particles settings to compare")
+    ap.add_argument("--memory", action="store_true", help="peak memory of IPR on the full frame (see the docstring)")
+    ap.add_argument("--memory-particles", type=int, default=100, help="--memory: particles seeded")
     args = ap.parse_args()
 
     import numba
@@ -123,7 +128,10 @@ def main() -> None:
     from lfstudy.reconstruct.ipr import ipr_particles
 
     numba.set_num_threads(args.threads)
-    w, h = args.crop
+    if args.memory:
+        _memory(args)
+        return
+    w, h = args.crop or (600, 600)
     print(f"Table 4.3 camera cropped to {w} x {h} px (full: {WIDTH} x {HEIGHT}); {args.threads} threads")
     runs = [("defaults", {})] + [(c, _setting(c)) for c in args.compare]
     field, inputs = _scene(160, 160, 0.002, 200, args.photons, 99)  # warm-up: compile the kernels
@@ -163,6 +171,77 @@ def main() -> None:
                 f"    residual candidates: new particles per round {a['candidates_added']}, "
                 f"{a['skipped_candidate_rounds']} rounds skipped"
             )
+
+
+def _vm(key: str) -> float:
+    """``VmHWM`` (peak) or ``VmRSS`` of this process [GB], from /proc/self/status (Linux)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024 / 1e9
+    return float("nan")
+
+
+def _reset_peak() -> bool:
+    """Reset this process' VmHWM to its current RSS (Linux ``clear_refs`` 5); False where refused."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _memory(args: argparse.Namespace) -> None:
+    """Peak RSS of one IPR fit on the full frame (``--crop`` if given) with ``--memory-particles`` particles:
+    the candidate grid's MART tables, coverage and volumes (which do not depend on the particle count), then the
+    patch buffers of one batch of the shake at the thesis' depths (which the few particles do not fill)."""
+    from lfstudy.reconstruct.ipr import _MARGIN_PX, _REFINE_XY, _REFINE_Z, _refined, ipr_particles, particle_patches
+
+    w, h = args.crop or (WIDTH, HEIGHT)
+    ppp = args.memory_particles / (w * h)
+    t0 = time.perf_counter()
+    field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed)
+    cg = _refined(inputs.grid, _REFINE_XY, _REFINE_Z)
+    print(
+        f"{w} x {h} px, {len(field.x)} particles; case grid {inputs.grid.shape}, candidate grid {cg.shape} "
+        f"({cg.shape[0] * cg.shape[1] * cg.shape[2] / 1e6:.1f} M voxels); scene {time.perf_counter() - t0:.0f} s, "
+        f"RSS {_vm('VmRSS'):.2f} GB (peak {_vm('VmHWM'):.2f} GB)",
+        flush=True,
+    )
+    reset = _reset_peak()
+    base = _vm("VmRSS")
+    t0 = time.perf_counter()
+    # two candidate volumes (the first and one of the residual) of one MART iteration each: the memory of a volume
+    # does not depend on its iterations (every buffer is made once per volume), its time does (~5 min per full-frame
+    # volume of three iterations on one shared core)
+    kw = {"iterations": 1, "residual_candidates": 1, "mart_iterations": 1, "residual_mart_iterations": 1}
+    kw |= {"residual_candidates_min_gain": 0.0, "polish": 1}
+    parts = ipr_particles(inputs, **kw)
+    a = parts.attrs
+    peak = _vm("VmHWM") if reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    print(
+        f"IPR ({kw}, {a['mart_volumes']} MART volumes) {time.perf_counter() - t0:.0f} s: peak RSS {peak:.2f} GB "
+        f"({'since the IPR call' if reset else 'of the process'}; RSS before it {base:.2f} GB, of which the scene's "
+        f"light field, centres and images); weight tables {a['weight_table_bytes'] / 1e9:.2f} GB, coverage "
+        f"{a['coverage_bytes'] / 1e9:.2f} GB, one float64 volume {np.prod(cg.shape) * 8 / 1e9:.2f} GB",
+        flush=True,
+    )
+    # one batch of the shake (the current image and six trials per particle) at uniform depths over the grid
+    from lfstudy.reconstruct.ipr import calibrated_camera
+
+    cam, _ = calibrated_camera(inputs.camera, inputs.centers)
+    rng = np.random.default_rng(args.seed)
+    g = inputs.grid
+    n = inspect.signature(ipr_particles).parameters["batch"].default
+    pos = np.column_stack([rng.uniform(c[0], c[-1], n) for c in (g.x, g.y, g.z)])
+    vox = np.array(g.voxel_size()[::-1])
+    tr = np.vstack([np.diag(0.1 * vox), -np.diag(0.1 * vox)])
+    buf = particle_patches(cam, *pos.T, trials=tr, pad=_MARGIN_PX, accuracy="fast")[0]
+    print(
+        f"one shake batch ({n} particles x 7 images, z uniform over the grid): {buf.nbytes / 1e9:.2f} GB of patches; "
+        f"at most {peak + 2 * buf.nbytes / 1e9:.2f} GB with the step's images beside them on top of the peak above"
+    )
 
 
 def _setting(text: str) -> dict[str, object]:
