@@ -17,6 +17,42 @@ from the focal plane lying inside the volume, and to compare piv.particles none 
 
 Targets (issue 27, coarse designs, lateral shifts, depth calibration off): |crosstalk| <= 0.05,
 total RMS <= max(1.5 x oracle, oracle + 0.01 mm), >= 90 % valid vectors; printed as ok/miss.
+Printed besides: Q (the reconstruction quality factor of errors.zarr) and, on uniform flows with a z
+component, the mean w's error in % of the true w (``dw%``). ``--set PATH=VALUE`` (YAML values),
+``--sweep KEY=[...]`` and ``--seed`` change the configs as ``bench_uncertainty.py`` does.
+
+0.01 ppp (issue 27: "at least MART's Q and valid fraction, or the figure and the reason why not"),
+thesis camera (Table 4.3) cropped to 800 x 600 px (48 x 36 lenslets, 4,800 particles a frame, 105
+vectors), seed 51 (tuned on by nobody), depth calibration off, Monte-Carlo images (4,000 rays and
+25,000 photons per particle), the code of 79bd03d (IPR's batch 2048), 1 thread per task, load 6-7 on
+2 cores (IPR 540-1070 s a frame, MART ~7 s)::
+
+    python benchmarks/bench_budget.py --configs config/thesis.yaml --flows uniform_x uniform_z \
+        --seed 51 --jobs 1 --threads 1 --sweep "ppp=[0.01]" "reconstruct.method=[mart, ipr]" \
+        --set camera.sensor.n_pixels_x=800 camera.sensor.n_pixels_y=600 \
+        depth_calibration.enabled=false raytrace.method=montecarlo \
+        raytrace.rays_per_particle=4000 sensor.photons_per_particle=25000
+
+    flow       method  Q      valid %        w                rms mm (oracle)  found / ghosts %
+    uniform_x  mart    0.842   97.1 (102)    ct -0.015        0.0310 (0.0046)
+    uniform_x  ipr     0.951   96.2 (101)    ct -0.042        0.0470 (0.0046)  59.7 / 34.9
+    uniform_z  mart    0.842  100.0 (105)    -10.7 % of w     0.0448 (0.0021)
+    uniform_z  ipr     0.947   96.2 (101)    -13.6 % of w     0.0600 (0.0021)  56.3 / 36.8
+
+IPR's Q is MART's + 0.11, its valid fraction is not (1 and 4 vectors fewer of 105) and its RMS error
+is 1.3-1.5 x MART's, the z component nearly all of it (0.046 of 0.047 mm on uniform_x). Why (frame a
+of uniform_x, 4,800 true particles): at 0.01 ppp on this one-voxel-per-lenslet grid (0.125 x 0.125 x
+0.5 mm) 56 % of the particles have another within one voxel (per axis scaled), 93 % within 1.5.
+IPR fitted 3,880 particles: 58.5 % of the true ones found within half a voxel (33.9 % of those at
+|z| < 0.75 mm, 58.3 % at 0.75-2 mm, 70.3 % beyond), 35.5 % of the fitted are ghosts, and 97 % of
+these lie within 1.5 voxels of a true particle (median 0.85 voxel, 41 % at |z| < 0.75 mm against
+20 % of the particles): fits of real particles, or of pairs, misplaced mostly in depth, with the
+found ones' intensities (median 2.2e4 against 2.9e4), so the ghost floor cannot tell them apart.
+The particles found in both frames move right (their w per unit lateral shift -0.004), but the
+misplaced ones differ between the frames and PIV on the rendered volume reads w = -0.024 mm for the
+0.5625 mm lateral shift. No cheap fix: it is the density on the lenslet grid (pairs behind one
+lenslet, the near-focus limit of 0.005 ppp, now everywhere); the second seed was not run (the four
+IPR frames of one seed took 50 min of the 90).
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_ipr.py [--crop 600 600] [--ppp 0.001 0.005] [--rays 2000]
         [--photons 25000] [--threads 2] [--iterations N] [--seed 0] [--compare jacobian=forward ...]
+    python benchmarks/bench_ipr.py --memory [--memory-particles 100] [--threads 1]
 
 For each ppp, a particle field over the crop's field of view and the thesis' 7 mm depth is
 imaged with Monte-Carlo rays (``--rays`` per particle) plus shot noise (``--photons`` per
@@ -28,6 +29,33 @@ Targets (issue 27): >= 95 % found within half a voxel at 0.001 ppp, >= 80 % at 0
 grid (the grid holds the seeded field: none outside, the count says so) and split into the particles whose whole
 image lies on the crop (defocus spot plus a lenslet inside its edges) and those near its edges, whose light field
 the crop cuts: on a 400 x 400 px crop 40-45 % of the particles, on the full sensor about 5 %.
+0.01 ppp (``--ppp 0.01 --crop 400 400 --seed 51 --threads 1 --compare batch=2048``, load 6-7 on 2 cores): 1,600
+true particles, 1,471 fitted; found 64.4 %, ghosts 36.4 %; rms x,y 0.114 voxel, z 0.204 voxel; IPR 180 s (CPU 58 s),
+11 MART volumes 68 s, 185,255 particle images 91 s; every residual round adds particles (247 ... 31). The former
+batch of 2048: found 62.9 %, ghosts 35.8 % (the batch moves only the first intensity fit of new candidates: the
+faint ones' images go back into the residual after each batch), peak RSS 1.43 GB against 0.76 GB.
+``bench_budget.py``'s docstring has the study at 0.01 ppp (Q, valid vectors, MART beside IPR) and why IPR's
+particles fall short there.
+
+Memory (``--memory [--memory-particles 100]``; issue 27: a full frame at 0.005 ppp in <= 8 GB). One IPR fit on the
+full 4872 x 3248 px frame with a few particles: two candidate MART volumes on the refined grid (867 x 579 x 66,
+33.1 M voxels, 0.27 GB a float64 volume), one MART iteration each (a volume's buffers are made once, whatever its
+iterations: the memory is that of the default three, the time a third), the shake and the polish. Printed: the
+peak RSS from the call on (Linux VmHWM, reset through /proc/self/clear_refs; it includes the 0.48 GB the scene holds
+before), the weight tables and coverage, and the patches of one shake batch at uniform depths (the batch the few
+particles do not fill: at 0.005 ppp every batch is full). Measured, seed 51, 1 thread, load 6-7 on 2 cores (one
+full-frame volume of three iterations took 618 s there):
+
+- 79bd03d: the plan alone (``mart_plan``) peaked at 8.21 GB (weight tables 5.18 GB, every plane padded to the
+  widest plane's 10 voxels per beam, int32 starts; coverage 1.06 GB), a candidate volume of three iterations at
+  9.44 GB (voxel-sized temporaries of the update, the smoothing and the MLOS guess, and ``np.sum`` of the four
+  coverages stacked into one more 1.06 GB array); one shake batch of 2048 particles 4.72 GB of patches (~41,000 px
+  per image box, 7 images a particle) on top of the plan.
+- db2b9e4 (tables flat with each plane's own K: 4.03 GB; MART in place): IPR's peak 8.09 GB.
+- now (the plan's coverage in float32: 0.53 GB; summed without stacking): IPR's peak 7.18 GB; a shake batch of 256
+  particles (the new default) 0.59 GB, during the fit with the plan's 4.6 GB and the frame's arrays held, below
+  the MART's peak. A full frame at 0.005 ppp: ~7.2 GB (the particle list itself, ~80,000 x a few floats, is
+  small). MART's own volumes and the projector's tables keep their bytes (tests).
 """
 
 from __future__ import annotations
