@@ -2,6 +2,7 @@
 
     python benchmarks/bench_ipr.py [--crop 600 600] [--ppp 0.001 0.005] [--rays 2000]
         [--photons 25000] [--threads 2] [--iterations N] [--seed 0] [--compare jacobian=forward ...]
+    python benchmarks/bench_ipr.py --memory [--memory-particles 100] [--threads 1]
 
 For each ppp, a particle field over the crop's field of view and the thesis' 7 mm depth is
 imaged with Monte-Carlo rays (``--rays`` per particle) plus shot noise (``--photons`` per
@@ -28,11 +29,39 @@ Targets (issue 27): >= 95 % found within half a voxel at 0.001 ppp, >= 80 % at 0
 grid (the grid holds the seeded field: none outside, the count says so) and split into the particles whose whole
 image lies on the crop (defocus spot plus a lenslet inside its edges) and those near its edges, whose light field
 the crop cuts: on a 400 x 400 px crop 40-45 % of the particles, on the full sensor about 5 %.
+0.01 ppp (``--ppp 0.01 --crop 400 400 --seed 51 --threads 1 --compare batch=2048``, load 6-7 on 2 cores): 1,600
+true particles, 1,471 fitted; found 64.4 %, ghosts 36.4 %; rms x,y 0.114 voxel, z 0.204 voxel; IPR 180 s (CPU 58 s),
+11 MART volumes 68 s, 185,255 particle images 91 s; every residual round adds particles (247 ... 31). The former
+batch of 2048: found 62.9 %, ghosts 35.8 % (the batch moves only the first intensity fit of new candidates: the
+faint ones' images go back into the residual after each batch), peak RSS 1.43 GB against 0.76 GB.
+``bench_budget.py``'s docstring has the study at 0.01 ppp (Q, valid vectors, MART beside IPR) and why IPR's
+particles fall short there.
+
+Memory (``--memory [--memory-particles 100]``; issue 27: a full frame at 0.005 ppp in <= 8 GB). One IPR fit on the
+full 4872 x 3248 px frame with a few particles: two candidate MART volumes on the refined grid (867 x 579 x 66,
+33.1 M voxels, 0.27 GB a float64 volume), one MART iteration each (a volume's buffers are made once, whatever its
+iterations: the memory is that of the default three, the time a third), the shake and the polish. Printed: the
+peak RSS from the call on (Linux VmHWM, reset through /proc/self/clear_refs; it includes the 0.48 GB the scene holds
+before), the weight tables and coverage, and the patches of one shake batch at uniform depths (the batch the few
+particles do not fill: at 0.005 ppp every batch is full). Measured, seed 51, 1 thread, load 6-7 on 2 cores (one
+full-frame volume of three iterations took 618 s there):
+
+- 79bd03d: the plan alone (``mart_plan``) peaked at 8.21 GB (weight tables 5.18 GB, every plane padded to the
+  widest plane's 10 voxels per beam, int32 starts; coverage 1.06 GB), a candidate volume of three iterations at
+  9.44 GB (voxel-sized temporaries of the update, the smoothing and the MLOS guess, and ``np.sum`` of the four
+  coverages stacked into one more 1.06 GB array); one shake batch of 2048 particles 4.72 GB of patches (~41,000 px
+  per image box, 7 images a particle) on top of the plan.
+- db2b9e4 (tables flat with each plane's own K: 4.03 GB; MART in place): IPR's peak 8.09 GB.
+- now (the plan's coverage in float32: 0.53 GB; summed without stacking): IPR's peak 7.18 GB; a shake batch of 256
+  particles (the new default) 0.59 GB, during the fit with the plan's 4.6 GB and the frame's arrays held, below
+  the MART's peak. A full frame at 0.005 ppp: ~7.2 GB (the particle list itself, ~80,000 x a few floats, is
+  small). MART's own volumes and the projector's tables keep their bytes (tests).
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import resource
 import time
 
@@ -108,7 +137,9 @@ def _score(field, parts, grid, cam=None) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--crop", type=int, nargs=2, default=[600, 600], metavar=("W", "H"), help="sensor crop [px]")
+    ap.add_argument(
+        "--crop", type=int, nargs=2, default=None, metavar=("W", "H"), help="sensor crop [px] (600 600; --memory: none)"
+    )
     ap.add_argument("--ppp", type=float, nargs="+", default=[0.001, 0.005])
     ap.add_argument("--rays", type=int, default=2000, help="Monte-Carlo rays per particle")
     ap.add_argument("--photons", type=int, default=25_000, help="photons per particle (shot noise)")
@@ -116,6 +147,8 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=None, help="default: the method's")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--compare", nargs="*", default=[], metavar="K=V", help="ipr_particles settings to compare")
+    ap.add_argument("--memory", action="store_true", help="peak memory of IPR on the full frame (see the docstring)")
+    ap.add_argument("--memory-particles", type=int, default=100, help="--memory: particles seeded")
     args = ap.parse_args()
 
     import numba
@@ -123,7 +156,10 @@ def main() -> None:
     from lfstudy.reconstruct.ipr import ipr_particles
 
     numba.set_num_threads(args.threads)
-    w, h = args.crop
+    if args.memory:
+        _memory(args)
+        return
+    w, h = args.crop or (600, 600)
     print(f"Table 4.3 camera cropped to {w} x {h} px (full: {WIDTH} x {HEIGHT}); {args.threads} threads")
     runs = [("defaults", {})] + [(c, _setting(c)) for c in args.compare]
     field, inputs = _scene(160, 160, 0.002, 200, args.photons, 99)  # warm-up: compile the kernels
@@ -163,6 +199,77 @@ def main() -> None:
                 f"    residual candidates: new particles per round {a['candidates_added']}, "
                 f"{a['skipped_candidate_rounds']} rounds skipped"
             )
+
+
+def _vm(key: str) -> float:
+    """``VmHWM`` (peak) or ``VmRSS`` of this process [GB], from /proc/self/status (Linux)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024 / 1e9
+    return float("nan")
+
+
+def _reset_peak() -> bool:
+    """Reset this process' VmHWM to its current RSS (Linux ``clear_refs`` 5); False where refused."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _memory(args: argparse.Namespace) -> None:
+    """Peak RSS of one IPR fit on the full frame (``--crop`` if given) with ``--memory-particles`` particles:
+    the candidate grid's MART tables, coverage and volumes (which do not depend on the particle count), then the
+    patch buffers of one batch of the shake at the thesis' depths (which the few particles do not fill)."""
+    from lfstudy.reconstruct.ipr import _MARGIN_PX, _REFINE_XY, _REFINE_Z, _refined, ipr_particles, particle_patches
+
+    w, h = args.crop or (WIDTH, HEIGHT)
+    ppp = args.memory_particles / (w * h)
+    t0 = time.perf_counter()
+    field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed)
+    cg = _refined(inputs.grid, _REFINE_XY, _REFINE_Z)
+    print(
+        f"{w} x {h} px, {len(field.x)} particles; case grid {inputs.grid.shape}, candidate grid {cg.shape} "
+        f"({cg.shape[0] * cg.shape[1] * cg.shape[2] / 1e6:.1f} M voxels); scene {time.perf_counter() - t0:.0f} s, "
+        f"RSS {_vm('VmRSS'):.2f} GB (peak {_vm('VmHWM'):.2f} GB)",
+        flush=True,
+    )
+    reset = _reset_peak()
+    base = _vm("VmRSS")
+    t0 = time.perf_counter()
+    # two candidate volumes (the first and one of the residual) of one MART iteration each: the memory of a volume
+    # does not depend on its iterations (every buffer is made once per volume), its time does (~5 min per full-frame
+    # volume of three iterations on one shared core)
+    kw = {"iterations": 1, "residual_candidates": 1, "mart_iterations": 1, "residual_mart_iterations": 1}
+    kw |= {"residual_candidates_min_gain": 0.0, "polish": 1}
+    parts = ipr_particles(inputs, **kw)
+    a = parts.attrs
+    peak = _vm("VmHWM") if reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    print(
+        f"IPR ({kw}, {a['mart_volumes']} MART volumes) {time.perf_counter() - t0:.0f} s: peak RSS {peak:.2f} GB "
+        f"({'since the IPR call' if reset else 'of the process'}; RSS before it {base:.2f} GB, of which the scene's "
+        f"light field, centres and images); weight tables {a['weight_table_bytes'] / 1e9:.2f} GB, coverage "
+        f"{a['coverage_bytes'] / 1e9:.2f} GB, one float64 volume {np.prod(cg.shape) * 8 / 1e9:.2f} GB",
+        flush=True,
+    )
+    # one batch of the shake (the current image and six trials per particle) at uniform depths over the grid
+    from lfstudy.reconstruct.ipr import calibrated_camera
+
+    cam, _ = calibrated_camera(inputs.camera, inputs.centers)
+    rng = np.random.default_rng(args.seed)
+    g = inputs.grid
+    n = inspect.signature(ipr_particles).parameters["batch"].default
+    pos = np.column_stack([rng.uniform(c[0], c[-1], n) for c in (g.x, g.y, g.z)])
+    vox = np.array(g.voxel_size()[::-1])
+    tr = np.vstack([np.diag(0.1 * vox), -np.diag(0.1 * vox)])
+    buf = particle_patches(cam, *pos.T, trials=tr, pad=_MARGIN_PX, accuracy="fast")[0]
+    print(
+        f"one shake batch ({n} particles x 7 images, z uniform over the grid): {buf.nbytes / 1e9:.2f} GB of patches; "
+        f"at most {peak + 2 * buf.nbytes / 1e9:.2f} GB with the step's images beside them on top of the peak above"
+    )
 
 
 def _setting(text: str) -> dict[str, object]:

@@ -11,6 +11,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 import yaml
+from scipy import ndimage
 
 from lfstudy import plugins as plugins_module
 from lfstudy.config import ConfigError
@@ -440,3 +441,46 @@ def test_reconstruct_stage_writes_the_particle_list(ipr_case):
     with pytest.raises(ValueError, match=r"reconstruct.method = 'mart' fits no particles"):
         run_reconstruct(mart, *ins, d / "v3.zarr", d / "v3.particles.zarr")
     assert not (d / "v2.zarr").exists() and not (d / "v3.zarr").exists() and not (d / "v3.particles.zarr").exists()
+
+
+def test_mart_update_in_place_gives_the_expression_s_bytes():
+    """MART's multiplicative update, smoothing and coverage threshold run in place (no voxel-sized temporaries:
+    they set the peak memory of IPR's candidate grid on a full frame) and give the bytes of the expressions
+    they replace, with uncovered voxels, factors beyond the e^±20 bound and zero coverage among them."""
+    from lfstudy.reconstruct.mart import _seen, _update
+
+    rng = np.random.default_rng(5)
+    shape = (6, 9, 11)
+    vol = rng.uniform(0.0, 3.0, shape)
+    num = rng.normal(0.0, 8.0, shape)
+    d = np.where(rng.random(shape) < 0.2, 0.0, rng.uniform(0.01, 2.0, shape))
+    upd = (d > 0) & (rng.random(shape) < 0.9)
+    ref = vol.copy()
+    ref[upd] *= np.exp(np.clip(0.7 * num[upd] / d[upd], -20.0, 20.0))
+    got = vol.copy()
+    _update(got, num.copy(), d, upd, 0.7)
+    assert np.array_equal(got, ref) and not np.array_equal(got, vol)
+    sm = vol.copy()
+    ndimage.gaussian_filter(sm, 0.5, truncate=3.0, output=sm)
+    assert np.array_equal(sm, ndimage.gaussian_filter(vol, 0.5, truncate=3.0))
+    assert np.array_equal(_seen(d, 0.5), d >= 0.5 * np.percentile(d[d > 0], 90))
+    assert not _seen(np.zeros(shape), 0.5).any()
+
+
+def test_mart_plan_float32_coverage_moves_the_volume_by_rounding_only(frame):
+    """IPR keeps its candidate plan's coverage in float32 (half its memory): the volume stays within 1e-5 of its
+    maximum of the float64 plan's and its peaks (IPR's candidates) within 1e-4 voxel; a bad dtype is refused."""
+    from lfstudy.reconstruct.ipr import _peaks
+
+    p64 = mart_plan(frame.lightfield, CAM, frame.grid)
+    p32 = mart_plan(frame.lightfield, CAM, frame.grid, coverage_dtype="float32")
+    assert [d.dtype for d in p32.dens] == [np.float32] * len(p64.dens)
+    assert sum(d.nbytes for d in p32.dens) * 2 == sum(d.nbytes for d in p64.dens)
+    v64 = mart(frame.lightfield, CAM, frame.grid, iterations=2, plan=p64).values
+    v32 = mart(frame.lightfield, CAM, frame.grid, iterations=2, plan=p32).values
+    assert not np.array_equal(v32, v64) and np.abs(v32 - v64).max() <= 1e-5 * v64.max()
+    a, b = _peaks(v64, frame.grid, 0.1), _peaks(v32, frame.grid, 0.1)
+    assert len(a) > 3 and a.shape == b.shape
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-4 * frame.grid.dx)
+    with pytest.raises(ReconstructionError, match=r"coverage_dtype = 'float16'; allowed: 'float64', 'float32'"):
+        mart_plan(frame.lightfield, CAM, frame.grid, coverage_dtype="float16")

@@ -165,6 +165,14 @@ dominant costs scale with the frame: at this cost per particle a full Table 4.3 
 stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine; the attrs
 ``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
 
+Memory (``benchmarks/bench_ipr.py --memory``, the full Table 4.3 frame): the candidate plan dominates, the refined
+grid's weight tables (4.03 GB: each plane's own beam width, int16 starts) and the four subsets' coverage (0.53 GB,
+float32), then a MART volume's buffers (0.27 GB each in float64, no voxel-sized temporaries); IPR's peak 7.18 GB
+(was 9.4 GB and more in one MART volume). The particle images go ``batch`` (256) particles at a time: a shake batch
+of 2048 held 4.7 GB of patches there. At 0.01 ppp (the study's and ``bench_ipr``'s figures in the benchmarks'
+docstrings) IPR's Q is above MART's, its valid vectors and RMS error not: 56-64 % of the particles found, 35-37 %
+ghosts, nearly all misplaced fits of real particles within 1.5 voxels of one (pairs behind one lenslet).
+
 Output: :func:`ipr_particles` returns the particle list; the method ``ipr`` returns the
 volume on the grid rendered from the particles with :func:`render_particles` (Gaussians of
 the case's truth σ, half a resolution cell, integrated over each voxel), so depth
@@ -229,6 +237,10 @@ _QUAD = {
     "exact": _QUAD_EXACT,
     "fast": np.array([2.0, 0.75, 2.0, 16.0, 8.0, 4.0, 4.5]),
 }
+#: Particles per batch of images: a shake batch holds 7 images per particle, each its patch's box (the defocus spot
+#: and a lenslet, ~200 x 200 px on average over the Table 4.3 camera's 7 mm depth, 5 % of it lit): 256 particles
+#: take 0.59 GB (``bench_ipr.py --memory``), the 2048 before 4.7 GB, more than the candidate MART's tables
+_BATCH = 256
 _POLISH_SPOT = 1.5  # the polish moves particles whose defocus spot (radius) is at most this many lenslet pitches
 _POLISH_XY = (-0.25, 0.0, 0.25)  # the polish stencil's offsets [voxels] in x and y
 _POLISH_Z = (-0.5, -0.25, 0.0, 0.25, 0.5)  # and in z
@@ -892,7 +904,7 @@ def ipr_particles(
     jacobian: str = "central",
     image_accuracy: str = "fast",
     polish: int = 3,
-    batch: int = 2048,
+    batch: int = _BATCH,
     progress: bool = False,
 ) -> xr.Dataset:
     """Particles fitted to a registered light field by IPR (see the module docstring).
@@ -944,7 +956,8 @@ def ipr_particles(
         is at most ``_POLISH_SPOT`` pitches is moved to the likelihood-weighted mean of a stencil of positions
         around it (0: none).
     batch : int
-        Particles rendered at once (bounds the patch memory).
+        Particles rendered at once (bounds the patch memory: their images' boxes, ~40,000 pixels each on average
+        over the thesis' 7 mm depth, the shake's 7 per particle: 0.59 GB at 256, 4.7 GB at the former 2048).
     progress : bool
         A tqdm bar over the iterations.
 
@@ -1008,7 +1021,9 @@ def ipr_particles(
     cgrid = _refined(grid, _REFINE_XY, _REFINE_Z)
     t0 = time.perf_counter()
     vcal = inputs.calibration
-    plan = mart_plan(lf, inputs.camera, cgrid, calibration=vcal)  # tables and coverage, once for every volume
+    # tables and coverage, once for every volume; the coverage in float32 (half its memory: the candidates are the
+    # volume's peaks, which the last bits of the coverage do not move)
+    plan = mart_plan(lf, inputs.camera, cgrid, calibration=vcal, coverage_dtype="float32")
     # the residual's volumes: every residual_plane_step-th plane, on views into the same tables
     rplan = plan.planes(int(residual_plane_step)) if residual_plane_step > 1 else plan
     clock["mart"] += time.perf_counter() - t0
@@ -1219,6 +1234,8 @@ def ipr_particles(
             "seconds_fit": float(clock["fit"]),
             "particle_images": int(clock["images"]),
             "mart_volumes": int(clock["volumes"]),
+            "weight_table_bytes": int(plan.proj.table_bytes),
+            "coverage_bytes": int(sum(d.nbytes for d in plan.dens)),
             "frame": "nominal camera" if vcal is None else "volumetric calibration (Hall et al. 2018)",
             **ginfo,
         },
@@ -1281,7 +1298,7 @@ def ipr(
     image_accuracy: str = "fast",
     polish: int = 3,
     blob_sigma: float = 0.0,
-    batch: int = 2048,
+    batch: int = _BATCH,
     progress: bool = False,
 ) -> xr.DataArray:
     """The ``ipr`` volume: :func:`ipr_particles` rendered on the grid by :func:`render_particles`.

@@ -106,15 +106,36 @@ class MartPlan:
         proj = self.proj.planes(step, start)
         sl = slice(int(start), None, int(step))
         dens = [d[sl] for d in self.dens]
-        seen = _seen(np.sum(dens, axis=0), self.min_coverage)
+        seen = _seen(_coverage(dens), self.min_coverage)
         return MartPlan(proj, self.subsets, self.min_coverage, self.blocks, self.act_c, dens, seen, self.calibration)
+
+
+def _coverage(dens: list[np.ndarray]) -> np.ndarray:
+    """Σ of the subsets' coverages in float64, added one after the other: the bytes of ``np.sum(dens, axis=0)``
+    (which adds the stacked rows in that order) without stacking them into one more array of them all."""
+    cover = dens[0].astype(np.float64)
+    for d in dens[1:]:
+        cover += d
+    return cover
 
 
 def _seen(cover: np.ndarray, min_coverage: float) -> np.ndarray:
     """Voxels seen by enough views to be placed in depth: coverage >= ``min_coverage`` x its 90th percentile."""
-    if not (cover > 0).any():
+    lit = cover[cover > 0]  # a copy, so the percentile may partition it in place (no second copy)
+    if not lit.size:
         return cover > 0
-    return cover >= min_coverage * float(np.percentile(cover[cover > 0], 90))
+    return cover >= min_coverage * float(np.percentile(lit, 90, overwrite_input=True))
+
+
+def _update(vol: np.ndarray, num: np.ndarray, d: np.ndarray, upd: np.ndarray, relaxation: float) -> None:
+    """``vol[upd] *= exp(clip(relaxation·num[upd]/d[upd], −20, 20))`` in place, with no voxel-sized temporary
+    (``num`` is overwritten): the same bytes as that expression (tested), whose five temporaries of up to
+    the grid's size (on IPR's refined grid of a full Table 4.3 frame 0.27 GB each) set MART's peak memory."""
+    np.multiply(num, relaxation, out=num)
+    np.divide(num, d, out=num, where=upd)
+    np.clip(num, -20.0, 20.0, out=num)
+    np.exp(num, out=num, where=upd)
+    np.multiply(vol, num, out=vol, where=upd)
 
 
 def mart_plan(
@@ -126,9 +147,17 @@ def mart_plan(
     min_coverage: float = 0.5,
     min_vignetting: float = 0.25,
     calibration: xr.Dataset | None = None,
+    coverage_dtype: str = "float64",
 ) -> MartPlan:
     """The geometry-only part of :func:`mart` (parameters as there; only ``lightfield``'s coordinates
-    are read), for :func:`mart`'s ``plan``."""
+    are read), for :func:`mart`'s ``plan``.
+
+    ``coverage_dtype`` is how each subset's coverage (one grid-sized array per subset, accumulated in
+    float64) is kept: ``"float64"`` gives :func:`mart`'s own bytes; ``"float32"`` halves them (on IPR's
+    candidate grid of a full Table 4.3 frame 1.06 -> 0.53 GB), the volume then within 1e-5 of its maximum
+    (tested)."""
+    if coverage_dtype not in ("float64", "float32"):
+        raise ReconstructionError(f"mart_plan: coverage_dtype = {coverage_dtype!r}; allowed: 'float64', 'float32'")
     if subsets < 1:
         raise ReconstructionError("reconstruct.mart: iterations must be >= 0 and subsets >= 1")
     proj = PlenopticProjector(lightfield, camera, grid, min_vignetting=min_vignetting, calibration=calibration)
@@ -144,13 +173,16 @@ def mart_plan(
     blocks = [cols[s::n_sub] for s in range(n_sub)]
     act_c = {pc: proj.column_values(active, pc, prs) for pc, prs in cols}
     # per-subset coverage (Σ of beam fractions over the used samples)
-    acc = np.zeros((n_sub, *grid.shape))
-    for s, block in enumerate(blocks):
+    # one subset at a time (each subset's sum runs over its own columns in the same order as all at once)
+    dens = []
+    for block in blocks:
+        acc = np.zeros((1, *grid.shape))
         for pc, prs in block:
-            proj.column_accumulate_many(pc, prs, act_c[pc].astype(np.float64)[None], np.array([s]), acc)
-    dens = list(acc)
+            proj.column_accumulate_many(pc, prs, act_c[pc].astype(np.float64)[None], np.zeros(1, np.int64), acc)
+        dens.append(acc[0] if coverage_dtype == "float64" else acc[0].astype(coverage_dtype))
+        del acc
     # voxels that too few views see cannot be placed in depth: they stay empty
-    seen = _seen(np.sum(dens, axis=0), float(min_coverage))
+    seen = _seen(_coverage(dens), float(min_coverage))
     return MartPlan(proj, int(subsets), float(min_coverage), blocks, act_c, dens, seen, calibration)
 
 
@@ -292,7 +324,7 @@ def mart(
     logm_c = {pc: proj.column_values(logm, pc, prs) for pc, prs in cols}
     meas_c = {pc: proj.column_values(meas, pc, prs) for pc, prs in cols}
     num = np.zeros(grid.shape)
-    cover = np.sum(dens, axis=0)
+    cover = _coverage(dens)
     if init == "mlos":
         # MLOS values log(I + b) − log(A·1) of every used sample (A·1 from the tables alone), their
         # coverage-weighted sum over every view in num
@@ -311,23 +343,30 @@ def mart(
             raise ReconstructionError("reconstruct.mart.init = 'stack' needs the focal stack on the grid")
         vol = np.maximum(np.asarray(stack.values, dtype=np.float64), 0.0)
     else:  # MLOS: weighted geometric mean of measured / projected-uniform over every view
-        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-            vol = np.where(cover > 0, np.exp(num / np.where(cover > 0, cover, 1.0)), 0.0)
+        pos = cover > 0
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # in place: num is free again after
+            np.divide(num, cover, out=num, where=pos)
+            np.exp(num, out=num, where=pos)
+        vol = np.where(pos, num, 0.0)
+        del pos
+    del cover
     vol[~seen] = 0.0
-    if smoothing > 0:
-        vol = ndimage.gaussian_filter(vol, smoothing, truncate=3.0)
+    if smoothing > 0:  # in place (each axis' pass buffers its lines): the same bytes, no second volume
+        ndimage.gaussian_filter(vol, smoothing, truncate=3.0, output=vol)
     init_s = time.perf_counter() - t0
 
     # ---- ordered-subset MART
     residuals: list[float] = []
     seconds: list[float] = []
     norm_i = float(np.sqrt(np.sum(meas[active] ** 2))) or 1.0
-    upds = [seen & (d > 0) for d in dens]
+    upd = np.empty(grid.shape, bool)  # the voxels a subset updates: seen, and covered by it
     bar = tqdm(total=iterations, desc="MART", unit="it", disable=not progress)
     for _ in range(iterations):
         t1 = time.perf_counter()
         r2 = 0.0
-        for block, d, upd in zip(blocks, dens, upds):
+        for block, d in zip(blocks, dens):
+            np.greater(d, 0.0, out=upd)
+            upd &= seen
             num.fill(0.0)
             for pc, prs in block:
                 p = proj.column_forward(vol, pc, prs, np.empty((prs.size, lens.size)))
@@ -337,9 +376,9 @@ def mart(
                 proj.column_accumulate(pc, prs, vals, num)
             # a voxel's factor is the weighted geometric mean of its rays' ratios; bounded
             # (e^±20) so a voxel barely seen by a subset cannot overflow
-            vol[upd] *= np.exp(np.clip(relaxation * num[upd] / d[upd], -20.0, 20.0))
+            _update(vol, num, d, upd, relaxation)
         if smoothing > 0:  # spatial filtering between iterations (Discetti et al. 2013)
-            vol = ndimage.gaussian_filter(vol, smoothing, truncate=3.0)
+            ndimage.gaussian_filter(vol, smoothing, truncate=3.0, output=vol)
         if track_residual:
             fwd = proj.forward(vol)
             r2 = float(np.sum((fwd.reshape(meas.shape)[active] - meas[active]) ** 2))

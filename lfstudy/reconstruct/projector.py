@@ -105,11 +105,12 @@ def _sum_uniform_cdf_integral(d, a, b):
 
 
 @njit(parallel=True, cache=True)
-def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w):  # pragma: no cover - jitted
+def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w, woff):  # pragma: no cover
     """Per pixel p (of a lenslet), plane k and lenslet l: first voxel and K weights of the beam along one axis.
 
     Tables are laid out [k, l, p] so a view (one pixel under every lenslet) reads
-    them contiguously, plane by plane.
+    them contiguously, plane by plane; the weights are flat, plane k's ``kks[k]`` per beam from
+    ``woff[k]`` (:func:`_wbase`: no plane padded to the widest plane's K).
 
     A voxel is a linear-interpolation (tent) basis function of half-width dc,
     so a point between two voxel centres is shared between them and
@@ -127,7 +128,14 @@ def _axis_tables(centre, slope, alpha, beta, half_l, half_t, c0, dc, nc, kks, st
         for l in range(nl):
             for p in range(n):
                 xc = alpha[k] * centre[l] - beta[k] * slope[l, p]
-                start[k, l, p] = _beam_row(xc, a, b, c0, dc, nc, kk, w[k, l, p])
+                o = _wbase(woff, k, l, p, n, kk)
+                start[k, l, p] = _beam_row(xc, a, b, c0, dc, nc, kk, w[o : o + kk])
+
+
+@njit(inline="always", cache=True)
+def _wbase(woff, k, l, p, n, kk):
+    """Index in a flat weight table of the first of beam (l, p)'s ``kk`` weights on plane k."""
+    return woff[k] + (l * n + p) * kk
 
 
 @njit(inline="always", cache=True)
@@ -157,7 +165,7 @@ def _tent_weights(xc, a, b, c0, dc, q0, kk, w):
 
 
 @njit(parallel=True, cache=True)
-def _axis_tables_at(xcs, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w):  # pragma: no cover - jitted
+def _axis_tables_at(xcs, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w, woff):  # pragma: no cover - jitted
     """:func:`_axis_tables` with the beam centres given, ``xcs[k, l, p]`` (the volumetric mapping)."""
     nz, nl, n = xcs.shape
     for k in prange(nz):
@@ -166,7 +174,8 @@ def _axis_tables_at(xcs, alpha, beta, half_l, half_t, c0, dc, nc, kks, start, w)
         b = abs(beta[k]) * half_t
         for l in range(nl):
             for p in range(n):
-                start[k, l, p] = _beam_row(xcs[k, l, p], a, b, c0, dc, nc, kk, w[k, l, p])
+                o = _wbase(woff, k, l, p, n, kk)
+                start[k, l, p] = _beam_row(xcs[k, l, p], a, b, c0, dc, nc, kk, w[o : o + kk])
 
 
 @njit(inline="always", cache=True)
@@ -333,22 +342,22 @@ def _vignetting(lx, ly, sx, sy, si, half_l, half_t, radius, out):  # pragma: no 
 
 
 @njit(inline="always", cache=True)
-def _ray_sum(vol, k, y0, x0, wy, wx, ny, nx):
-    """Σ_a Σ_b wy[a]·wx[b]·vol[k, y0 + a, x0 + b] over the first ny x nx weights of one beam."""
+def _ray_sum(vol, k, y0, x0, wy, oy, wx, ox, ny, nx):
+    """Σ_a Σ_b wy[oy + a]·wx[ox + b]·vol[k, y0 + a, x0 + b] over the ny x nx weights of one beam."""
     s = 0.0
     for a in range(ny):
-        wa = wy[a]
+        wa = wy[oy + a]
         if wa == 0.0:
             continue
         acc = 0.0
         for b in range(nx):
-            acc += wx[b] * vol[k, y0 + a, x0 + b]
+            acc += wx[ox + b] * vol[k, y0 + a, x0 + b]
         s += wa * acc
     return s
 
 
 @njit(parallel=True, cache=True)
-def _forward(vol, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no cover - jitted
+def _forward(vol, lens, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, gain, out):  # pragma: no cover - jitted
     """out[l, pr, pc] = gain[l, pr, pc] · Σ_k Σ_voxels Fy·Fx·vol, for the active lenslets ``lens``."""
     nz = vol.shape[0]
     n = out.shape[1]
@@ -361,12 +370,14 @@ def _forward(vol, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no
                     continue
                 s = 0.0
                 for k in range(nz):
-                    s += _ray_sum(vol, k, sys_[k, l, pr], sxs[k, l, pc], wys[k, l, pr], wxs[k, l, pc], kys[k], kxs[k])
+                    oy = _wbase(oys, k, l, pr, n, kys[k])
+                    ox = _wbase(oxs, k, l, pc, n, kxs[k])
+                    s += _ray_sum(vol, k, sys_[k, l, pr], sxs[k, l, pc], wys, oy, wxs, ox, kys[k], kxs[k])
                 out[l, pr, pc] = g * s
 
 
 @njit(parallel=True, cache=True)
-def _adjoint(vals, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no cover - jitted
+def _adjoint(vals, lens, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, gain, out):  # pragma: no cover - jitted
     """out += Aᵀ vals: every sample's gain·value spread over its voxels (planes in parallel)."""
     nz = out.shape[0]
     n = vals.shape[1]
@@ -382,30 +393,36 @@ def _adjoint(vals, lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: n
                     if g == 0.0:
                         continue
                     x0 = sxs[k, l, pc]
+                    oy = _wbase(oys, k, l, pr, n, ky)
+                    ox = _wbase(oxs, k, l, pc, n, kx)
                     for a in range(ky):
-                        wa = wys[k, l, pr, a] * g
+                        wa = wys[oy + a] * g
                         if wa == 0.0:
                             continue
                         for b in range(kx):
-                            out[k, y0 + a, x0 + b] += wa * wxs[k, l, pc, b]
+                            out[k, y0 + a, x0 + b] += wa * wxs[ox + b]
 
 
 @njit(parallel=True, cache=True)
-def _view_forward(vol, lens, pr, pc, sxs, wxs, kxs, sys_, wys, kys, partial):  # pragma: no cover - jitted
+def _view_forward(vol, lens, pr, pc, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, partial):  # pragma: no cover - jitted
     """Projection of one view (pixel pr, pc under every lenslet), plane by plane: partial[k, m]."""
     nz = vol.shape[0]
+    n = sxs.shape[2]
     for k in prange(nz):
         kx = kxs[k]
         ky = kys[k]
         for m in range(lens.shape[0]):
             l = lens[m]
-            partial[k, m] = _ray_sum(vol, k, sys_[k, l, pr], sxs[k, l, pc], wys[k, l, pr], wxs[k, l, pc], ky, kx)
+            oy = _wbase(oys, k, l, pr, n, ky)
+            ox = _wbase(oxs, k, l, pc, n, kx)
+            partial[k, m] = _ray_sum(vol, k, sys_[k, l, pr], sxs[k, l, pc], wys, oy, wxs, ox, ky, kx)
 
 
 @njit(parallel=True, cache=True)
-def _view_accumulate(lens, pr, pc, vals, use, sxs, wxs, kxs, sys_, wys, kys, num):  # pragma: no cover - jitted
+def _view_accumulate(lens, pr, pc, vals, use, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, num):  # pragma: no cover
     """num += Σ F·vals over the beams of one view (fractions F = Fy·Fx; planes in parallel)."""
     nz = num.shape[0]
+    n = sxs.shape[2]
     for k in prange(nz):
         kx = kxs[k]
         ky = kys[k]
@@ -416,12 +433,14 @@ def _view_accumulate(lens, pr, pc, vals, use, sxs, wxs, kxs, sys_, wys, kys, num
             v = vals[m]
             y0 = sys_[k, l, pr]
             x0 = sxs[k, l, pc]
+            oy = _wbase(oys, k, l, pr, n, ky)
+            ox = _wbase(oxs, k, l, pc, n, kx)
             for a in range(ky):
-                wa = wys[k, l, pr, a] * v
+                wa = wys[oy + a] * v
                 if wa == 0.0:
                     continue
                 for b in range(kx):
-                    num[k, y0 + a, x0 + b] += wa * wxs[k, l, pc, b]
+                    num[k, y0 + a, x0 + b] += wa * wxs[ox + b]
 
 
 #: Plane blocks of the column projection: a fixed count, so the sum over planes is done in
@@ -430,7 +449,7 @@ _PLANE_BLOCKS = 8
 
 
 @njit(parallel=True, cache=True)
-def _column_forward(vol, lens, pc, prs, sxs, wxs, kxs, sys_, wys, kys, out):  # pragma: no cover - jitted
+def _column_forward(vol, lens, pc, prs, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, out):  # pragma: no cover - jitted
     """Projection of the views (prs[j], pc) of one pixel column: out[block, j, m] for lenslet lens[m].
 
     The views of a column share their x weights, so per plane and lenslet the
@@ -441,6 +460,7 @@ def _column_forward(vol, lens, pc, prs, sxs, wxs, kxs, sys_, wys, kys, out):  # 
     nz = vol.shape[0]
     nb = out.shape[0]
     nv = prs.shape[0]
+    n = sxs.shape[2]
     for blk in prange(nb):
         col = np.empty(vol.shape[1])
         for j in range(nv):
@@ -458,21 +478,23 @@ def _column_forward(vol, lens, pc, prs, sxs, wxs, kxs, sys_, wys, kys, out):  # 
                     y0 = sys_[k, l, prs[j]]
                     ylo = min(ylo, y0)
                     yhi = max(yhi, y0)
+                ox = _wbase(oxs, k, l, pc, n, kx)
                 for y in range(ylo, yhi + ky):
                     acc = 0.0
                     for b in range(kx):
-                        acc += wxs[k, l, pc, b] * vol[k, y, x0 + b]
+                        acc += wxs[ox + b] * vol[k, y, x0 + b]
                     col[y] = acc
                 for j in range(nv):
                     y0 = sys_[k, l, prs[j]]
+                    oy = _wbase(oys, k, l, prs[j], n, ky)
                     s = 0.0
                     for a in range(ky):
-                        s += wys[k, l, prs[j], a] * col[y0 + a]
+                        s += wys[oy + a] * col[y0 + a]
                     out[blk, j, m] += s
 
 
 @njit(parallel=True, cache=True)
-def _column_accumulate(lens, pc, prs, vals, chans, sxs, wxs, kxs, sys_, wys, kys, out):  # pragma: no cover - jitted
+def _column_accumulate(lens, pc, prs, vals, chans, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, out):  # pragma: no cover
     """out[chans[c]] += Σ F·vals[c, j, m] over the beams of the views (prs[j], pc) of one column.
 
     Several value sets share one pass over the weight tables (channels ``c``);
@@ -481,6 +503,7 @@ def _column_accumulate(lens, pc, prs, vals, chans, sxs, wxs, kxs, sys_, wys, kys
     nz = out.shape[1]
     nv = prs.shape[0]
     nc = vals.shape[0]
+    n = sxs.shape[2]
     for k in prange(nz):
         kx = kxs[k]
         ky = kys[k]
@@ -501,25 +524,27 @@ def _column_accumulate(lens, pc, prs, vals, chans, sxs, wxs, kxs, sys_, wys, kys
                 continue
             for j in range(nv):
                 y0 = sys_[k, l, prs[j]]
+                oy = _wbase(oys, k, l, prs[j], n, ky)
                 for c in range(nc):
                     v = vals[c, j, m]
                     if v == 0.0:
                         continue
                     for a in range(ky):
-                        col[c, y0 + a] += wys[k, l, prs[j], a] * v
+                        col[c, y0 + a] += wys[oy + a] * v
             x0 = sxs[k, l, pc]
+            ox = _wbase(oxs, k, l, pc, n, kx)
             for c in range(nc):
                 o = chans[c]
                 for y in range(ylo, yhi + ky):
                     cv = col[c, y]
                     if cv != 0.0:
                         for b in range(kx):
-                            out[o, k, y, x0 + b] += cv * wxs[k, l, pc, b]
+                            out[o, k, y, x0 + b] += cv * wxs[ox + b]
                         col[c, y] = 0.0
 
 
 @njit(parallel=True, cache=True)
-def _uniform_projection(lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # pragma: no cover - jitted
+def _uniform_projection(lens, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, gain, out):  # pragma: no cover - jitted
     """out[l, pr, pc] = A·1: the projection of a uniform unit volume, from the table sums alone.
 
     With every voxel 1 a beam's sum over plane k is (Σ_b wx)(Σ_a wy), so no
@@ -536,12 +561,14 @@ def _uniform_projection(lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # prag
         for k in range(nz):
             for p in range(n):
                 t = 0.0
+                ox = _wbase(oxs, k, l, p, n, kxs[k])
                 for b in range(kxs[k]):
-                    t += wxs[k, l, p, b]
+                    t += wxs[ox + b]
                 sx[p] = t
                 t = 0.0
+                oy = _wbase(oys, k, l, p, n, kys[k])
                 for a in range(kys[k]):
-                    t += wys[k, l, p, a]
+                    t += wys[oy + a]
                 sy[p] = t
             for pr in range(n):
                 for pc in range(n):
@@ -552,25 +579,25 @@ def _uniform_projection(lens, sxs, wxs, kxs, sys_, wys, kys, gain, out):  # prag
 
 
 @njit(cache=True)
-def _impulse(k, j, i, lens, sxs, wxs, sys_, wys, gain, out):  # pragma: no cover - jitted
+def _impulse(k, j, i, lens, sxs, wxs, oxs, kxs, sys_, wys, oys, kys, gain, out):  # pragma: no cover - jitted
     """out[l, pr, pc] = gain · Fy(j) · Fx(i) of plane k: the light field of one unit voxel."""
     n = out.shape[1]
-    kx = wxs.shape[3]
-    ky = wys.shape[3]
+    kx = kxs[k]
+    ky = kys[k]
     for m in range(lens.shape[0]):
         l = lens[m]
         for pr in range(n):
             a = j - sys_[k, l, pr]
             if a < 0 or a >= ky:
                 continue
-            wa = wys[k, l, pr, a]
+            wa = wys[_wbase(oys, k, l, pr, n, ky) + a]
             if wa == 0.0:
                 continue
             for pc in range(n):
                 b = i - sxs[k, l, pc]
                 if b < 0 or b >= kx:
                     continue
-                out[l, pr, pc] = gain[l, pr, pc] * wa * wxs[k, l, pc, b]
+                out[l, pr, pc] = gain[l, pr, pc] * wa * wxs[_wbase(oxs, k, l, pc, n, kx) + b]
 
 
 # ------------------------------------------------------------------ the volumetric mapping
@@ -752,16 +779,23 @@ class PlenopticProjector:
         self.kys = np.minimum(grid.y.size, np.ceil(2.0 * reach / dy).astype(np.int64) + 3)
         self.kx, self.ky = int(self.kxs.max()), int(self.kys.max())
         nz = grid.z.size
-        need = nz * nl * n * (self.kx + self.ky) * 4 + 2 * nz * nl * n * 4
+        # a beam's first voxel fits int16 on any grid up to 32,767 voxels a side (the refined candidate grid of a
+        # full Table 4.3 frame: 867 x 579): half of int32's 0.47 GB there, the same indices
+        idx = np.int16 if max(grid.x.size, grid.y.size) <= np.iinfo(np.int16).max else np.int32
+        need = nl * n * int(self.kxs.sum() + self.kys.sum()) * 4 + 2 * nz * nl * n * np.dtype(idx).itemsize
         if need > max_bytes:
             raise ProjectorError(
                 f"projector: weight tables of {need / 1e9:.3g} GB exceed {max_bytes / 1e9:.3g} GB "
                 f"({nz} planes x {nl} lenslets x {n} pixels); use a coarser grid (grid.voxel_z)"
             )
-        self.sxs = np.empty((nz, nl, n), np.int32)
-        self.wxs = np.zeros((nz, nl, n, self.kx), np.float32)
-        self.sys = np.empty((nz, nl, n), np.int32)
-        self.wys = np.zeros((nz, nl, n, self.ky), np.float32)
+        # flat weight tables, plane k's beams with kxs[k] (kys[k]) weights each from oxs[k] (oys[k]): padding
+        # every plane to the widest one's K cost a fifth more (the refined grid of a full Table 4.3 frame: K 7-10)
+        self.sxs = np.empty((nz, nl, n), idx)
+        self.oxs = np.concatenate([[0], np.cumsum(nl * n * self.kxs)[:-1]]).astype(np.int64)
+        self.wxs = np.zeros(int(nl * n * self.kxs.sum()), np.float32)
+        self.sys = np.empty((nz, nl, n), idx)
+        self.oys = np.concatenate([[0], np.cumsum(nl * n * self.kys)[:-1]]).astype(np.int64)
+        self.wys = np.zeros(int(nl * n * self.kys.sum()), np.float32)
         vig = np.zeros((nl, n, n), np.float64)
         radius = camera.aperture_diameter / 2.0
         _vignetting(lx, ly, sx, sy, si, half_l, half_t, radius, vig)
@@ -773,10 +807,34 @@ class PlenopticProjector:
         if calibration is None:
             # Grid y ascends with the array index like object +y, and the sensor frame's y points up too.
             _axis_tables(
-                lx, sx, self.alpha, self.beta, half_l, half_t, grid.x[0], dx, grid.x.size, self.kxs, self.sxs, self.wxs
+                lx,
+                sx,
+                self.alpha,
+                self.beta,
+                half_l,
+                half_t,
+                grid.x[0],
+                dx,
+                grid.x.size,
+                self.kxs,
+                self.sxs,
+                self.wxs,
+                self.oxs,
             )
             _axis_tables(
-                ly, sy, self.alpha, self.beta, half_l, half_t, grid.y[0], dy, grid.y.size, self.kys, self.sys, self.wys
+                ly,
+                sy,
+                self.alpha,
+                self.beta,
+                half_l,
+                half_t,
+                grid.y[0],
+                dy,
+                grid.y.size,
+                self.kys,
+                self.sys,
+                self.wys,
+                self.oys,
             )
         else:
             xcs, ycs, bad, shear = _volumetric_centres(
@@ -786,10 +844,32 @@ class PlenopticProjector:
             vig[bad] = 0.0
             self.mapping_shear = float(shear) / min(dx, dy)
             _axis_tables_at(
-                xcs, self.alpha, self.beta, half_l, half_t, grid.x[0], dx, grid.x.size, self.kxs, self.sxs, self.wxs
+                xcs,
+                self.alpha,
+                self.beta,
+                half_l,
+                half_t,
+                grid.x[0],
+                dx,
+                grid.x.size,
+                self.kxs,
+                self.sxs,
+                self.wxs,
+                self.oxs,
             )
             _axis_tables_at(
-                ycs, self.alpha, self.beta, half_l, half_t, grid.y[0], dy, grid.y.size, self.kys, self.sys, self.wys
+                ycs,
+                self.alpha,
+                self.beta,
+                half_l,
+                half_t,
+                grid.y[0],
+                dy,
+                grid.y.size,
+                self.kys,
+                self.sys,
+                self.wys,
+                self.oys,
             )
         self.vignetting = vig
         k_const = so**2 * (pl * camera.pixel_pitch / fl) ** 2 / (dx * dy * math.pi * radius**2)
@@ -815,7 +895,8 @@ class PlenopticProjector:
         other.grid = ReconstructionGrid(g.x, g.y, g.z[sl], spacing=g.spacing)
         other.alpha, other.beta = self.alpha[sl], self.beta[sl]
         other.kxs, other.kys = self.kxs[sl], self.kys[sl]
-        other.sxs, other.wxs, other.sys, other.wys = self.sxs[sl], self.wxs[sl], self.sys[sl], self.wys[sl]
+        other.sxs, other.sys = self.sxs[sl], self.sys[sl]  # the weights stay the same flat tables
+        other.oxs, other.oys = self.oxs[sl], self.oys[sl]
         other._partial = None
         return other
 
@@ -827,7 +908,8 @@ class PlenopticProjector:
 
     @property
     def table_bytes(self) -> int:
-        return int(self.wxs.nbytes + self.wys.nbytes + self.sxs.nbytes + self.sys.nbytes)
+        nb = self.sxs.shape[1] * self.sxs.shape[2] * 4  # this grid's planes (a planes() view shares the tables)
+        return int(nb * (self.kxs.sum() + self.kys.sum()) + self.sxs.nbytes + self.sys.nbytes)
 
     def _lf_array(self, lf: Any) -> np.ndarray:
         arr = lf.transpose("lrow", "lcol", "prow", "pcol").values if isinstance(lf, xr.DataArray) else np.asarray(lf)
@@ -848,20 +930,61 @@ class PlenopticProjector:
         """A·vol: the light field (lrow, lcol, prow, pcol) a volume produces."""
         v = self._vol_array(vol)
         out = np.zeros((self.shape_lf[0] * self.shape_lf[1], self.n, self.n))
-        _forward(v, self.lenses, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self.gain, out)
+        _forward(
+            v,
+            self.lenses,
+            self.sxs,
+            self.wxs,
+            self.oxs,
+            self.kxs,
+            self.sys,
+            self.wys,
+            self.oys,
+            self.kys,
+            self.gain,
+            out,
+        )
         return out.reshape(self.shape_lf)
 
     def adjoint(self, lf: Any) -> np.ndarray:
         """Aᵀ·lf: a light field spread back over the grid (nz, ny, nx)."""
         g = self._lf_array(lf)
         out = np.zeros(self.grid.shape)
-        _adjoint(g, self.lenses, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self.gain, out)
+        _adjoint(
+            g,
+            self.lenses,
+            self.sxs,
+            self.wxs,
+            self.oxs,
+            self.kxs,
+            self.sys,
+            self.wys,
+            self.oys,
+            self.kys,
+            self.gain,
+            out,
+        )
         return out
 
     def impulse(self, k: int, j: int, i: int) -> np.ndarray:
         """A·e for the unit voxel (k, j, i): its light field (lrow, lcol, prow, pcol), from plane k's tables."""
         out = np.zeros((self.shape_lf[0] * self.shape_lf[1], self.n, self.n))
-        _impulse(int(k), int(j), int(i), self.lenses, self.sxs, self.wxs, self.sys, self.wys, self.gain, out)
+        _impulse(
+            int(k),
+            int(j),
+            int(i),
+            self.lenses,
+            self.sxs,
+            self.wxs,
+            self.oxs,
+            self.kxs,
+            self.sys,
+            self.wys,
+            self.oys,
+            self.kys,
+            self.gain,
+            out,
+        )
         return out.reshape(self.shape_lf)
 
     # ---------------------------------------------------------------- views
@@ -876,7 +999,19 @@ class PlenopticProjector:
         if self._partial is None or self._partial.shape != (self.grid.shape[0], self.lenses.size):
             self._partial = np.empty((self.grid.shape[0], self.lenses.size))
         _view_forward(
-            vol, self.lenses, pr, pc, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self._partial
+            vol,
+            self.lenses,
+            pr,
+            pc,
+            self.sxs,
+            self.wxs,
+            self.oxs,
+            self.kxs,
+            self.sys,
+            self.wys,
+            self.oys,
+            self.kys,
+            self._partial,
         )
         np.sum(self._partial, axis=0, out=out)  # planes in a fixed order: thread-count independent
         out *= self.gain[self.lenses, pr, pc]
@@ -893,7 +1028,21 @@ class PlenopticProjector:
         """Projections of the views (prs[j], pc): ``out[j, m]`` for lenslet ``self.lenses[m]``."""
         nb = min(_PLANE_BLOCKS, self.grid.shape[0])
         part = np.empty((nb, prs.size, self.lenses.size))
-        _column_forward(vol, self.lenses, pc, prs, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, part)
+        _column_forward(
+            vol,
+            self.lenses,
+            pc,
+            prs,
+            self.sxs,
+            self.wxs,
+            self.oxs,
+            self.kxs,
+            self.sys,
+            self.wys,
+            self.oys,
+            self.kys,
+            part,
+        )
         np.sum(part, axis=0, out=out)  # blocks in a fixed order: thread-count independent
         key = (int(pc), prs.tobytes())
         if key not in self._gain_columns:  # gathered once: a gather per call cost more than the sums
@@ -914,18 +1063,46 @@ class PlenopticProjector:
     ) -> None:
         """out[chans[c]] += Σ_beams F·vals[c, j, m] for several value sets in one pass over the tables."""
         _column_accumulate(
-            self.lenses, pc, prs, vals, chans, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, out
+            self.lenses,
+            pc,
+            prs,
+            vals,
+            chans,
+            self.sxs,
+            self.wxs,
+            self.oxs,
+            self.kxs,
+            self.sys,
+            self.wys,
+            self.oys,
+            self.kys,
+            out,
         )
 
     def uniform_projection(self) -> np.ndarray:
         """A·1 as (lenslet, prow, pcol): what a uniform unit volume projects, without reading a volume."""
         nl = self.shape_lf[0] * self.shape_lf[1]
         out = np.zeros((nl, self.n, self.n))
-        _uniform_projection(self.lenses, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, self.gain, out)
+        _uniform_projection(
+            self.lenses, self.sxs, self.wxs, self.oxs, self.kxs, self.sys, self.wys, self.oys, self.kys, self.gain, out
+        )
         return out
 
     def view_accumulate(self, pr: int, pc: int, vals: np.ndarray, use: np.ndarray, num: np.ndarray) -> None:
         """num += Σ_beams F·vals over view (pr, pc), for the beams with ``use`` (F: beam fraction per voxel)."""
         _view_accumulate(
-            self.lenses, pr, pc, vals, use, self.sxs, self.wxs, self.kxs, self.sys, self.wys, self.kys, num
+            self.lenses,
+            pr,
+            pc,
+            vals,
+            use,
+            self.sxs,
+            self.wxs,
+            self.oxs,
+            self.kxs,
+            self.sys,
+            self.wys,
+            self.oys,
+            self.kys,
+            num,
         )
