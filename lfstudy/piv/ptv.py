@@ -300,7 +300,12 @@ def _exponents(order: int) -> list[tuple[int, int, int]]:
 def _design(dx: np.ndarray, order: int) -> np.ndarray:
     """Columns of the local polynomial of ``order`` at ``dx`` (n, 3): the monomials of
     :func:`_exponents` (1: 1, x, y, z; 2: also the six quadratic terms; 3: also the ten cubic ones)."""
-    return np.column_stack([np.prod(dx ** np.asarray(e, float), axis=1) for e in _exponents(order)])
+    ones = np.ones(len(dx))
+    powers = [[ones] for _ in range(3)]  # powers[axis][k] = dx[:, axis] ** k, by products (exact)
+    for axis in range(3):
+        for _ in range(order):
+            powers[axis].append(powers[axis][-1] * dx[:, axis])
+    return np.column_stack([powers[0][i] * powers[1][j] * powers[2][k] for i, j, k in _exponents(order)])
 
 
 def _sigmas(a: Any, b: Any, ia: np.ndarray, jb: np.ndarray) -> np.ndarray | None:
@@ -325,10 +330,11 @@ def _fit(dx: np.ndarray, y: np.ndarray, w: np.ndarray, order: int) -> tuple[np.n
     value, sd = np.empty(3), np.empty(3)
     ell, coefs, covs = np.empty((3, n)), np.empty((3, p)), np.empty((3, p, p))
     for k in range(3):
-        xtwx = X.T @ (X * w[:, k, None])
-        if np.linalg.matrix_rank(xtwx) < p:
-            return None
-        inv = np.linalg.inv(xtwx)
+        if k == 0 or not np.array_equal(w[:, k], w[:, k - 1]):  # unweighted: one inverse for all three
+            xtwx = X.T @ (X * w[:, k, None])
+            if np.linalg.matrix_rank(xtwx) < p:
+                return None
+            inv = np.linalg.inv(xtwx)
         coef = inv @ (X.T @ (w[:, k] * y[:, k]))
         res = y[:, k] - X @ coef
         s2 = float(np.sum(w[:, k] * res * res)) / (n - p)
