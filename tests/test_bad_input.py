@@ -164,6 +164,14 @@ def test_frames_of_different_shapes_and_windows_too_large(files, cli_error, tmp_
             r"piv\.ptv_order' = 3",
         ),
         (
+            lambda c: c.update(piv={"particles": "ptv", "ptv_model_box": 6}),
+            r"piv\.ptv_model_box' = 6",
+        ),
+        (
+            lambda c: c.update(piv={"particles": "ptv", "ptv_model_box": 0.5}),
+            r"config key 'piv\.ptv_model_box' = 0\.5 .*at least the final window \(1 to 5 .*0 turns the term off",
+        ),
+        (
             lambda c: c["camera"]["sensor"].update(n_pixels_x=60000, n_pixels_y=60000),
             r"config key 'camera\.sensor'.*needs about .* GB .*more than this machine's",
         ),

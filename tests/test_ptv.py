@@ -197,6 +197,63 @@ def test_the_fit_uncertainty_covers_position_noise():
         np.testing.assert_allclose(res[c].values, res[f"{c}_mm"].values / VOXEL["uvw".index(c)])
 
 
+def _tracks(x: np.ndarray, d: np.ndarray) -> xr.Dataset:
+    return xr.Dataset(
+        {
+            **{k: ("track", x[:, i]) for i, k in enumerate("xyz")},
+            **{f"{c}_mm": ("track", d[:, i]) for i, c in enumerate("uvw")},
+        }
+    )
+
+
+def _quadratic(x, y, z):
+    """A field whose curvature the order-1 fit cannot follow: u and w quadratic in x and y, v in z."""
+    return 0.1 + 0.4 * (x - 1.3) ** 2, 0.05 - 0.3 * (z - 2.2) ** 2, 0.2 * (x - 1.5) * (y - 1.7)
+
+
+def test_the_model_term_is_the_fit_bias_of_a_quadratic_field_and_nothing_on_a_linear_one():
+    rng = np.random.default_rng(17)
+    x = _particles(rng, 1000)
+    grid = _grid(_uniform)
+    zz, yy, xx = np.meshgrid(grid.z, grid.y, grid.x, indexing="ij")
+    # quadratic, no noise: the pilot's quadratic fit is exact, so the term is the order-1 fit's actual bias
+    quad = _tracks(x, np.column_stack(_quadratic(*x.T)))
+    res = bin_tracks(quad, grid, voxel=VOXEL, order=1, model_box=1.25)  # any box: the pilot is exact
+    fit = bin_tracks(quad, grid, voxel=VOXEL, order=1, model_box=0)
+    ok = res.valid.values & (res.ptv_fit.values == 2)
+    assert ok.mean() > 0.7 and res.attrs["ptv_model_box"] == 1.25
+    for c, t in zip("uvw", _quadratic(xx, yy, zz)):
+        bias = np.abs(res[f"{c}_mm"].values - t)[ok]
+        assert bias.max() > 1e-4  # the curvature biases the linear fit
+        np.testing.assert_allclose(res[f"unc_model_{c}_mm"].values[ok], bias, rtol=1e-6, atol=1e-12)
+        # in quadrature with the fit's own term (its residuals: the curvature it cannot follow)
+        s_fit = fit[f"unc_{c}_mm"].values[ok]
+        model = res[f"unc_model_{c}_mm"].values[ok]
+        np.testing.assert_allclose(res[f"unc_{c}_mm"].values[ok], np.hypot(s_fit, model), rtol=1e-12)
+    # linear, no noise: no term; with noise the pilot's own noise is taken off (most terms exactly 0)
+    lin = np.column_stack(_rotation(*x.T))
+    res = bin_tracks(_tracks(x, lin), grid, voxel=VOXEL)
+    lin_fit = res.ptv_fit.values == 2  # (a box that falls back to the mean has the gradient's bias)
+    assert lin_fit.mean() > 0.7
+    for c in "uvw":
+        assert np.max(np.abs(res[f"unc_model_{c}_mm"].values[lin_fit])) < 1e-12
+    noisy = lin + rng.normal(0, 0.15 * VOXEL * np.sqrt(2), x.shape)
+    on, off = (bin_tracks(_tracks(x, noisy), grid, voxel=VOXEL, model_box=b) for b in (1.5, 0))
+    ok = on.valid.values
+    for c, t in zip("uvw", _rotation(xx, yy, zz)):
+        assert np.mean(on[f"unc_model_{c}_mm"].values[ok] == 0) > 0.5
+        np.testing.assert_array_equal(on[f"{c}_mm"].values, off[f"{c}_mm"].values)  # the vectors do not change
+        s_on, s_off = on[f"unc_{c}_mm"].values[ok], off[f"unc_{c}_mm"].values[ok]
+        assert np.all(s_on >= s_off)
+        # what the pilot's noise adds keeps the σ within issue 28's band on a field with no curvature
+        e = np.abs(on[f"{c}_mm"].values - t)[ok]
+        assert 0.55 <= np.mean(e <= s_on) <= 0.8 and 0.7 <= np.sqrt(np.mean(e**2) / np.mean(s_on**2)) <= 1.4
+    assert np.all(off.unc_model_u_mm.values[ok] == 0)
+    for bad in (0.5, 6.0, "2"):
+        with pytest.raises(ValueError, match="model_box"):
+            bin_tracks(_tracks(x, lin), grid, voxel=VOXEL, model_box=bad)
+
+
 def test_few_tracks_fall_back_to_the_mean_then_invalid():
     grid = _grid(_uniform)
     c = np.array([float(grid.x[2]), float(grid.y[2]), float(grid.z[2])])

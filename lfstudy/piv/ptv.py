@@ -20,7 +20,11 @@ A matched particle pair is a displacement with no window. Here:
    lie; the top-hat mean of the same tracks is off by ``G·(x̄ − x_c)``, the gradient times the
    offset of their centroid. The standard uncertainty of ``c0`` is ``sqrt(s² [(XᵀX)⁻¹]₀₀)``
    with ``s²`` the residual variance over ``n − 4`` degrees of freedom (ordinary least squares,
-   e.g. Draper & Smith 1998, *Applied Regression Analysis*, ch. 5).
+   e.g. Draper & Smith 1998, *Applied Regression Analysis*, ch. 5). That variance sees the noise,
+   not the bias the fit's order leaves on a curved field (Hill's vortex: RMS error 1.8 times the
+   RMS σ in x and y). A model term is added in quadrature: the bias the fit's weights give the next
+   order's terms, whose coefficients a pilot fit over a box 1.5 windows wide estimates, less the
+   pilot's own noise (:func:`_model_sd`; Fan & Gijbels 1996).
 
 The functions are pure (arrays and xarray objects in, out) and know nothing of the study: the
 workflow reads the particle lists written beside the volumes and calls them.
@@ -37,14 +41,36 @@ import xarray as xr
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
-__all__ = ["SEARCH", "FIT_PARAMETERS", "positions", "predict", "match_particles", "validate_tracks", "bin_tracks"]
+__all__ = [
+    "SEARCH",
+    "MODEL_BOX",
+    "FIT_PARAMETERS",
+    "positions",
+    "predict",
+    "match_particles",
+    "validate_tracks",
+    "bin_tracks",
+]
 
 #: Default search radius of a match, in voxels per axis (scaled distance).
 SEARCH = 1.5
 
 #: Parameters of the local polynomial fit per component, by order: c0 (0, the mean), the three
-#: gradient terms (1), the six second-derivative terms (2).
-FIT_PARAMETERS = {0: 1, 1: 4, 2: 10}
+#: gradient terms (1), the six second-derivative terms (2), the ten third-derivative terms (3: only
+#: the model term's pilot fit of an order-2 binning, :func:`bin_tracks` ``model_box``).
+FIT_PARAMETERS = {0: 1, 1: 4, 2: 10, 3: 20}
+
+#: The orders :func:`bin_tracks` fits.
+ORDERS = (0, 1, 2)
+
+#: Default pilot box of the uncertainty's model term, in final windows per axis (:func:`bin_tracks`
+#: ``model_box``), chosen on the demo design against 1.25 and 2 (``docs/config.md``,
+#: ``benchmarks/bench_ptv_model.py``): 1.25 (a pilot of ~2 windows' tracks) over-covers a linear
+#: field, 2 averages the curvature of Hill's vortex away.
+MODEL_BOX = 1.5
+
+#: Largest pilot box of the model term, in final windows per axis.
+MODEL_BOX_MAX = 5.0
 
 _XYZ = ("x", "y", "z")
 _COMP = ("u", "v", "w")  # displacement along x, y, z
@@ -258,13 +284,28 @@ def match_particles(
     )
 
 
+def _exponents(order: int) -> list[tuple[int, int, int]]:
+    """Exponents (of x, y, z) of the monomials of the local polynomial of ``order``, by degree: 1; x, y,
+    z; x², y², z², xy, xz, yz; then the ten cubic ones (the pilot fit of :func:`_model_sd`)."""
+    out = [(0, 0, 0)]
+    if order >= 1:
+        out += [(1, 0, 0), (0, 1, 0), (0, 0, 1)]
+    if order >= 2:
+        out += [(2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1)]
+    if order >= 3:
+        out += [(i, j, 3 - i - j) for i in range(3, -1, -1) for j in range(3 - i, -1, -1)]
+    return out
+
+
 def _design(dx: np.ndarray, order: int) -> np.ndarray:
-    """Columns of the local polynomial of ``order`` (1: 1, x, y, z; 2: also the six quadratic terms)."""
-    cols = [np.ones(len(dx)), *dx.T]
-    if order == 2:
-        x, y, z = dx.T
-        cols += [x * x, y * y, z * z, x * y, x * z, y * z]
-    return np.column_stack(cols)
+    """Columns of the local polynomial of ``order`` at ``dx`` (n, 3): the monomials of
+    :func:`_exponents` (1: 1, x, y, z; 2: also the six quadratic terms; 3: also the ten cubic ones)."""
+    ones = np.ones(len(dx))
+    powers = [[ones] for _ in range(3)]  # powers[axis][k] = dx[:, axis] ** k, by products (exact)
+    for axis in range(3):
+        for _ in range(order):
+            powers[axis].append(powers[axis][-1] * dx[:, axis])
+    return np.column_stack([powers[0][i] * powers[1][j] * powers[2][k] for i, j, k in _exponents(order)])
 
 
 def _sigmas(a: Any, b: Any, ia: np.ndarray, jb: np.ndarray) -> np.ndarray | None:
@@ -278,24 +319,66 @@ def _sigmas(a: Any, b: Any, ia: np.ndarray, jb: np.ndarray) -> np.ndarray | None
     return np.sqrt(sa * sa + sb * sb)
 
 
-def _fit(dx: np.ndarray, y: np.ndarray, w: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray] | None:
+def _fit(dx: np.ndarray, y: np.ndarray, w: np.ndarray, order: int) -> tuple[np.ndarray, ...] | None:
     """Weighted least squares of ``y`` (n, 3) on the local polynomial of ``order`` in ``dx``, weights
     ``w`` (n, 3) per component: the value at dx = 0 and its standard uncertainty per component
-    (``s² [(XᵀWX)⁻¹]₀₀``, ``s²`` the weighted residual variance); None where the design is rank
-    deficient. Order 0 is the weighted mean."""
-    X = _design(dx, order) if order else np.ones((len(dx), 1))
+    (``s² [(XᵀWX)⁻¹]₀₀``, ``s²`` the weighted residual variance), the intercept's weights ``l`` (3, n)
+    (``c0 = lᵀ y``) and the coefficients (3, p) with the covariance of the fit (3, p, p); None where the
+    design is rank deficient. Order 0 is the weighted mean."""
+    X = _design(dx, order)
     n, p = X.shape
     value, sd = np.empty(3), np.empty(3)
+    ell, coefs, covs = np.empty((3, n)), np.empty((3, p)), np.empty((3, p, p))
     for k in range(3):
-        xtwx = X.T @ (X * w[:, k, None])
-        if np.linalg.matrix_rank(xtwx) < p:
-            return None
-        inv = np.linalg.inv(xtwx)
+        if k == 0 or not np.array_equal(w[:, k], w[:, k - 1]):  # unweighted: one inverse for all three
+            xtwx = X.T @ (X * w[:, k, None])
+            if np.linalg.matrix_rank(xtwx) < p:
+                return None
+            inv = np.linalg.inv(xtwx)
         coef = inv @ (X.T @ (w[:, k] * y[:, k]))
         res = y[:, k] - X @ coef
         s2 = float(np.sum(w[:, k] * res * res)) / (n - p)
         value[k], sd[k] = coef[0], math.sqrt(max(s2 * inv[0, 0], 0.0))
-    return value, sd
+        ell[k] = (inv[0] @ X.T) * w[:, k]
+        coefs[k], covs[k] = coef, s2 * inv
+    return value, sd, ell, coefs, covs
+
+
+def _model_sd(
+    dx: np.ndarray,
+    ell: np.ndarray,
+    pilot_dx: np.ndarray,
+    pilot_y: np.ndarray,
+    pilot_w: np.ndarray,
+    order: int,
+) -> np.ndarray:
+    """The model (truncation) term of an order-``order`` fit's value per component: the bias its
+    intercept weights ``ell`` (3, n) give the next order's terms at the bin's tracks ``dx`` (n, 3),
+    their coefficients taken from a pilot fit of order ``order + 1`` to the tracks of a larger box
+    (``pilot_*``, same scaled coordinates). ``b = Σ_i l_i Σ_|α|=p+1 β_α dx_i^α`` is the leading bias of
+    local polynomial regression (Fan & Gijbels 1996, *Local Polynomial Modelling and Its
+    Applications*, eq. 3.5; Ruppert & Wand 1994, Ann. Statist. 22 1346, thm 2.1), with β the pilot
+    estimate of the (p+1)-th derivatives (the plug-in of Ruppert, Sheather & Wand 1995, JASA 90 1257).
+    The pilot's own noise would add to |b| on a field with no curvature, so the returned term is
+    ``sqrt(max(b² − var(b), 0))``, ``var(b) = aᵀ C a`` (a = the bin's weighted moments of the
+    (p+1)-th monomials, C the pilot coefficients' covariance): an unbiased estimate of b² clipped at
+    zero. Zero where the pilot fit is not possible (too few tracks, rank deficient)."""
+    out = np.zeros(3)
+    nxt = order + 1
+    lo, hi = FIT_PARAMETERS[order], FIT_PARAMETERS[nxt]
+    if len(pilot_dx) < hi + 2:
+        return out
+    pilot = _fit(pilot_dx, pilot_y, pilot_w, nxt)
+    if pilot is None:
+        return out
+    _, _, _, coefs, covs = pilot
+    top = _design(dx, nxt)[:, lo:hi]  # the (p+1)-th degree monomials at the bin's tracks
+    for k in range(3):
+        a = ell[k] @ top
+        b = float(a @ coefs[k, lo:hi])
+        var = float(a @ covs[k, lo:hi, lo:hi] @ a)
+        out[k] = math.sqrt(max(b * b - var, 0.0))
+    return out
 
 
 def _weights(tracks: xr.Dataset, n: int, weighted: bool, vox: np.ndarray) -> np.ndarray:
@@ -317,6 +400,7 @@ def bin_tracks(
     voxel: Sequence[float] | None = None,
     order: int = 1,
     weighted: bool = False,
+    model_box: float = MODEL_BOX,
 ) -> xr.Dataset:
     """The tracks' displacement at every vector of a PIV grid, by a local linear fit.
 
@@ -331,7 +415,10 @@ def bin_tracks(
     lower order is fitted, down to the (weighted) mean (its uncertainty the standard error, with at
     least 2 tracks); with fewer the vector is invalid. ``order=2`` adds the quadratic terms
     (second-order polynomial binning, as the ensemble PTV of Agüera, Cafiero, Astarita & Discetti
-    2016, Meas. Sci. Technol. 27 124011): the box's curvature bias goes, at more noise.
+    2016, Meas. Sci. Technol. 27 124011): the box's curvature bias goes, at more noise. The
+    residual variance does not measure the bias the fit's order leaves on a curved field, so
+    (``model_box`` > 0) a model term is added to the uncertainty in quadrature: the next order's
+    terms, fitted over a pilot box, through the fit's weights (:func:`_model_sd`).
 
     Parameters
     ----------
@@ -347,6 +434,18 @@ def bin_tracks(
     order : {0, 1, 2}
         Order of the local polynomial: 0 the mean of the tracks (the top-hat average of a
         window), 1 linear (default), 2 quadratic.
+    model_box : float
+        The model (truncation) term of the uncertainty: 0 leaves it out; else the pilot box, in
+        final windows per axis (1 to :data:`MODEL_BOX_MAX`), whose tracks a fit of order
+        ``order + 1`` gets the next order's coefficients from. The bias those terms give the
+        vector (:func:`_model_sd`) is added to the fit's standard uncertainty in quadrature; the
+        vectors do not change. Default :data:`MODEL_BOX` (1.5). Measured on
+        ``benchmarks/ptv_model_demo.yaml`` (M −1, pitch 0.0888, seed 21, order 1; coverage and RMS
+        error / RMS σ, x / y / z): Hill's vortex 0.49 / 0.53 / 0.54 and 1.86 / 1.80 / 1.32 without it,
+        0.61 / 0.65 / 0.59 and 1.35 / 1.28 / 1.11 with it; the uniform flow 1.05 / 1.07 / 1.06 ->
+        0.98 / 0.97 / 0.94 (the pilot's noise the subtraction does not take off: ``b² − var`` is
+        clipped at 0). A box of 1.25 windows gives 0.74 / 0.77 / 0.71 there, 2 windows 1.52 / 1.45
+        on Hill's x and y (``docs/config.md``).
     weighted : bool
         Weight each track's component by ``1 / σ²`` of its displacement where the tracks carry
         ``sigma_u_mm`` ... (:func:`match_particles` from lists with position uncertainties, as IPR
@@ -364,17 +463,23 @@ def bin_tracks(
         ``unc_*`` and ``unc_*_mm`` (NaN where invalid) and ``valid`` from the tracks (where invalid,
         the WIDIM vector stays, as WIDIM keeps a replaced one); the WIDIM vectors as ``piv_u_mm``,
         ``piv_v_mm``, ``piv_w_mm``, ``piv_valid`` (and ``piv_unc_*_mm``); ``n_tracks`` (tracks in the
-        box) and ``ptv_fit`` (1 + the order fitted: 3 quadratic, 2 linear, 1 mean; 0 invalid). Attrs
+        box), ``ptv_fit`` (1 + the order fitted: 3 quadratic, 2 linear, 1 mean; 0 invalid) and
+        ``unc_model_u_mm``, ... (the model term inside ``unc_*_mm``; 0 where the pilot box has too
+        few tracks or ``model_box`` is 0, NaN where invalid). Attrs
         of the WIDIM result (the errors stage reads ``final_window``, ``final_spacing``) plus
         ``particles = "ptv"``,
-        ``ptv_window``, ``ptv_order``, ``ptv_search``, ``ptv_tracks``.
+        ``ptv_window``, ``ptv_order``, ``ptv_model_box``, ``ptv_search``, ``ptv_tracks``.
     """
     dims = ("z", "y", "x")
     for need in ("u_mm", "v_mm", "w_mm", "valid"):
         if need not in piv_grid:
             raise ValueError(f"bin_tracks: the PIV grid has no {need!r} (a 3-D WIDIM result with coordinates in mm)")
-    if order not in FIT_PARAMETERS:
-        raise ValueError(f"order = {order!r}: the local polynomial's order is one of {sorted(FIT_PARAMETERS)}")
+    if order not in ORDERS:
+        raise ValueError(f"order = {order!r}: the local polynomial's order is one of {list(ORDERS)}")
+    if not (isinstance(model_box, (int, float)) and (model_box == 0 or 1 <= model_box <= MODEL_BOX_MAX)):
+        raise ValueError(
+            f"model_box = {model_box!r}: 0 (no model term) or the pilot box over the window, 1 to {MODEL_BOX_MAX}"
+        )
     vox = _voxel(voxel, piv_grid)
     win = piv_grid.attrs.get("final_window") if window is None else window
     if win is None or len(win) != 3 or not all(float(w) > 0 for w in win):
@@ -389,22 +494,31 @@ def bin_tracks(
     unc = np.full((m, 3), np.nan)
     count = np.zeros(m, np.int64)
     kind = np.zeros(m, np.int8)
+    model = np.zeros((m, 3))
     wts = _weights(tracks, len(pos), weighted, vox)
     usable = np.all(wts > 0, axis=1)  # a track with an infinite sigma does not count
     pos, disp, wts = pos[usable], disp[usable], wts[usable]
     if len(pos):
         # the box is the unit ball of the max norm on positions scaled by the half window
-        near = cKDTree(pos / half).query_ball_point(centres / half, r=1.0, p=np.inf)
+        tree = cKDTree(pos / half)
+        near = tree.query_ball_point(centres / half, r=1.0, p=np.inf)
+        wide = tree.query_ball_point(centres / half, r=float(model_box), p=np.inf) if model_box else None
         for k, idx in enumerate(near):
             idx = np.sort(np.asarray(idx, int))
             count[k] = n = len(idx)
             for o in range(int(order), -1, -1):
                 if n >= (max(4, FIT_PARAMETERS[o] + 2) if o else 2):
-                    fit = _fit((pos[idx] - centres[k]) / half, disp[idx], wts[idx], o)
+                    dx = (pos[idx] - centres[k]) / half
+                    fit = _fit(dx, disp[idx], wts[idx], o)
                     if fit is not None:
-                        val[k], unc[k] = fit
+                        val[k], unc[k] = fit[:2]
                         kind[k] = o + 1
+                        if wide is not None:
+                            pid = np.sort(np.asarray(wide[k], int))
+                            pdx = (pos[pid] - centres[k]) / half
+                            model[k] = _model_sd(dx, fit[2], pdx, disp[pid], wts[pid], o)
                         break
+        unc = np.sqrt(unc * unc + model * model)
     shape = xx.shape
     valid = (kind > 0).reshape(shape)
     out = piv_grid.copy()
@@ -425,6 +539,12 @@ def bin_tracks(
         out[c] = (dims, mm_ / step, {"units": "voxel", "long_name": desc})
         out[f"unc_{c}_mm"] = (dims, sd, {"units": "mm", "long_name": udesc})
         out[f"unc_{c}"] = (dims, sd / np.abs(step), {"units": "voxel", "long_name": udesc})
+    for k, (c, ax) in enumerate(zip(_COMP, _XYZ)):
+        out[f"unc_model_{c}_mm"] = (
+            dims,
+            np.where(valid, model[:, k].reshape(shape), np.nan),
+            {"units": "mm", "long_name": f"model (curvature) term of the {ax} uncertainty (in unc_{c}_mm)"},
+        )
     out["valid"] = (dims, valid, {"units": "1", "long_name": "enough tracks in the window (>= 2)"})
     out["n_tracks"] = (dims, count.reshape(shape), {"units": "1", "long_name": "tracks in the window box"})
     out["ptv_fit"] = (
@@ -440,6 +560,7 @@ def bin_tracks(
         uncertainty="ptv_fit",
         ptv_window=[float(w) for w in win],
         ptv_order=int(order),
+        ptv_model_box=float(model_box),
         ptv_weighted=int(bool(weighted) and bool(np.any(wts != 1.0))),
         ptv_search=float(tracks.attrs.get("search", math.nan)),
         ptv_tracks=len(pos),

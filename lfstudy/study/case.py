@@ -525,7 +525,7 @@ def case_ptv(
     Parameters
     ----------
     ccfg : Mapping
-        The case's config (its ``piv`` section: ``ptv_search``, ``ptv_order``).
+        The case's config (its ``piv`` section: ``ptv_search``, ``ptv_order``, ``ptv_model_box``).
     piv : xarray.Dataset
         The case's WIDIM result (:func:`case_piv`): the predictor and the grid.
     particles_a, particles_b : xarray.Dataset
@@ -541,13 +541,19 @@ def case_ptv(
     """
     import time
 
-    from lfstudy.piv.ptv import SEARCH, bin_tracks, match_particles, validate_tracks
+    from lfstudy.piv.ptv import MODEL_BOX, SEARCH, bin_tracks, match_particles, validate_tracks
 
     t0 = time.perf_counter()
     search = float(ccfg["piv"].get("ptv_search", SEARCH))
     tracks = match_particles(particles_a, particles_b, piv, search=search, voxel=voxel)
     tracks = validate_tracks(tracks, voxel=tracks.attrs["voxel_mm"])
-    res = bin_tracks(tracks, piv, voxel=voxel, order=int(ccfg["piv"].get("ptv_order", 1)))
+    res = bin_tracks(
+        tracks,
+        piv,
+        voxel=voxel,
+        order=int(ccfg["piv"].get("ptv_order", 1)),
+        model_box=float(ccfg["piv"].get("ptv_model_box", MODEL_BOX)),
+    )
     res.attrs["ptv_rejected"] = int(tracks.attrs["n_rejected"])
     res.attrs["ptv_seconds"] = time.perf_counter() - t0
     return res

@@ -132,6 +132,12 @@ def _check_particles_setting(ccfg: Mapping[str, Any], case_id: str) -> None:
     calibration (the traverse measures WIDIM's depth gain on the volumes, not the tracks')."""
     if ccfg["piv"].get("particles", "none") != "ptv":
         return
+    box = ccfg["piv"].get("ptv_model_box")
+    if box is not None and 0 < box < 1:
+        raise ConfigError(
+            f"config key 'piv.ptv_model_box' = {box!r} (case {case_id}): the pilot box of the uncertainty's "
+            "model term spans at least the final window (1 to 5 windows per axis); 0 turns the term off"
+        )
     method = ccfg["reconstruct"]["method"]
     if not gives_particles(method):
         raise ConfigError(
