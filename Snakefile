@@ -26,6 +26,7 @@ import sys
 
 from snakemake.exceptions import WorkflowError
 
+from lfstudy.piv.ptv import PARTICLE_MODES
 from lfstudy.reconstruct import gives_particles
 from lfstudy.simulate.flows import flow_input_files
 from lfstudy.study.config import stage_config, validate_config
@@ -372,10 +373,10 @@ def depth_arg(wildcards):
 
 
 def ptv_input(wildcards):
-    """Input function: both frames' particle lists where the PIV job tracks them (piv.particles: ptv;
-    validation admits it only for a method that fits particles), else none."""
+    """Input function: both frames' particle lists where the PIV job reads them (piv.particles: ptv or
+    paired; validation admits them only for a method that fits particles), else none."""
     case = _case("piv", wildcards)
-    if SWEEP.apply(case)["piv"].get("particles", "none") != "ptv":
+    if SWEEP.apply(case)["piv"].get("particles", "none") not in PARTICLE_MODES:
         return []
     return [f"{OUT}/{SWEEP.locate(case, f'volume_{f}.particles.zarr')}" for f in "ab"]
 
@@ -385,7 +386,7 @@ rule piv:
         a=at("volume_a.zarr", "piv"),
         b=at("volume_b.zarr", "piv"),
         depth=depth_input,
-        particles=ptv_input,  # piv.particles: ptv tracks the fitted particles of both frames
+        particles=ptv_input,  # piv.particles: ptv or paired read the fitted particles of both frames
     output: directory(f"{OUT}/{{sid}}/piv.zarr")
     log: f"{LOG}/piv/{{sid}}.log"
     benchmark: f"{BENCH}/piv/{{sid}}.tsv"

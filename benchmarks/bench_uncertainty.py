@@ -70,6 +70,7 @@ def _config(args: argparse.Namespace) -> dict[str, Any]:
 def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[..., None], tuple]]]:
     """The workflow's stages as waves of independent tasks: (label, function, args)."""
     from lfstudy import workflow as wf
+    from lfstudy.piv.ptv import PARTICLE_MODES
     from lfstudy.study.config import stage_config
     from lfstudy.study.sweep import Sweep
 
@@ -120,7 +121,7 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
     for sid, c, sc in each("piv"):
         depth = at(c, "depth_calibration.zarr") if depth_on else None
         args = (sc, at(c, "volume_a.zarr"), at(c, "volume_b.zarr"), at(c, "piv.zarr"), depth)
-        if sc["piv"].get("particles", "none") == "ptv":  # the fitted particles of both frames (IPR)
+        if sc["piv"].get("particles", "none") in PARTICLE_MODES:  # the fitted particles of both frames (IPR)
             args += tuple(at(c, f"volume_{f}.particles.zarr") for f in "ab")
         waves[6].append((f"piv {sid}", wf.run_piv, args))
     for c in sw.cases():

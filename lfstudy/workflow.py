@@ -22,6 +22,7 @@ from typing import Any
 
 from lfstudy import io
 from lfstudy.compute import dask_scheduler, describe
+from lfstudy.piv.ptv import PARTICLE_MODES
 from lfstudy.study import case as cl
 
 __all__ = [
@@ -238,31 +239,37 @@ def run_piv(
     With ``piv.particles: ptv`` the particle lists the reconstruction wrote beside the volumes
     (``particles_a``, ``particles_b``: required then, refused otherwise) are tracked about the WIDIM
     field and binned on its grid (:func:`lfstudy.study.case.case_ptv`): that is the stored result, the
-    WIDIM vectors kept beside it (``piv_u_mm``, ...). ``''`` (from the Snakefile) means none.
+    WIDIM vectors kept beside it (``piv_u_mm``, ...). With ``piv.particles: paired`` the same lists
+    are paired about the WIDIM field and WIDIM runs again on volumes of the paired particles alone
+    (:func:`lfstudy.study.case.case_paired_piv`). ``''`` (from the Snakefile) means none.
     """
     from lfstudy.piv.depth import correct_depth
 
-    ptv = ccfg["piv"].get("particles", "none") == "ptv"
+    mode = ccfg["piv"].get("particles", "none")
+    tracked = mode in PARTICLE_MODES
     lists = [p for p in (particles_a, particles_b) if p]
-    if ptv != bool(lists) or len(lists) not in (0, 2):
-        need = "needs both frames' particle lists" if ptv else "tracks no particles: no particle lists"
-        raise ValueError(f"piv stage: piv.particles = {ccfg['piv'].get('particles', 'none')!r} {need} (got {lists})")
-    if ptv and depth:
-        raise ValueError("piv stage: piv.particles = 'ptv' takes no depth calibration (depth_calibration.enabled)")
+    if tracked != bool(lists) or len(lists) not in (0, 2):
+        need = "needs both frames' particle lists" if tracked else "tracks no particles: no particle lists"
+        raise ValueError(f"piv stage: piv.particles = {mode!r} {need} (got {lists})")
+    if tracked and depth:
+        raise ValueError(f"piv stage: piv.particles = {mode!r} takes no depth calibration (depth_calibration.enabled)")
     a, b = io.open_array(vol_a).load(), io.open_array(vol_b).load()
     res = cl.case_piv(ccfg, a, b, progress=True)
     if depth:  # Snakemake passes '' where the calibration is disabled
         res = correct_depth(res, io.open_zarr(depth).load())
-    if ptv:
+    if tracked:
         import numpy as np
 
         voxel = tuple(float(np.median(np.abs(np.diff(a[d].values)))) for d in ("x", "y", "z"))
         parts = [io.open_zarr(p).load() for p in lists]
-        res = cl.case_ptv(ccfg, res, *parts, voxel=voxel)
+        if mode == "ptv":
+            res = cl.case_ptv(ccfg, res, *parts, voxel=voxel)
+        else:
+            res = cl.case_paired_piv(ccfg, res, a, b, *parts, voxel=voxel)
+        n = res.attrs[f"{mode}_tracks"], res.attrs[f"{mode}_particles_a"], res.attrs[f"{mode}_particles_b"]
         print(
-            f"PTV: {res.attrs['ptv_tracks']} tracks of {res.attrs['ptv_particles_a']} and "
-            f"{res.attrs['ptv_particles_b']} particles, {100 * float(res['valid'].mean()):.1f} % valid vectors "
-            f"({res.attrs['ptv_seconds']:.2f} s)",
+            f"{mode}: {n[0]} tracks of {n[1]} and {n[2]} particles, {100 * float(res['valid'].mean()):.1f} % "
+            f"valid vectors ({res.attrs[f'{mode}_seconds']:.2f} s)",
             flush=True,
         )
     res.attrs.update(io.provenance(ccfg, None))

@@ -160,6 +160,14 @@ def test_frames_of_different_shapes_and_windows_too_large(files, cli_error, tmp_
             r"config key 'depth_calibration\.enabled' = true .*not with piv\.particles = 'ptv'",
         ),
         (
+            lambda c: c.update(piv={"particles": "paired"}, depth_calibration={"enabled": False}),
+            r"config key 'piv\.particles' = 'paired' .*reconstruct\.method = 'threshold' fits none",
+        ),
+        (
+            lambda c: c.update(piv={"particles": "paired"}, reconstruct={"method": "ipr"}),
+            r"config key 'depth_calibration\.enabled' = true .*not with piv\.particles = 'paired'",
+        ),
+        (
             lambda c: c.update(piv={"particles": "ptv", "ptv_order": 3}),
             r"piv\.ptv_order' = 3",
         ),

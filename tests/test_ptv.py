@@ -390,3 +390,45 @@ def test_the_predictor_reads_a_descending_axis():
     down = predict(grid.isel(y=slice(None, None, -1)), pts)
     np.testing.assert_allclose(down, up, atol=1e-12)
     np.testing.assert_allclose(up[:, :2], np.column_stack(_rotation(*pts.T))[:, :2], atol=1e-12)  # linear: exact
+
+
+def test_paired_piv_drops_particles_fitted_in_one_frame_only(tmp_path):
+    """piv.particles paired: a fifth of frame b's particles misplaced one voxel in depth (real particles
+    fitted at the wrong place, as IPR's ghosts on the coarse designs) bias WIDIM's w; paired against
+    frame a, most fail the tracks' median test, and WIDIM on the volumes of the paired particles alone
+    reads the true shift."""
+    from lfstudy import io
+    from lfstudy import workflow as wf
+
+    rng = np.random.default_rng(5)
+    coords = {"z": 0.5 + VOXEL[2] * np.arange(16), "y": VOXEL[1] * np.arange(40), "x": VOXEL[0] * np.arange(40)}
+    lo = np.array([coords[k][0] for k in "xyz"])
+    hi = np.array([coords[k][-1] for k in "xyz"])
+    a = lo + rng.random((300, 3)) * (hi - lo)
+    shift = np.array([1.3, -0.7, 0.0]) * VOXEL
+    b = a + shift
+    b[rng.random(len(b)) < 0.2, 2] += VOXEL[2]  # misplaced in depth
+    paths = {}
+    for f, pts in (("a", a), ("b", b)):
+        vol = _blobs(pts, coords).assign_attrs(blob_sigma_mm=list(0.8 * VOXEL[::-1]))
+        io.write_zarr(vol, tmp_path / f"volume_{f}.zarr", name="intensity")
+        lists = xr.Dataset({k: ("particle", pts[:, i]) for i, k in enumerate("xyz")})
+        io.write_zarr(lists.assign(intensity=("particle", np.ones(len(pts)))), tmp_path / f"p_{f}.zarr")
+        paths[f] = str(tmp_path / f"p_{f}.zarr")
+    piv = {"window": [8, 16, 16], "spacing": [4, 8, 8], "levels": 1, "mode": "offset", "subpixel": "auto"}
+    piv |= {"predictor_filter": 1.0, "uncertainty": "none", "particles": "paired", "ptv_search": 1.5}
+    ccfg = {"stage_id": "t", "piv": piv}
+    va, vb, out = tmp_path / "volume_a.zarr", tmp_path / "volume_b.zarr", tmp_path / "piv.zarr"
+    wf.run_piv(ccfg, va, vb, out, "", paths["a"], paths["b"])
+    res = io.open_zarr(out).load()
+    assert res.attrs["particles"] == "paired" and res.attrs["paired_rejected"] > 0
+    assert 0.7 * len(a) <= res.attrs["paired_tracks"] <= 0.85 * len(a)
+    ok = res.valid.values & res.piv_valid.values
+    w_plain = float(np.mean(res.piv_w_mm.values[ok]))
+    w_paired = float(np.mean(res.w_mm.values[ok]))
+    assert w_plain > 0.1 * VOXEL[2]  # the misplaced fifth pulls WIDIM's w up
+    assert abs(w_paired) < 0.25 * abs(w_plain)
+    for k, c in enumerate("uv"):
+        assert abs(float(np.mean(res[f"{c}_mm"].values[ok])) - shift[k]) < 0.05 * VOXEL[k]
+    with pytest.raises(ValueError, match="takes no depth calibration"):
+        wf.run_piv(ccfg, va, vb, tmp_path / "p2.zarr", str(tmp_path / "depth.zarr"), paths["a"], paths["b"])

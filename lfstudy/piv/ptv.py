@@ -42,6 +42,7 @@ from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
 
 __all__ = [
+    "PARTICLE_MODES",
     "SEARCH",
     "MODEL_BOX",
     "FIT_PARAMETERS",
@@ -54,6 +55,10 @@ __all__ = [
 
 #: Default search radius of a match, in voxels per axis (scaled distance).
 SEARCH = 1.5
+
+#: The ``piv.particles`` settings that read the fitted particle lists of both frames: ``ptv`` (the tracks
+#: binned on the WIDIM grid) and ``paired`` (WIDIM again on volumes of the paired particles alone).
+PARTICLE_MODES = ("ptv", "paired")
 
 #: Parameters of the local polynomial fit per component, by order: c0 (0, the mean), the three
 #: gradient terms (1), the six second-derivative terms (2), the ten third-derivative terms (3: only

@@ -128,9 +128,13 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
 
 
 def _check_particles_setting(ccfg: Mapping[str, Any], case_id: str) -> None:
-    """``piv.particles: ptv`` needs the particle lists of a method that fits them, and no depth
-    calibration (the traverse measures WIDIM's depth gain on the volumes, not the tracks')."""
-    if ccfg["piv"].get("particles", "none") != "ptv":
+    """``piv.particles: ptv`` or ``paired`` needs the particle lists of a method that fits them, and no
+    depth calibration (the traverse measures WIDIM's depth gain on the reconstructed volumes, not the
+    tracks' or the paired volumes')."""
+    from lfstudy.piv.ptv import PARTICLE_MODES
+
+    mode = ccfg["piv"].get("particles", "none")
+    if mode not in PARTICLE_MODES:
         return
     box = ccfg["piv"].get("ptv_model_box")
     if box is not None and 0 < box < 1:
@@ -141,13 +145,13 @@ def _check_particles_setting(ccfg: Mapping[str, Any], case_id: str) -> None:
     method = ccfg["reconstruct"]["method"]
     if not gives_particles(method):
         raise ConfigError(
-            f"config key 'piv.particles' = 'ptv' (case {case_id}): tracks the particles a reconstruction "
+            f"config key 'piv.particles' = {mode!r} (case {case_id}): reads the particles a reconstruction "
             f"fits, and reconstruct.method = {method!r} fits none; use a method that does (ipr) or "
             "piv.particles: none"
         )
     if ccfg["depth_calibration"]["enabled"]:
         raise ConfigError(
-            f"config key 'depth_calibration.enabled' = true (case {case_id}): not with piv.particles = 'ptv' "
+            f"config key 'depth_calibration.enabled' = true (case {case_id}): not with piv.particles = {mode!r} "
             "(the traverse calibration measures the correlation PIV's depth gain, not the tracks'); set "
             "depth_calibration.enabled: false or piv.particles: none"
         )
