@@ -512,6 +512,23 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
     return res
 
 
+def _tracks(
+    ccfg: Mapping[str, Any],
+    piv: xr.Dataset,
+    particles_a: xr.Dataset,
+    particles_b: xr.Dataset,
+    voxel: tuple[float, float, float] | None,
+) -> xr.Dataset:
+    """The fitted particles of both frames paired about the WIDIM field (mutual nearest within
+    ``piv.ptv_search`` voxels), the outlier tracks dropped by the median test: what ``ptv`` bins and
+    ``paired`` renders."""
+    from lfstudy.piv.ptv import SEARCH, match_particles, validate_tracks
+
+    search = float(ccfg["piv"].get("ptv_search", SEARCH))
+    tracks = match_particles(particles_a, particles_b, piv, search=search, voxel=voxel)
+    return validate_tracks(tracks, voxel=tracks.attrs["voxel_mm"])
+
+
 def case_ptv(
     ccfg: Mapping[str, Any],
     piv: xr.Dataset,
@@ -542,12 +559,10 @@ def case_ptv(
     """
     import time
 
-    from lfstudy.piv.ptv import MODEL_BOX, SEARCH, bin_tracks, match_particles, validate_tracks
+    from lfstudy.piv.ptv import MODEL_BOX, bin_tracks
 
     t0 = time.perf_counter()
-    search = float(ccfg["piv"].get("ptv_search", SEARCH))
-    tracks = match_particles(particles_a, particles_b, piv, search=search, voxel=voxel)
-    tracks = validate_tracks(tracks, voxel=tracks.attrs["voxel_mm"])
+    tracks = _tracks(ccfg, piv, particles_a, particles_b, voxel)
     res = bin_tracks(
         tracks,
         piv,
@@ -602,7 +617,6 @@ def case_paired_piv(
     """
     import time
 
-    from lfstudy.piv.ptv import SEARCH, match_particles, validate_tracks
     from lfstudy.reconstruct.truth import render_truth
 
     sig = a.attrs.get("blob_sigma_mm")
@@ -611,9 +625,7 @@ def case_paired_piv(
             "piv.particles = 'paired': the volumes carry no blob_sigma_mm (they are not a particle list's volumes)"
         )
     t0 = time.perf_counter()
-    search = float(ccfg["piv"].get("ptv_search", SEARCH))
-    tracks = match_particles(particles_a, particles_b, piv, search=search, voxel=voxel)
-    tracks = validate_tracks(tracks, voxel=tracks.attrs["voxel_mm"])
+    tracks = _tracks(ccfg, piv, particles_a, particles_b, voxel)
     coords = {d: a[d].values for d in ("z", "y", "x")}
 
     def paired(vol: xr.DataArray, parts: xr.Dataset, rows: np.ndarray) -> xr.DataArray:
