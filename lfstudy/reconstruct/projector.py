@@ -907,6 +907,12 @@ class PlenopticProjector:
         return int(np.count_nonzero(self.gain))
 
     @property
+    def tables(self) -> tuple[np.ndarray, ...]:
+        """The beam tables every kernel reads, in their argument order: x starts, flat weights, plane offsets and
+        widths, then the same for y."""
+        return self.sxs, self.wxs, self.oxs, self.kxs, self.sys, self.wys, self.oys, self.kys
+
+    @property
     def table_bytes(self) -> int:
         nb = self.sxs.shape[1] * self.sxs.shape[2] * 4  # this grid's planes (a planes() view shares the tables)
         return int(nb * (self.kxs.sum() + self.kys.sum()) + self.sxs.nbytes + self.sys.nbytes)
@@ -930,61 +936,20 @@ class PlenopticProjector:
         """A·vol: the light field (lrow, lcol, prow, pcol) a volume produces."""
         v = self._vol_array(vol)
         out = np.zeros((self.shape_lf[0] * self.shape_lf[1], self.n, self.n))
-        _forward(
-            v,
-            self.lenses,
-            self.sxs,
-            self.wxs,
-            self.oxs,
-            self.kxs,
-            self.sys,
-            self.wys,
-            self.oys,
-            self.kys,
-            self.gain,
-            out,
-        )
+        _forward(v, self.lenses, *self.tables, self.gain, out)
         return out.reshape(self.shape_lf)
 
     def adjoint(self, lf: Any) -> np.ndarray:
         """Aᵀ·lf: a light field spread back over the grid (nz, ny, nx)."""
         g = self._lf_array(lf)
         out = np.zeros(self.grid.shape)
-        _adjoint(
-            g,
-            self.lenses,
-            self.sxs,
-            self.wxs,
-            self.oxs,
-            self.kxs,
-            self.sys,
-            self.wys,
-            self.oys,
-            self.kys,
-            self.gain,
-            out,
-        )
+        _adjoint(g, self.lenses, *self.tables, self.gain, out)
         return out
 
     def impulse(self, k: int, j: int, i: int) -> np.ndarray:
         """A·e for the unit voxel (k, j, i): its light field (lrow, lcol, prow, pcol), from plane k's tables."""
         out = np.zeros((self.shape_lf[0] * self.shape_lf[1], self.n, self.n))
-        _impulse(
-            int(k),
-            int(j),
-            int(i),
-            self.lenses,
-            self.sxs,
-            self.wxs,
-            self.oxs,
-            self.kxs,
-            self.sys,
-            self.wys,
-            self.oys,
-            self.kys,
-            self.gain,
-            out,
-        )
+        _impulse(int(k), int(j), int(i), self.lenses, *self.tables, self.gain, out)
         return out.reshape(self.shape_lf)
 
     # ---------------------------------------------------------------- views
@@ -998,21 +963,7 @@ class PlenopticProjector:
         """Projection of view (pr, pc) for every active lenslet (``self.lenses`` order)."""
         if self._partial is None or self._partial.shape != (self.grid.shape[0], self.lenses.size):
             self._partial = np.empty((self.grid.shape[0], self.lenses.size))
-        _view_forward(
-            vol,
-            self.lenses,
-            pr,
-            pc,
-            self.sxs,
-            self.wxs,
-            self.oxs,
-            self.kxs,
-            self.sys,
-            self.wys,
-            self.oys,
-            self.kys,
-            self._partial,
-        )
+        _view_forward(vol, self.lenses, pr, pc, *self.tables, self._partial)
         np.sum(self._partial, axis=0, out=out)  # planes in a fixed order: thread-count independent
         out *= self.gain[self.lenses, pr, pc]
         return out
@@ -1028,21 +979,7 @@ class PlenopticProjector:
         """Projections of the views (prs[j], pc): ``out[j, m]`` for lenslet ``self.lenses[m]``."""
         nb = min(_PLANE_BLOCKS, self.grid.shape[0])
         part = np.empty((nb, prs.size, self.lenses.size))
-        _column_forward(
-            vol,
-            self.lenses,
-            pc,
-            prs,
-            self.sxs,
-            self.wxs,
-            self.oxs,
-            self.kxs,
-            self.sys,
-            self.wys,
-            self.oys,
-            self.kys,
-            part,
-        )
+        _column_forward(vol, self.lenses, pc, prs, *self.tables, part)
         np.sum(part, axis=0, out=out)  # blocks in a fixed order: thread-count independent
         key = (int(pc), prs.tobytes())
         if key not in self._gain_columns:  # gathered once: a gather per call cost more than the sums
@@ -1062,47 +999,15 @@ class PlenopticProjector:
         self, pc: int, prs: np.ndarray, vals: np.ndarray, chans: np.ndarray, out: np.ndarray
     ) -> None:
         """out[chans[c]] += Σ_beams F·vals[c, j, m] for several value sets in one pass over the tables."""
-        _column_accumulate(
-            self.lenses,
-            pc,
-            prs,
-            vals,
-            chans,
-            self.sxs,
-            self.wxs,
-            self.oxs,
-            self.kxs,
-            self.sys,
-            self.wys,
-            self.oys,
-            self.kys,
-            out,
-        )
+        _column_accumulate(self.lenses, pc, prs, vals, chans, *self.tables, out)
 
     def uniform_projection(self) -> np.ndarray:
         """A·1 as (lenslet, prow, pcol): what a uniform unit volume projects, without reading a volume."""
         nl = self.shape_lf[0] * self.shape_lf[1]
         out = np.zeros((nl, self.n, self.n))
-        _uniform_projection(
-            self.lenses, self.sxs, self.wxs, self.oxs, self.kxs, self.sys, self.wys, self.oys, self.kys, self.gain, out
-        )
+        _uniform_projection(self.lenses, *self.tables, self.gain, out)
         return out
 
     def view_accumulate(self, pr: int, pc: int, vals: np.ndarray, use: np.ndarray, num: np.ndarray) -> None:
         """num += Σ_beams F·vals over view (pr, pc), for the beams with ``use`` (F: beam fraction per voxel)."""
-        _view_accumulate(
-            self.lenses,
-            pr,
-            pc,
-            vals,
-            use,
-            self.sxs,
-            self.wxs,
-            self.oxs,
-            self.kxs,
-            self.sys,
-            self.wys,
-            self.oys,
-            self.kys,
-            num,
-        )
+        _view_accumulate(self.lenses, pr, pc, vals, use, *self.tables, num)
