@@ -480,6 +480,27 @@ class PlenopticCamera:
         """Particle image diameter dτ at the sensor plane, eq. 4.20 [mm]."""
         return particle_image_diameter(self.sensor_plane_magnification, self.particle_diameter, self.spot_sensor_plane)
 
+    def defocus_blur(self, z: float | np.ndarray) -> np.ndarray:
+        """Signed geometric blur-circle diameter on the lenslet array of a point at depth ``z`` [mm].
+
+        The main lens' aperture D imaged out of focus (sec. 4.2.2): ``D·(1 + si·(1/(so + z) − 1/f))``,
+        0 on the focal plane, positive in front of it and negative beyond. Its magnitude over the
+        lenslet pitch is the number of lenslets a particle's spot spans; a change of one pitch between
+        two depths is one depth cell (the circle of confusion of eq. 4.18 is the pitch).
+
+        Parameters
+        ----------
+        z : float or array_like
+            Depth from the object focal plane [mm], +z away from the camera.
+
+        Returns
+        -------
+        numpy.ndarray
+            The signed diameter [mm], shaped like ``z``.
+        """
+        z = np.asarray(z, dtype=float)
+        return self.aperture_diameter * (1.0 + self.si * (1.0 / (self.so + z) - 1.0 / self.main_focal_length))
+
     # ------------------------------------------------------- depth of field
     def depth_of_field(self, z: float | np.ndarray = 0.0) -> xr.Dataset:
         """Object-space depth of field and ambiguities at depth ``z`` (eqs 4.16–4.19).

@@ -293,14 +293,16 @@ def run_errors(
     found, ghosts, the found particles' own crosstalk; needs ``particles_b``)."""
     from lfstudy.reconstruct import gives_particles
     from lfstudy.simulate.flows import flow_from_config
-    from lfstudy.study.metrics import case_metrics
+    from lfstudy.study.metrics import case_metrics, particles_per_cell
     from lfstudy.study.particle_metrics import particle_metrics
 
     spec = ccfg["flow"]
     cam = cl.case_camera(ccfg)
     parts = io.open_zarr(particles).load()
     oracle = None
-    found: dict[str, float] = {}
+    grid = cl.case_grid(ccfg, cam)
+    bounds = [(float(c[0]), float(c[-1])) for c in (grid.x, grid.y, grid.z)]
+    found: dict[str, float] = {"particles_per_cell": particles_per_cell(cam, parts, bounds)}
     if particles_b:  # '' or None: no oracle
         parts_b = io.open_zarr(particles_b).load()
         oracle = cl.oracle_piv(ccfg, parts, parts_b, progress=True)
@@ -308,11 +310,9 @@ def run_errors(
         if gives_particles(ccfg["reconstruct"]["method"]):
             vol = Path(volume)
             fitted = [io.open_zarr(vol.with_name(f"volume_{f}.particles.zarr")).load() for f in "ab"]
-            grid = cl.case_grid(ccfg, cam)
-            bounds = [(float(c[0]), float(c[-1])) for c in (grid.x, grid.y, grid.z)]
             dof = cam.depth_of_field(0.0)
             focus = (float(dof["z_near"][0]), float(dof["z_far"][0]))
-            found = particle_metrics(fitted, [parts, parts_b], grid.voxel_size()[::-1], bounds, focus)
+            found.update(particle_metrics(fitted, [parts, parts_b], grid.voxel_size()[::-1], bounds, focus))
             print(f"particles: {found['found_percent']:.1f} % found, {found['ghost_percent']:.1f} % ghosts", flush=True)
     err = case_metrics(
         io.open_zarr(piv).load(),

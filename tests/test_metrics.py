@@ -471,3 +471,30 @@ def test_widim_uncertainty_is_calibrated_against_the_truth():
         cov, ratio = float(err[f"unc_coverage_{ax}"]), float(err[f"unc_ratio_{ax}"])
         print(ax, int(err["n_valid"]), round(cov, 3), round(ratio, 3))
         assert 0.45 <= cov <= 0.85 and 0.7 <= ratio <= 1.45, (ax, cov, ratio)
+
+
+def test_particles_per_cell_counts_lenslets_and_depth_cells_of_the_depth_of_field():
+    """The blur circle is one lenslet pitch at the depth of field's ends (eqs 4.16-4.17 with the pitch as circle
+    of confusion) and changes sign at focus; the density divides the particles inside the grid by the lenslets
+    under it and the pitch-steps of the blur over its depth."""
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.study.metrics import particles_per_cell
+
+    cam = PlenopticCamera(4872, 3248, 0.0074, 0.125, 0.5, 50.0, -1.0)
+    dof = cam.depth_of_field(0.0)
+    ends = np.array([float(dof["z_near"][0]), float(dof["z_far"][0])])
+    np.testing.assert_allclose(np.abs(cam.defocus_blur(ends)), cam.lenslet_pitch, rtol=1e-9)
+    assert cam.defocus_blur(0.0) == pytest.approx(0.0, abs=1e-12)
+    assert cam.defocus_blur(-1.0) > 0 > cam.defocus_blur(1.0)
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform([-2, -2, -3], [2, 2, 3], (1000, 3))
+    xyz[:100, 2] = 5.0  # outside the grid's depth: not counted
+    parts = xr.Dataset({k: ("particle", xyz[:, i]) for i, k in enumerate("xyz")})
+    bounds = [(-2.0, 2.0), (-2.0, 2.0), (-3.0, 3.0)]
+    lenslets = 16.0 / (cam.lenslet_pitch * cam.so / cam.si) ** 2
+    cells = abs(cam.defocus_blur(3.0) - cam.defocus_blur(-3.0)) / cam.lenslet_pitch
+    assert particles_per_cell(cam, parts, bounds) == pytest.approx(900 / (lenslets * cells))
+    # a grid thinner than one depth cell holds one
+    thin = [(-2.0, 2.0), (-2.0, 2.0), (-0.01, 0.01)]
+    inside = int(np.sum(np.abs(xyz[:, 2]) <= 0.01))
+    assert particles_per_cell(cam, parts, thin) == pytest.approx(inside / lenslets)

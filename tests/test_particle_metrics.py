@@ -122,3 +122,10 @@ def test_the_errors_stage_scores_the_lists_beside_an_ipr_case_s_volumes(tmp_path
         assert float(e["ghost_percent"]) == pytest.approx(100 * len(range(0, n, 3)) / (2 * n))
         assert 75.0 < float(e["found_percent"]) < 90.0 and float(e["particle_rms_x_mm"]) == 0.0
         assert float(e["particle_bias_w_mm"]) == pytest.approx(0.0, abs=1e-12)  # only exact pairs count
+        # the seeding's density per lenslet and depth cell is there for every method
+        from lfstudy.study.metrics import particles_per_cell
+
+        g = cl.case_grid(full)
+        bounds = [(float(c[0]), float(c[-1])) for c in (g.x, g.y, g.z)]
+        assert float(e["particles_per_cell"]) == pytest.approx(particles_per_cell(cl.case_camera(full), pa, bounds))
+        assert 0.0 < float(e["particles_per_cell"]) < 1.0

@@ -631,3 +631,22 @@ def test_the_budget_points_to_the_focal_plane_where_the_fit_misses_the_particles
     assert "The focal plane limits" in text and "particles.z_center" in text
     text = write_report(fine, {}, cfg, tmp_path / "fine.html", progress=False).read_text()
     assert "The focal plane limits" not in text
+
+
+def test_the_budget_points_to_the_seeding_where_a_design_has_too_many_particles_per_depth_cell(tmp_path):
+    """A design with 0.3 particles per lenslet and depth cell is limited by its seeding: the budget names it
+    and says by how much; at 0.1 it does not."""
+    from lfstudy.study.designs import DENSITY_LIMITED, budget_table, density_limited
+
+    base = {"rms_total_mm": [0.02, 0.03], "spacing_mm_x": [0.7, 0.7], "spacing_mm_z": [0.7, 0.7]}
+    base |= {"valid_percent": [99.0, 98.0], "oracle_rms_total_mm": [0.005, 0.005]}
+    base |= {"recon_added_rms_total_mm": [0.019, 0.029]}
+    dense = _study_with({**base, "particles_per_cell": [0.1, 0.3]})
+    sparse = _study_with({**base, "particles_per_cell": [0.1, DENSITY_LIMITED]})
+    assert density_limited(budget_table(dense)) == [budget_table(dense)["design"].iloc[1]]
+    assert density_limited(budget_table(sparse)) == [] and density_limited(budget_table(_study_with(base))) == []
+    cfg = load_config(ROOT / "config" / "demo.yaml")
+    text = write_report(dense, {}, cfg, tmp_path / "dense.html", progress=False).read_text()
+    assert "The seeding limits" in text and "up to 0.30 particles" in text
+    text = write_report(sparse, {}, cfg, tmp_path / "sparse.html", progress=False).read_text()
+    assert "The seeding limits" not in text

@@ -49,6 +49,7 @@ __all__ = [
     "error_limit",
     "budget_table",
     "focus_limited",
+    "density_limited",
     "spread_columns",
 ]
 
@@ -188,6 +189,26 @@ def focus_limited(table: pd.DataFrame) -> list[str]:
     if not {FOUND, FOUND_IN_FOCUS, "design"} <= set(table.columns):
         return []
     hit = table[FOUND_IN_FOCUS] < FOCUS_LIMITED * table[FOUND]
+    return list(dict.fromkeys(table.loc[hit.fillna(False).astype(bool), "design"].astype(str)))
+
+
+#: The seeding a design resolves (row of the metric table: particles per lenslet and depth cell).
+PER_CELL = "particles_per_cell"
+#: Above this many particles per lenslet and depth cell the seeding limits a particle fit: on the demo designs at
+#: 0.005 ppp IPR started from the true positions kept 91-97 % of the particles at 0.06-0.15 and 75 % at 0.30
+#: (benchmarks/bench_ipr_density.py); on the Table 4.3 camera (7 mm deep) IPR found 88-94 % at 0.001 ppp (0.02),
+#: 79-87 % at 0.005 ppp (0.10) and 56-64 % at 0.01 ppp (0.20).
+DENSITY_LIMITED = 0.2
+
+
+def density_limited(table: pd.DataFrame) -> list[str]:
+    """The designs (labels, in order) with more than :data:`DENSITY_LIMITED` particles per lenslet and depth
+    cell (``particles_per_cell``) in any case of ``table`` (a :func:`budget_table`): there two particles
+    share a lenslet's line of sight within one depth cell too often for a particle fit to tell them apart,
+    whatever its settings. Empty where the study holds no such column."""
+    if not {PER_CELL, "design"} <= set(table.columns):
+        return []
+    hit = table[PER_CELL] > DENSITY_LIMITED
     return list(dict.fromkeys(table.loc[hit.fillna(False).astype(bool), "design"].astype(str)))
 
 

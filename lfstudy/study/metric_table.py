@@ -225,6 +225,12 @@ METRICS: tuple[Metric, ...] = (
     ),
     Metric("oracle_valid_percent", "percent", "oracle valid vectors", False, {"budget"}, "quality",
            description="valid vectors " + _ORACLE),
+    Metric(
+        "particles_per_cell", "1", "particles per lenslet and depth cell", None, {"budget"}, "count",
+        description="true particles inside the grid per lenslet under it and per depth cell along a lenslet's line "
+        "of sight (a change of one lenslet pitch in the particle's blur circle, eq. 4.18): above "
+        "designs.DENSITY_LIMITED the seeding, not the reconstruction's settings, limits a particle fit",
+    ),
     # a particle reconstruction's list against the true particles (lfstudy.study.particle_metrics; ipr only)
     Metric(
         "found_percent", "percent", "true particles found within half a voxel", False, {"budget"}, "quality",

@@ -48,6 +48,7 @@ __all__ = [
     "reconstruction_quality",
     "render_truth",
     "field_of_view",
+    "particles_per_cell",
     "depth_gain",
     "crosstalk_z",
     "binned_uncertainty",
@@ -570,6 +571,39 @@ def reconstruction_quality(
 def field_of_view(camera: Any) -> dict[str, float]:
     """The design's field of view in x and y [mm] (:attr:`PlenopticCamera.fov_x`, ``fov_y``)."""
     return {"fov_x_mm": float(camera.fov_x), "fov_y_mm": float(camera.fov_y)}
+
+
+def particles_per_cell(camera: Any, particles: xr.Dataset, bounds_mm: Sequence[tuple[float, float]]) -> float:
+    """The seeding a design must resolve: particles per lenslet and depth cell.
+
+    A particle behind a lenslet is told from another behind it by its depth once their spots on the
+    lenslet array differ by a lenslet pitch (eq. 4.18's circle of confusion), so the grid's depth
+    holds ``|b(z1) − b(z0)| / p`` depth cells (b the signed blur diameter,
+    :meth:`~lfstudy.optics.PlenopticCamera.defocus_blur`; at least one) along each lenslet's line of
+    sight. The particles inside the grid are divided by those cells and the lenslets under the
+    grid (its lateral extent over a lenslet's footprint at the focal plane, ``p·so/si``).
+
+    Parameters
+    ----------
+    camera : PlenopticCamera
+        The case's design.
+    particles : xarray.Dataset
+        True particles (``x``, ``y``, ``z`` [mm]).
+    bounds_mm : ((x0, x1), (y0, y1), (z0, z1))
+        The reconstruction grid's extent [mm].
+
+    Returns
+    -------
+    float
+        Particles per lenslet and depth cell (NaN for a grid without lateral extent).
+    """
+    (x0, x1), (y0, y1), (z0, z1) = ((float(a), float(b)) for a, b in bounds_mm)
+    xyz = np.column_stack([np.asarray(particles[k].values, float).ravel() for k in ("x", "y", "z")])
+    inside = np.all((xyz >= [x0, y0, z0]) & (xyz <= [x1, y1, z1]), axis=1)
+    footprint = camera.lenslet_pitch * camera.so / camera.si
+    lenslets = (x1 - x0) * (y1 - y0) / footprint**2
+    cells = max(1.0, abs(float(camera.defocus_blur(z1) - camera.defocus_blur(z0))) / camera.lenslet_pitch)
+    return float(inside.sum()) / (lenslets * cells) if lenslets > 0 else math.nan
 
 
 def depth_gain(piv: xr.Dataset) -> float:
