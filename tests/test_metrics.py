@@ -492,8 +492,13 @@ def test_particles_per_cell_counts_lenslets_and_depth_cells_of_the_depth_of_fiel
     parts = xr.Dataset({k: ("particle", xyz[:, i]) for i, k in enumerate("xyz")})
     bounds = [(-2.0, 2.0), (-2.0, 2.0), (-3.0, 3.0)]
     lenslets = 16.0 / (cam.lenslet_pitch * cam.so / cam.si) ** 2
-    cells = abs(cam.defocus_blur(3.0) - cam.defocus_blur(-3.0)) / cam.lenslet_pitch
+    zs = xyz[100:, 2]
+    cells = abs(cam.defocus_blur(zs.max()) - cam.defocus_blur(zs.min())) / cam.lenslet_pitch
     assert particles_per_cell(cam, parts, bounds) == pytest.approx(900 / (lenslets * cells))
+    # a grid deeper than the seeded slab: the same cells (the particles' depth), the same density
+    assert particles_per_cell(cam, parts, [(-2.0, 2.0), (-2.0, 2.0), (-4.0, 4.0)]) == pytest.approx(
+        900 / (lenslets * cells)
+    )
     # a grid thinner than one depth cell holds one
     thin = [(-2.0, 2.0), (-2.0, 2.0), (-0.01, 0.01)]
     inside = int(np.sum(np.abs(xyz[:, 2]) <= 0.01))

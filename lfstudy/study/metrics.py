@@ -580,8 +580,10 @@ def particles_per_cell(camera: Any, particles: xr.Dataset, bounds_mm: Sequence[t
     lenslet array differ by a lenslet pitch (eq. 4.18's circle of confusion), so the grid's depth
     holds ``|b(z1) − b(z0)| / p`` depth cells (b the signed blur diameter,
     :meth:`~lfstudy.optics.PlenopticCamera.defocus_blur`; at least one) along each lenslet's line of
-    sight. The particles inside the grid are divided by those cells and the lenslets under the
-    grid (its lateral extent over a lenslet's footprint at the focal plane, ``p·so/si``).
+    sight, counted over the depth the particles occupy inside the grid (a grid deeper than the seeded
+    slab holds no particles in its extra cells). The particles inside the grid are divided by those
+    cells and the lenslets under the grid (its lateral extent over a lenslet's footprint at the focal
+    plane, ``p·so/si``).
 
     Parameters
     ----------
@@ -602,8 +604,12 @@ def particles_per_cell(camera: Any, particles: xr.Dataset, bounds_mm: Sequence[t
     inside = np.all((xyz >= [x0, y0, z0]) & (xyz <= [x1, y1, z1]), axis=1)
     footprint = camera.lenslet_pitch * camera.so / camera.si
     lenslets = (x1 - x0) * (y1 - y0) / footprint**2
-    cells = max(1.0, abs(float(camera.defocus_blur(z1) - camera.defocus_blur(z0))) / camera.lenslet_pitch)
-    return float(inside.sum()) / (lenslets * cells) if lenslets > 0 else math.nan
+    if not inside.any() or lenslets <= 0:
+        return 0.0 if lenslets > 0 else math.nan
+    zs = xyz[inside, 2]
+    blur = camera.defocus_blur(np.array([zs.min(), zs.max()]))
+    cells = max(1.0, abs(float(blur[1] - blur[0])) / camera.lenslet_pitch)
+    return float(inside.sum()) / (lenslets * cells)
 
 
 def depth_gain(piv: xr.Dataset) -> float:
