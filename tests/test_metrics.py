@@ -324,10 +324,14 @@ def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
     case_piv = synthetic_piv(4.5, 0.0, 0.1).assign_attrs(final_window=[16, 32, 32])
     oracle = synthetic_piv(4.5, 0.0, 0.0).assign_attrs(oracle_seconds=1.5)
     # a particle method's list (here the true particles themselves) adds its rows through ``extra``
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.study.metrics import particles_per_cell
     from lfstudy.study.particle_metrics import particle_metrics
 
     moved = parts.assign(x=parts.x + 0.5625)
     found = particle_metrics([parts, moved], [parts, moved], (0.2, 0.2, 0.2), [(-1, 1)] * 3, (-0.5, 0.5))
+    thesis = PlenopticCamera(4872, 3248, 0.0074, 0.125, 0.5, 50.0, -1.0)
+    found["particles_per_cell"] = particles_per_cell(thesis, parts, [(-1, 1)] * 3)  # run_errors adds it to every case
     out = case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle, extra=found)
     assert float(out["found_percent"]) == 100.0 and float(out["particle_crosstalk_z"]) == 0.0
     zero = pytest.approx(0, abs=1e-12)
