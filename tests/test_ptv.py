@@ -432,3 +432,26 @@ def test_paired_piv_drops_particles_fitted_in_one_frame_only(tmp_path):
         assert abs(float(np.mean(res[f"{c}_mm"].values[ok])) - shift[k]) < 0.05 * VOXEL[k]
     with pytest.raises(ValueError, match="takes no depth calibration"):
         wf.run_piv(ccfg, va, vb, tmp_path / "p2.zarr", str(tmp_path / "depth.zarr"), paths["a"], paths["b"])
+
+
+def test_an_ipr_case_without_depth_calibration_pairs_its_particles_unless_told_otherwise():
+    """piv.particles unset: paired for a method that fits particles with the depth calibration off; unset (none)
+    for MART and for IPR with the calibration on; an explicit none or ptv is kept."""
+    from pathlib import Path
+
+    from lfstudy.study.config import load_config
+    from lfstudy.study.sweep import Sweep
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "tests" / "data" / "tiny.yaml")
+    cfg["sweep"] = {"ppp": [0.004], "reconstruct.method": ["mart", "ipr"], "depth_calibration.enabled": [False, True]}
+    sweep = Sweep(cfg)
+    modes = {
+        (c["reconstruct.method"], c["depth_calibration.enabled"]): sweep.apply(c)["piv"].get("particles")
+        for c in sweep.cases()
+    }
+    assert modes == {("mart", False): None, ("ipr", False): "paired", ("mart", True): None, ("ipr", True): None}
+    for explicit in ("none", "ptv"):
+        cfg["piv"]["particles"] = explicit
+        cfg["sweep"] = {"ppp": [0.004], "reconstruct.method": ["ipr"], "depth_calibration.enabled": [False]}
+        sweep = Sweep(cfg)
+        assert [sweep.apply(c)["piv"]["particles"] for c in sweep.cases()] == [explicit]
