@@ -197,7 +197,7 @@ def main() -> None:
                 f"fit {a['seconds_fit']:.1f} s, rest {rest:.1f} s; "
                 f"full frame at this cost per particle {full / 60:.0f} min; peak RSS {rss:.2f} GB\n"
                 f"    residual candidates: new particles per round {a['candidates_added']}, "
-                f"{a['skipped_candidate_rounds']} rounds skipped"
+                f"{a['skipped_candidate_rounds']} rounds skipped; shakes sat out per iteration {a['shake_sat_out']}"
             )
 
 

@@ -241,6 +241,9 @@ _QUAD = {
 #: and a lenslet, ~200 x 200 px on average over the Table 4.3 camera's 7 mm depth, 5 % of it lit): 256 particles
 #: take 0.59 GB (``bench_ipr.py --memory``), the 2048 before 4.7 GB, more than the candidate MART's tables
 _BATCH = 256
+_SETTLE_RADIUS = 2.0  # shake_settle: a particle moved, added or removed within this many voxels wakes the settled
+_SETTLE_SKIPS = 2  # and a settled particle sits out at most this many shakes in a row
+_LATE_MART_ITERATIONS = 1  # residual_late_gain: MART iterations of the later residual volumes
 _POLISH_SPOT = 1.5  # the polish moves particles whose defocus spot (radius) is at most this many lenslet pitches
 _POLISH_XY = (-0.25, 0.0, 0.25)  # the polish stencil's offsets [voxels] in x and y
 _POLISH_Z = (-0.5, -0.25, 0.0, 0.25, 0.5)  # and in z
@@ -901,6 +904,8 @@ def ipr_particles(
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
+    residual_late_gain: float = 0.0,
+    shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
     polish: int = 3,
@@ -944,6 +949,15 @@ def ipr_particles(
         The residual-candidate rounds stop after one that adds fewer new particles than this fraction of the
         particle list (its remaining volumes would repeat the last one's rejected peaks; module docstring,
         "Candidates"); 0: every one of the ``residual_candidates`` rounds runs.
+    residual_late_gain : float
+        Once a residual-candidate round adds fewer new particles than this fraction of the list (but not fewer than
+        ``residual_candidates_min_gain``'s), the later rounds' volumes take ``_LATE_MART_ITERATIONS`` (1) MART
+        iterations instead of ``residual_mart_iterations``; 0: never.
+    shake_settle : float
+        The shake's active set [voxels]: a particle whose last shake moved it less than this, with no particle
+        within ``_SETTLE_RADIUS`` voxels moved (as much), added or removed since, sits out the next shake (at most
+        ``_SETTLE_SKIPS`` in a row; attrs ``shake_sat_out``: how many per iteration); 0: every particle is shaken
+        every iteration.
     jacobian : {"central", "forward"}
         Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
         particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
@@ -992,6 +1006,8 @@ def ipr_particles(
             f"reconstruct.ipr.residual_plane_step = {residual_plane_step!r}: allowed range is [1, 4]"
         )
     _check("residual_candidates_min_gain", residual_candidates_min_gain, 0.0, 1.0)
+    _check("residual_late_gain", residual_late_gain, 0.0, 1.0)
+    _check("shake_settle", shake_settle, 0.0, 1.0)
     if not isinstance(polish, (int, np.integer)) or not 0 <= polish <= 20:
         raise ReconstructionError(f"reconstruct.ipr.polish = {polish!r}: allowed range is [0, 20]")
     if jacobian not in _JACOBIANS:
@@ -1050,6 +1066,11 @@ def ipr_particles(
     gain: list[int] = []  # new particles accepted per residual-candidate round
     stop_after, skipped = iterations, 0  # residual-candidate rounds skipped from this iteration on
     inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
+    settle = float(shake_settle)
+    still = np.zeros(len(xyz), bool)  # the active set's settled particles (off with shake_settle 0)
+    sat = np.zeros(len(xyz), np.int64)  # shakes each has sat out in a row
+    sat_out: list[int] = []  # particles not shaken, per iteration
+    late = False  # residual_late_gain: a round added fewer than that of the list
 
     def patches(pos: np.ndarray, trials: np.ndarray | None = None):
         t0 = time.perf_counter()
@@ -1140,9 +1161,19 @@ def ipr_particles(
         if not len(xyz):
             break
         res_hist.append(norm(res))
-        xyz, inten, out = shake_step(xyz, inten, res)
-        sig = np.sqrt(out[:, 4:7])
-        rel = out[:, 7]
+        # the active set: particles settled (their last shake moved them less than shake_settle voxels, and no
+        # particle within _SETTLE_RADIUS voxels moved, was added or removed since) sit out up to _SETTLE_SKIPS shakes
+        act = ~(still & (sat < _SETTLE_SKIPS))
+        sat = np.where(act, 0, sat + 1)
+        sat_out.append(int((~act).sum()))
+        old = xyz
+        xyz, inten, sig, rel = xyz.copy(), inten.copy(), sig.copy(), rel.copy()
+        xyz[act], inten[act], out = shake_step(old[act], inten[act], res)
+        sig[act] = np.sqrt(out[:, 4:7])
+        rel[act] = out[:, 7]
+        moved = np.max(np.abs(xyz - old) / vox, axis=1) >= settle if settle > 0 else act
+        events = [old[moved], xyz[moved]]
+        still = np.where(act, ~moved, still)
         # ghosts: faint particles, and particles that left the grid
         med = float(np.median(inten[inten > 0])) if np.any(inten > 0) else 0.0
         keep = inten > (min_intensity * med if it >= _GHOST_FROM else 0.0)
@@ -1153,11 +1184,14 @@ def ipr_particles(
         gone = ~keep & (inten > 0)
         if gone.any():
             add_images(xyz[gone], inten[gone], res, 1.0)
+        events.append(xyz[~keep])
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
+        still, sat = still[keep], sat[keep]
         if it < residual_candidates and it >= stop_after:
             skipped += 1
         elif it < residual_candidates:
-            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations, rplan)
+            its = min(_LATE_MART_ITERATIONS, residual_mart_iterations) if late else residual_mart_iterations
+            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), its, rplan)
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
@@ -1169,9 +1203,15 @@ def ipr_particles(
                 inten = np.concatenate([inten, amp0[good]])
                 sig = np.vstack([sig, np.full((int(good.sum()), 3), np.inf)])
                 rel = np.concatenate([rel, np.full(int(good.sum()), np.inf)])
+                still = np.concatenate([still, np.zeros(int(good.sum()), bool)])
+                sat = np.concatenate([sat, np.zeros(int(good.sum()), np.int64)])
+                events.append(new[good])
             gain.append(int(good.sum()) if len(new) else 0)
             if gain[-1] < residual_candidates_min_gain * len(xyz):  # the next volumes would repeat this one
                 stop_after = it + 1
+            late |= gain[-1] < residual_late_gain * len(xyz)  # the later volumes take fewer MART iterations
+        if settle > 0:  # a change near a settled particle wakes it
+            still = _unwoken(still, xyz, np.vstack(events), vox)
         bar.update(1)
         if res_hist:
             bar.set_postfix(particles=len(xyz), residual=f"{res_hist[-1]:.4f}")
@@ -1224,6 +1264,9 @@ def ipr_particles(
             "residual_mart_iterations": int(residual_mart_iterations),
             "residual_plane_step": int(residual_plane_step),
             "residual_candidates_min_gain": float(residual_candidates_min_gain),
+            "residual_late_gain": float(residual_late_gain),
+            "shake_settle": float(shake_settle),
+            "shake_sat_out": sat_out,
             "candidates_added": gain,
             "skipped_candidate_rounds": int(skipped),
             "polish": int(polish),
@@ -1240,6 +1283,16 @@ def ipr_particles(
             **ginfo,
         },
     )
+
+
+def _unwoken(still: np.ndarray, xyz: np.ndarray, events: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """``still`` (the settled particles at ``xyz``) less those within ``_SETTLE_RADIUS`` voxels (per-axis scaled)
+    of an event: a particle's old or new position where it moved, was added or removed."""
+    out = np.asarray(still, bool).copy()
+    if len(events) and out.any():
+        d = cKDTree(np.asarray(events) / vox).query(xyz[out] / vox, distance_upper_bound=_SETTLE_RADIUS)[0]
+        out[out] = d > _SETTLE_RADIUS
+    return out
 
 
 def _unmerged(xyz: np.ndarray, inten: np.ndarray, vox: np.ndarray) -> np.ndarray:
@@ -1294,6 +1347,8 @@ def ipr(
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
+    residual_late_gain: float = 0.0,
+    shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
     polish: int = 3,
@@ -1321,6 +1376,8 @@ def ipr(
         residual_mart_iterations=residual_mart_iterations,
         residual_plane_step=residual_plane_step,
         residual_candidates_min_gain=residual_candidates_min_gain,
+        residual_late_gain=residual_late_gain,
+        shake_settle=shake_settle,
         jacobian=jacobian,
         image_accuracy=image_accuracy,
         polish=polish,
@@ -1410,6 +1467,20 @@ class IPR(ReconstructionMethod):
             "maximum": 1,
             "description": "residual-candidate rounds stop after one adding fewer than this fraction of the particles",
         },
+        "residual_late_gain": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 1,
+            "description": "after a residual-candidate round adding fewer than this fraction of the particles, the "
+            "later rounds' volumes take one MART iteration (0: never)",
+        },
+        "shake_settle": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 1,
+            "description": "particles whose last shake moved them less than this [voxels], nothing near them changed, "
+            "sit out the next shake (0: every particle every iteration)",
+        },
         "jacobian": {
             "type": "string",
             "enum": list(_JACOBIANS),
@@ -1450,6 +1521,8 @@ class IPR(ReconstructionMethod):
         residual_mart_iterations: int = 3,
         residual_plane_step: int = 1,
         residual_candidates_min_gain: float = 0.001,
+        residual_late_gain: float = 0.0,
+        shake_settle: float = 0.0,
         jacobian: str = "central",
         image_accuracy: str = "fast",
         polish: int = 3,
@@ -1470,6 +1543,8 @@ class IPR(ReconstructionMethod):
             residual_mart_iterations=residual_mart_iterations,
             residual_plane_step=residual_plane_step,
             residual_candidates_min_gain=residual_candidates_min_gain,
+            residual_late_gain=residual_late_gain,
+            shake_settle=shake_settle,
             jacobian=jacobian,
             image_accuracy=image_accuracy,
             polish=polish,
