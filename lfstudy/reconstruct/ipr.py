@@ -119,15 +119,15 @@ short of the nominal 0.125 mm; the model camera used to re-derive its "matched" 
 that pitch and round it up to the next stop (f/2.8 for f/2: a smaller aperture image, half the light in
 the wrong place, the residual at 0.69, 87.5 % found). :func:`calibrated_camera` now keeps the nominal
 f-number: seed 6 finds 90.6 %, 8.4 % ghosts, residual 0.46 -> 0.33 (2 threads, quiet machine). Where the time goes
-(``--crop 300 300 --ppp 0.005``, 450 particles, seed 7, load ~1.5 on 2 cores, before the MART
-plan): 13.6 s of 23.0 s in the 11 candidate MART volumes on the refined grid (the first and one
-per residual-candidate round), 7.8 s in the 31,424 exact particle images (0.25 ms each), the fit
-kernels 1.4 s. The plan (the tables and coverage made once per fit, not per volume) takes 10 % off
-the fit's CPU time (seeds 7 and 8: 32.2 -> 29.0 s and 31.7 -> 28.9 s of CPU, the MART part 13 % and
-9 %; the same particles, byte for byte). Cheaper residual volumes trade quality for time (CPU
-time; seeds 7 / 8 / 9 / 10, change of found in points): ``residual_mart_iterations=0`` x0.59–0.82,
-found −0.3 / −1.6 / −5.1 / −4.4 (ghosts up to +4.6); ``residual_candidates=5`` x0.70–0.74, found
-−0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the defaults are unchanged).
+(``--crop 300 300 --ppp 0.005``, seed 7, 1 thread, load ~3 on 2 cores): 7–11 s of 18 s CPU in the 7 candidate MART
+volumes on the refined grid (the first and one per residual round run), 8.9 s in 57,400 particle images (the
+shake's 30,640, 6.4 s; the polish's 25,110, 2.3 s: near focus an image is cheap), the fit kernels ~2 s. The plan
+(the tables and coverage made once per fit, not per volume) takes 10 % off the fit's CPU time (seeds 7 and 8: 32.2
+-> 29.0 s and 31.7 -> 28.9 s of CPU, the MART part 13 % and 9 %; the same particles, byte for byte). Cheaper
+residual volumes trade quality for time (CPU time; seeds 7 / 8 / 9 / 10, change of found in points):
+``residual_mart_iterations=0`` x0.59–0.82, found −0.3 / −1.6 / −5.1 / −4.4 (ghosts up to +4.6);
+``residual_candidates=5`` x0.70–0.74, found −0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the
+defaults are unchanged).
 ``residual_plane_step=2`` reconstructs the residual's volumes on every other plane of the candidate
 grid, on views into the same tables (no new memory): each residual volume costs half (seed 7, the
 same ten residual light fields, 1 thread: 9.7 -> 4.7 s CPU), the fit x0.67–0.73 of the defaults' CPU
@@ -150,9 +150,19 @@ of the 11 MART volumes, CPU x0.46–0.66 (13.8 / 14.7 / 15.8 / 15.8 / 11.6 s aga
 / 25.1 s); 0.005 ppp, 300 x 300 px: only seed 7 has a round adding none (the sixth): 79.3 / 17.3 against
 79.1 / 18.4, CPU 21.6 -> 17.0 s; seeds 5, 6, 8, 9 run every round (the fit of the defaults before). Seed 10:
 0.001 ppp 93.8 / 3.8 either way, CPU 25.8 -> 13.4 s (three rounds of ten); 0.005 ppp every round (82.0 /
-14.7). (The figures of seeds 5–9 at 0.001 ppp and of seed 7 at 0.005 are from runs at 0.003 that stopped at
-the same round: seed 7 rerun at 0.001 gave the same particles.) At 0.005 ppp the rounds keep adding a
-few particles to the end, so the frame's time there stays set by the particle images and the volumes.
+14.7). At 0.005 ppp the rounds keep adding a few particles to the end. Since then, once a round adds fewer
+than ``residual_late_gain`` (0.01) of the list, the later volumes take one MART iteration (half a volume's CPU)
+and add about what full ones would (seeds 10 / 11: 8 / 3 particles against 9 / 2; seed 8: none, the rounds then
+stop, against 10) (found / ghosts %, CPU s, 1 thread, load 2–5, same run, 0 -> 0.01; seeds 7,
+8 chose it: 79.3 / 17.3 both, 82.2 / 17.6 -> 82.0 / 17.4; held out, 0.005 ppp, 300 x 300 px: seed 10 82.0 / 14.7,
+23.5 s -> 82.0 / 14.1, 21.0 s, seed 11 84.4 / 14.6, 22.6 s -> 84.7 / 14.6, 20.9 s; 0.001 ppp, 400 x 400, seed 10:
+the same particles). ``shake_settle`` (the shake's active set; off): a particle whose last shake moved it less
+than that (0.05 voxel tried), with nothing within ``_SETTLE_RADIUS`` (2) voxels moved, added or removed, sits out
+up to 2 shakes: 15–40 % of the late shakes, CPU x0.84–0.86 held out, but ghosts +1.3 / +1.7 points, found −0.7 /
+−0.8 (seeds 10 / 11, 0.005 ppp; 0.001 ppp the same found): at 0.005 ppp an image's box holds hundreds of others'
+images, so a neighbour beyond 2 voxels still moves its residual. Seeds 7 / 8, CPU and found: woken by lateral
+distance (any depth) within 2 voxels 1–3 % sat out, x0.92 / 1.00; within 1 voxel x0.90 / 0.98, −0.6 / −2.0; a
+3-voxel radius, one shake at most x0.95 / 1.02, +0.3 / −0.4; always shaking the faint (< 0.5 median): no change.
 What did not help: MART restricted to the lenslets the residual lights (at 0.005 ppp the
 median lenslet holds 12–37 % of the brightest lenslet's positive-residual energy, at 0.001 ppp 3–8 %;
 the residual's first guess is above 3 % of its maximum in 70–75 % of the voxels, so every lenslet's
@@ -162,8 +172,9 @@ volumes' peaks (388 over ten rounds; found / extra): every other view column 240
 view row 305 / 230, a 2 x 2 x 2 grid 298 / 136, a warm start from the previous residual's volume with
 one iteration 317 / 166 (two: 361 / 140), against 363 / 110 on every other plane. Both
 dominant costs scale with the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp
-stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine; the attrs
-``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
+stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine, x0.9 with ``residual_late_gain``:
+seed 10's 21.5 s of CPU at 1 thread scale to 63 min, 24.0 s without to 70 min; the attrs ``seconds_*``,
+``particle_images`` and ``mart_volumes`` hold the split).
 
 Memory (``benchmarks/bench_ipr.py --memory``, the full Table 4.3 frame): the candidate plan dominates, the refined
 grid's weight tables (4.03 GB: each plane's own beam width, int16 starts) and the four subsets' coverage (0.53 GB,
@@ -904,7 +915,7 @@ def ipr_particles(
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
-    residual_late_gain: float = 0.0,
+    residual_late_gain: float = 0.01,
     shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
@@ -1347,7 +1358,7 @@ def ipr(
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
-    residual_late_gain: float = 0.0,
+    residual_late_gain: float = 0.01,
     shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
@@ -1521,7 +1532,7 @@ class IPR(ReconstructionMethod):
         residual_mart_iterations: int = 3,
         residual_plane_step: int = 1,
         residual_candidates_min_gain: float = 0.001,
-        residual_late_gain: float = 0.0,
+        residual_late_gain: float = 0.01,
         shake_settle: float = 0.0,
         jacobian: str = "central",
         image_accuracy: str = "fast",
