@@ -221,6 +221,11 @@ def test_ipr_parameters_and_bad_input(scene):
     for bad in (-0.01, 1.5, float("nan"), "0.01", True):
         with pytest.raises(ReconstructionError, match=r"min_gain = .*: allowed range is \[0.0, 1.0\]"):
             ipr_particles(inputs, residual_candidates_min_gain=bad)
+    for name in ("shake_settle", "residual_late_gain"):
+        with pytest.raises(
+            ReconstructionError, match=rf"reconstruct\.ipr\.{name} = 1.5: allowed range is \[0.0, 1.0\]"
+        ):
+            ipr_particles(inputs, **{name: 1.5})
 
 
 def test_ipr_particles_states_the_methods_defaults():
@@ -335,3 +340,26 @@ def test_spot_pitches_is_the_geometric_blur_circle():
     rad = CAM.aperture_diameter / 2.0
     np.testing.assert_allclose(r, rad * CAM.si * np.abs(z) / (CAM.so * (CAM.so + z)) / CAM.lenslet_pitch, atol=1e-12)
     assert r[0] == pytest.approx(0.0, abs=1e-12) and r[1] == pytest.approx(r[2], rel=0.02)
+
+
+def test_shake_active_set_sits_out_only_the_settled(scene, fitted):
+    """``shake_settle``: a particle whose last shake moved it less than that sits out the next shake unless a
+    particle near it moved, was added or removed (``_unwoken``); a particle that sat out keeps its position and
+    intensity, so with every particle settled (shake_settle 1 voxel: max_step is 0.5) and nothing removed, a
+    second iteration leaves the list of one iteration byte for byte; the default shakes every particle."""
+    from lfstudy.reconstruct.ipr import _SETTLE_RADIUS, _unwoken
+
+    vox = np.array([0.1, 0.1, 0.4])
+    xyz = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0], [0.5, 0.5, 0.0]])
+    near = (_SETTLE_RADIUS - 0.1) * vox  # within the radius on each axis scaled by its own voxel
+    events = np.array([[0.0, 0.0, 0.0] + near * [1, 0, 0], [0.0, 0.0, 2.0] - near * [0, 0, 1]])
+    assert _unwoken(np.array([True, True, True, False]), xyz, events, vox).tolist() == [False, True, False, False]
+    assert _unwoken(np.ones(4, bool), xyz, np.zeros((0, 3)), vox).all()
+    assert fitted[1].attrs["shake_sat_out"] == [0] * fitted[1].attrs["iterations"]
+    _, inputs = scene
+    kw = {"residual_candidates": 0, "polish": 0, "min_intensity": 0.0, "mart_iterations": 0}
+    one = ipr_particles(inputs, iterations=1, **kw)
+    two = ipr_particles(inputs, iterations=2, shake_settle=1.0, **kw)
+    assert one.attrs["shake_sat_out"] == [0] and two.attrs["shake_sat_out"] == [0, len(one.x)] and len(one.x) > 5
+    for v in ("x", "y", "z", "intensity"):
+        assert np.array_equal(two[v].values, one[v].values)

@@ -119,15 +119,15 @@ short of the nominal 0.125 mm; the model camera used to re-derive its "matched" 
 that pitch and round it up to the next stop (f/2.8 for f/2: a smaller aperture image, half the light in
 the wrong place, the residual at 0.69, 87.5 % found). :func:`calibrated_camera` now keeps the nominal
 f-number: seed 6 finds 90.6 %, 8.4 % ghosts, residual 0.46 -> 0.33 (2 threads, quiet machine). Where the time goes
-(``--crop 300 300 --ppp 0.005``, 450 particles, seed 7, load ~1.5 on 2 cores, before the MART
-plan): 13.6 s of 23.0 s in the 11 candidate MART volumes on the refined grid (the first and one
-per residual-candidate round), 7.8 s in the 31,424 exact particle images (0.25 ms each), the fit
-kernels 1.4 s. The plan (the tables and coverage made once per fit, not per volume) takes 10 % off
-the fit's CPU time (seeds 7 and 8: 32.2 -> 29.0 s and 31.7 -> 28.9 s of CPU, the MART part 13 % and
-9 %; the same particles, byte for byte). Cheaper residual volumes trade quality for time (CPU
-time; seeds 7 / 8 / 9 / 10, change of found in points): ``residual_mart_iterations=0`` x0.59–0.82,
-found −0.3 / −1.6 / −5.1 / −4.4 (ghosts up to +4.6); ``residual_candidates=5`` x0.70–0.74, found
-−0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the defaults are unchanged).
+(``--crop 300 300 --ppp 0.005``, seed 7, 1 thread, load ~3 on 2 cores): 7–11 s of 18 s CPU in the 7 candidate MART
+volumes on the refined grid (the first and one per residual round run), 8.9 s in 57,400 particle images (the
+shake's 30,640, 6.4 s; the polish's 25,110, 2.3 s: near focus an image is cheap), the fit kernels ~2 s. The plan
+(the tables and coverage made once per fit, not per volume) takes 10 % off the fit's CPU time (seeds 7 and 8: 32.2
+-> 29.0 s and 31.7 -> 28.9 s of CPU, the MART part 13 % and 9 %; the same particles, byte for byte). Cheaper
+residual volumes trade quality for time (CPU time; seeds 7 / 8 / 9 / 10, change of found in points):
+``residual_mart_iterations=0`` x0.59–0.82, found −0.3 / −1.6 / −5.1 / −4.4 (ghosts up to +4.6);
+``residual_candidates=5`` x0.70–0.74, found −0.3 / +0.2 / −1.1 / −1.1, ghosts −0.2 / −1.2 / +0.2 / +0.2 (the
+defaults are unchanged).
 ``residual_plane_step=2`` reconstructs the residual's volumes on every other plane of the candidate
 grid, on views into the same tables (no new memory): each residual volume costs half (seed 7, the
 same ten residual light fields, 1 thread: 9.7 -> 4.7 s CPU), the fit x0.67–0.73 of the defaults' CPU
@@ -150,9 +150,19 @@ of the 11 MART volumes, CPU x0.46–0.66 (13.8 / 14.7 / 15.8 / 15.8 / 11.6 s aga
 / 25.1 s); 0.005 ppp, 300 x 300 px: only seed 7 has a round adding none (the sixth): 79.3 / 17.3 against
 79.1 / 18.4, CPU 21.6 -> 17.0 s; seeds 5, 6, 8, 9 run every round (the fit of the defaults before). Seed 10:
 0.001 ppp 93.8 / 3.8 either way, CPU 25.8 -> 13.4 s (three rounds of ten); 0.005 ppp every round (82.0 /
-14.7). (The figures of seeds 5–9 at 0.001 ppp and of seed 7 at 0.005 are from runs at 0.003 that stopped at
-the same round: seed 7 rerun at 0.001 gave the same particles.) At 0.005 ppp the rounds keep adding a
-few particles to the end, so the frame's time there stays set by the particle images and the volumes.
+14.7). At 0.005 ppp the rounds keep adding a few particles to the end. Since then, once a round adds fewer
+than ``residual_late_gain`` (0.01) of the list, the later volumes take one MART iteration (half a volume's CPU)
+and add about what full ones would (seeds 10 / 11: 8 / 3 particles against 9 / 2; seed 8: none, the rounds then
+stop, against 10) (found / ghosts %, CPU s, 1 thread, load 2–5, same run, 0 -> 0.01; seeds 7,
+8 chose it: 79.3 / 17.3 both, 82.2 / 17.6 -> 82.0 / 17.4; held out, 0.005 ppp, 300 x 300 px: seed 10 82.0 / 14.7,
+23.5 s -> 82.0 / 14.1, 21.0 s, seed 11 84.4 / 14.6, 22.6 s -> 84.7 / 14.6, 20.9 s; 0.001 ppp, 400 x 400, seed 10:
+the same particles). ``shake_settle`` (the shake's active set; off): a particle whose last shake moved it less
+than that (0.05 voxel tried), with nothing within ``_SETTLE_RADIUS`` (2) voxels moved, added or removed, sits out
+up to 2 shakes: 15–40 % of the late shakes, CPU x0.84–0.86 held out, but ghosts +1.3 / +1.7 points, found −0.7 /
+−0.8 (seeds 10 / 11, 0.005 ppp; 0.001 ppp the same found): at 0.005 ppp an image's box holds hundreds of others'
+images, so a neighbour beyond 2 voxels still moves its residual. Seeds 7 / 8, CPU and found: woken by lateral
+distance (any depth) within 2 voxels 1–3 % sat out, x0.92 / 1.00; within 1 voxel x0.90 / 0.98, −0.6 / −2.0; a
+3-voxel radius, one shake at most x0.95 / 1.02, +0.3 / −0.4; always shaking the faint (< 0.5 median): no change.
 What did not help: MART restricted to the lenslets the residual lights (at 0.005 ppp the
 median lenslet holds 12–37 % of the brightest lenslet's positive-residual energy, at 0.001 ppp 3–8 %;
 the residual's first guess is above 3 % of its maximum in 70–75 % of the voxels, so every lenslet's
@@ -162,8 +172,9 @@ volumes' peaks (388 over ten rounds; found / extra): every other view column 240
 view row 305 / 230, a 2 x 2 x 2 grid 298 / 136, a warm start from the previous residual's volume with
 one iteration 317 / 166 (two: 361 / 140), against 363 / 110 on every other plane. Both
 dominant costs scale with the frame: at this cost per particle a full Table 4.3 frame at 0.005 ppp
-stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine; the attrs
-``seconds_*``, ``particle_images`` and ``mart_volumes`` hold the split).
+stays far above the issue's 10 minutes on 2 cores (~60 min on a quiet machine, x0.9 with ``residual_late_gain``:
+seed 10's 21.5 s of CPU at 1 thread scale to 63 min, 24.0 s without to 70 min; the attrs ``seconds_*``,
+``particle_images`` and ``mart_volumes`` hold the split).
 
 Memory (``benchmarks/bench_ipr.py --memory``, the full Table 4.3 frame): the candidate plan dominates, the refined
 grid's weight tables (4.03 GB: each plane's own beam width, int16 starts) and the four subsets' coverage (0.53 GB,
@@ -241,6 +252,9 @@ _QUAD = {
 #: and a lenslet, ~200 x 200 px on average over the Table 4.3 camera's 7 mm depth, 5 % of it lit): 256 particles
 #: take 0.59 GB (``bench_ipr.py --memory``), the 2048 before 4.7 GB, more than the candidate MART's tables
 _BATCH = 256
+_SETTLE_RADIUS = 2.0  # shake_settle: a particle moved, added or removed within this many voxels wakes the settled
+_SETTLE_SKIPS = 2  # and a settled particle sits out at most this many shakes in a row
+_LATE_MART_ITERATIONS = 1  # residual_late_gain: MART iterations of the later residual volumes
 _POLISH_SPOT = 1.5  # the polish moves particles whose defocus spot (radius) is at most this many lenslet pitches
 _POLISH_XY = (-0.25, 0.0, 0.25)  # the polish stencil's offsets [voxels] in x and y
 _POLISH_Z = (-0.5, -0.25, 0.0, 0.25, 0.5)  # and in z
@@ -901,6 +915,8 @@ def ipr_particles(
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
+    residual_late_gain: float = 0.01,
+    shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
     polish: int = 3,
@@ -944,6 +960,15 @@ def ipr_particles(
         The residual-candidate rounds stop after one that adds fewer new particles than this fraction of the
         particle list (its remaining volumes would repeat the last one's rejected peaks; module docstring,
         "Candidates"); 0: every one of the ``residual_candidates`` rounds runs.
+    residual_late_gain : float
+        Once a residual-candidate round adds fewer new particles than this fraction of the list (but not fewer than
+        ``residual_candidates_min_gain``'s), the later rounds' volumes take ``_LATE_MART_ITERATIONS`` (1) MART
+        iterations instead of ``residual_mart_iterations``; 0: never.
+    shake_settle : float
+        The shake's active set [voxels]: a particle whose last shake moved it less than this, with no particle
+        within ``_SETTLE_RADIUS`` voxels moved (as much), added or removed since, sits out the next shake (at most
+        ``_SETTLE_SKIPS`` in a row; attrs ``shake_sat_out``: how many per iteration); 0: every particle is shaken
+        every iteration.
     jacobian : {"central", "forward"}
         Finite differences of the position Jacobian: ``central`` renders the six ±δ trial images per
         particle and iteration, ``forward`` the three +δ ones (the choice then has four exact candidates
@@ -992,6 +1017,8 @@ def ipr_particles(
             f"reconstruct.ipr.residual_plane_step = {residual_plane_step!r}: allowed range is [1, 4]"
         )
     _check("residual_candidates_min_gain", residual_candidates_min_gain, 0.0, 1.0)
+    _check("residual_late_gain", residual_late_gain, 0.0, 1.0)
+    _check("shake_settle", shake_settle, 0.0, 1.0)
     if not isinstance(polish, (int, np.integer)) or not 0 <= polish <= 20:
         raise ReconstructionError(f"reconstruct.ipr.polish = {polish!r}: allowed range is [0, 20]")
     if jacobian not in _JACOBIANS:
@@ -1050,6 +1077,11 @@ def ipr_particles(
     gain: list[int] = []  # new particles accepted per residual-candidate round
     stop_after, skipped = iterations, 0  # residual-candidate rounds skipped from this iteration on
     inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
+    settle = float(shake_settle)
+    still = np.zeros(len(xyz), bool)  # the active set's settled particles (off with shake_settle 0)
+    sat = np.zeros(len(xyz), np.int64)  # shakes each has sat out in a row
+    sat_out: list[int] = []  # particles not shaken, per iteration
+    late = False  # residual_late_gain: a round added fewer than that of the list
 
     def patches(pos: np.ndarray, trials: np.ndarray | None = None):
         t0 = time.perf_counter()
@@ -1140,9 +1172,19 @@ def ipr_particles(
         if not len(xyz):
             break
         res_hist.append(norm(res))
-        xyz, inten, out = shake_step(xyz, inten, res)
-        sig = np.sqrt(out[:, 4:7])
-        rel = out[:, 7]
+        # the active set: particles settled (their last shake moved them less than shake_settle voxels, and no
+        # particle within _SETTLE_RADIUS voxels moved, was added or removed since) sit out up to _SETTLE_SKIPS shakes
+        act = ~(still & (sat < _SETTLE_SKIPS))
+        sat = np.where(act, 0, sat + 1)
+        sat_out.append(int((~act).sum()))
+        old = xyz
+        xyz, inten, sig, rel = xyz.copy(), inten.copy(), sig.copy(), rel.copy()
+        xyz[act], inten[act], out = shake_step(old[act], inten[act], res)
+        sig[act] = np.sqrt(out[:, 4:7])
+        rel[act] = out[:, 7]
+        moved = np.max(np.abs(xyz - old) / vox, axis=1) >= settle if settle > 0 else act
+        events = [old[moved], xyz[moved]]
+        still = np.where(act, ~moved, still)
         # ghosts: faint particles, and particles that left the grid
         med = float(np.median(inten[inten > 0])) if np.any(inten > 0) else 0.0
         keep = inten > (min_intensity * med if it >= _GHOST_FROM else 0.0)
@@ -1153,11 +1195,14 @@ def ipr_particles(
         gone = ~keep & (inten > 0)
         if gone.any():
             add_images(xyz[gone], inten[gone], res, 1.0)
+        events.append(xyz[~keep])
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
+        still, sat = still[keep], sat[keep]
         if it < residual_candidates and it >= stop_after:
             skipped += 1
         elif it < residual_candidates:
-            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), residual_mart_iterations, rplan)
+            its = min(_LATE_MART_ITERATIONS, residual_mart_iterations) if late else residual_mart_iterations
+            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), its, rplan)
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
@@ -1169,9 +1214,15 @@ def ipr_particles(
                 inten = np.concatenate([inten, amp0[good]])
                 sig = np.vstack([sig, np.full((int(good.sum()), 3), np.inf)])
                 rel = np.concatenate([rel, np.full(int(good.sum()), np.inf)])
+                still = np.concatenate([still, np.zeros(int(good.sum()), bool)])
+                sat = np.concatenate([sat, np.zeros(int(good.sum()), np.int64)])
+                events.append(new[good])
             gain.append(int(good.sum()) if len(new) else 0)
             if gain[-1] < residual_candidates_min_gain * len(xyz):  # the next volumes would repeat this one
                 stop_after = it + 1
+            late |= gain[-1] < residual_late_gain * len(xyz)  # the later volumes take fewer MART iterations
+        if settle > 0:  # a change near a settled particle wakes it
+            still = _unwoken(still, xyz, np.vstack(events), vox)
         bar.update(1)
         if res_hist:
             bar.set_postfix(particles=len(xyz), residual=f"{res_hist[-1]:.4f}")
@@ -1224,6 +1275,9 @@ def ipr_particles(
             "residual_mart_iterations": int(residual_mart_iterations),
             "residual_plane_step": int(residual_plane_step),
             "residual_candidates_min_gain": float(residual_candidates_min_gain),
+            "residual_late_gain": float(residual_late_gain),
+            "shake_settle": float(shake_settle),
+            "shake_sat_out": sat_out,
             "candidates_added": gain,
             "skipped_candidate_rounds": int(skipped),
             "polish": int(polish),
@@ -1240,6 +1294,16 @@ def ipr_particles(
             **ginfo,
         },
     )
+
+
+def _unwoken(still: np.ndarray, xyz: np.ndarray, events: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """``still`` (the settled particles at ``xyz``) less those within ``_SETTLE_RADIUS`` voxels (per-axis scaled)
+    of an event: a particle's old or new position where it moved, was added or removed."""
+    out = np.asarray(still, bool).copy()
+    if len(events) and out.any():
+        d = cKDTree(np.asarray(events) / vox).query(xyz[out] / vox, distance_upper_bound=_SETTLE_RADIUS)[0]
+        out[out] = d > _SETTLE_RADIUS
+    return out
 
 
 def _unmerged(xyz: np.ndarray, inten: np.ndarray, vox: np.ndarray) -> np.ndarray:
@@ -1294,6 +1358,8 @@ def ipr(
     residual_mart_iterations: int = 3,
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
+    residual_late_gain: float = 0.01,
+    shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
     polish: int = 3,
@@ -1321,6 +1387,8 @@ def ipr(
         residual_mart_iterations=residual_mart_iterations,
         residual_plane_step=residual_plane_step,
         residual_candidates_min_gain=residual_candidates_min_gain,
+        residual_late_gain=residual_late_gain,
+        shake_settle=shake_settle,
         jacobian=jacobian,
         image_accuracy=image_accuracy,
         polish=polish,
@@ -1410,6 +1478,20 @@ class IPR(ReconstructionMethod):
             "maximum": 1,
             "description": "residual-candidate rounds stop after one adding fewer than this fraction of the particles",
         },
+        "residual_late_gain": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 1,
+            "description": "after a residual-candidate round adding fewer than this fraction of the particles, the "
+            "later rounds' volumes take one MART iteration (0: never)",
+        },
+        "shake_settle": {
+            "type": "number",
+            "minimum": 0,
+            "maximum": 1,
+            "description": "particles whose last shake moved them less than this [voxels], nothing near them changed, "
+            "sit out the next shake (0: every particle every iteration)",
+        },
         "jacobian": {
             "type": "string",
             "enum": list(_JACOBIANS),
@@ -1450,6 +1532,8 @@ class IPR(ReconstructionMethod):
         residual_mart_iterations: int = 3,
         residual_plane_step: int = 1,
         residual_candidates_min_gain: float = 0.001,
+        residual_late_gain: float = 0.01,
+        shake_settle: float = 0.0,
         jacobian: str = "central",
         image_accuracy: str = "fast",
         polish: int = 3,
@@ -1470,6 +1554,8 @@ class IPR(ReconstructionMethod):
             residual_mart_iterations=residual_mart_iterations,
             residual_plane_step=residual_plane_step,
             residual_candidates_min_gain=residual_candidates_min_gain,
+            residual_late_gain=residual_late_gain,
+            shake_settle=shake_settle,
             jacobian=jacobian,
             image_accuracy=image_accuracy,
             polish=polish,
