@@ -18,9 +18,9 @@ Where the time goes: the split of the IPR time into the candidate MART volumes, 
 images (:func:`lfstudy.reconstruct.ipr.particle_patches`) and the fit kernels (the rest: peaks,
 bookkeeping), and the full frame extrapolated at the crop's cost per particle (the crop's particle
 count scaled by the sensor area). ``--compare k=v ...`` fits the same scene again with each setting
-(one ``ipr_particles`` keyword each, e.g. ``jacobian=forward``, ``residual_candidates=3`` or
-``residual_mart_iterations=0``) and prints the same line and the time ratio to the defaults, in the
-same run. The CPU time (all threads) is printed beside the wall time: on a shared machine it moves
+(``ipr_particles`` keywords, ``k=v,k2=v2`` for several in one run, e.g. ``jacobian=forward``,
+``residual_candidates=3`` or ``residual_mart_iterations=0``) and prints the same line and the time ratio to the
+defaults, in the same run. The CPU time (all threads) is printed beside the wall time: on a shared machine it moves
 less with the load.
 
 Targets (issue 27): >= 95 % found within half a voxel at 0.001 ppp, >= 80 % at 0.005 ppp,
@@ -273,14 +273,17 @@ def _memory(args: argparse.Namespace) -> None:
 
 
 def _setting(text: str) -> dict[str, object]:
-    """``k=v`` as an ipr_particles keyword (v an int, a float or a string)."""
-    k, _, v = text.partition("=")
-    for cast in (int, float):
-        try:
-            return {k: cast(v)}
-        except ValueError:
-            pass
-    return {k: v}
+    """``k=v`` (or ``k=v,k2=v2``: one run with both) as ipr_particles keywords (v an int, a float or a string)."""
+    out: dict[str, object] = {}
+    for item in text.split(","):
+        k, _, v = item.partition("=")
+        for cast in (int, float, str):
+            try:
+                out[k] = cast(v)
+                break
+            except ValueError:
+                pass
+    return out
 
 
 if __name__ == "__main__":
