@@ -86,9 +86,10 @@ a spurious particle's 4 parameters take ~4σ², the search over 12 starts more; 
 split=1`` (found / ghosts %, 1 thread, load 2–6 on 2 cores; seeds 3, 4 chose ratio 1.3 and penalty 16, 10–12 held
 out): 0.005 ppp, 300 x 300 px, seeds 3 / 4 / 10 / 11 / 12: 88.4 / 14.5, 86.7 / 12.0, 83.3 / 15.1, 85.8 / 15.3, 83.1
 / 14.9 (without: 87.3 / 14.3, 84.4 / 12.2, 82.0 / 14.7, 84.4 / 14.6, 81.6 / 15.3); 0.001 ppp, 400 x 400 px: found
-+0 to +0.6 points, ghosts +0 to +1.2 (seed 12: two splits, both ghosts); CPU +0–10 %. It stays off: ghosts rose
-in 3 of the 6 held-out fits. Most misses are not such pairs: at 0.001 ppp single particles near focus fitted
-0.55–0.7 voxel off in z (10 of seed 3's 12), at 0.005 ppp ghosts beside one found and one missed particle.
++0 to +0.6 points, ghosts +0 to +1.2 (seed 12: two splits, both ghosts; 800 x 800 px: 90.3 / 7.6 -> 90.5 / 8.0);
+CPU +0–10 %. It stays off: ghosts rose in 4 of the 7 held-out fits. Most misses are not such pairs: at 0.001 ppp
+single particles near focus fitted 0.55–0.7 voxel off in z (10 of seed 3's 12), at 0.005 ppp ghosts beside one
+found and one missed particle.
 
 The residual is rendered once (the data, before the first candidate is placed) and then kept
 exact incrementally: every change subtracts or adds back an exact image (the choice subtracts the
