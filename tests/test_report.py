@@ -613,40 +613,41 @@ def test_the_answer_names_a_cost_only_the_combination_of_imperfections_has():
     assert "their combination reaches 0.014 mm" in text
 
 
-def test_the_budget_points_to_the_focal_plane_where_the_fit_misses_the_particles_near_it(tmp_path):
-    """A particle method that finds 20 % of the particles within the depth of field about the focal plane
-    but 80 % of all is limited by the focal plane inside the volume: the budget says so and names the
-    design; at 60 % against 80 % it does not."""
-    from lfstudy.study.designs import budget_table, focus_limited
+@pytest.mark.parametrize(
+    "limited, hit, miss, said",
+    [
+        # a particle method that finds 20 % of the particles within the depth of field about the focal plane but
+        # 80 % of all is limited by the focal plane inside the volume; at 45 % against 80 % it is not
+        (
+            "focus_limited",
+            {"found_percent": [80.0, 80.0], "found_in_focus_percent": [60.0, 20.0]},
+            {"found_percent": [80.0, 80.0], "found_in_focus_percent": [60.0, 45.0]},
+            ("The focal plane limits", "particles.z_center"),
+        ),
+        # 0.3 particles per lenslet and depth cell: limited by the seeding, and by how much; at the limit itself not
+        (
+            "density_limited",
+            {"particles_per_cell": [0.1, 0.3]},
+            {"particles_per_cell": [0.1, 0.2]},
+            ("The seeding limits", "up to 0.30 particles"),
+        ),
+    ],
+)
+def test_the_budget_names_what_limits_a_design(limited, hit, miss, said, tmp_path):
+    """The budget names the design a limit applies to (the second) and says what to change; where the metric
+    stays within the limit, or the study lacks it, it says nothing."""
+    from lfstudy.study import designs
 
-    base = {"rms_total_mm": [0.02, 0.03], "spacing_mm_x": [0.7, 0.7], "spacing_mm_z": [0.7, 0.7]}
-    base |= {"valid_percent": [99.0, 98.0], "oracle_rms_total_mm": [0.005, 0.005]}
-    base |= {"recon_added_rms_total_mm": [0.019, 0.029], "found_percent": [80.0, 80.0], "ghost_percent": [9.0, 9.0]}
-    near = _study_with({**base, "found_in_focus_percent": [60.0, 20.0]})
-    fine = _study_with({**base, "found_in_focus_percent": [60.0, 45.0]})
-    assert focus_limited(budget_table(near)) == [budget_table(near)["design"].iloc[1]]
-    assert focus_limited(budget_table(fine)) == [] and focus_limited(budget_table(_study_with(base))) == []
-    cfg = load_config(ROOT / "config" / "demo.yaml")
-    text = write_report(near, {}, cfg, tmp_path / "near.html", progress=False).read_text()
-    assert "The focal plane limits" in text and "particles.z_center" in text
-    text = write_report(fine, {}, cfg, tmp_path / "fine.html", progress=False).read_text()
-    assert "The focal plane limits" not in text
-
-
-def test_the_budget_points_to_the_seeding_where_a_design_has_too_many_particles_per_depth_cell(tmp_path):
-    """A design with 0.3 particles per lenslet and depth cell is limited by its seeding: the budget names it
-    and says by how much; at 0.1 it does not."""
-    from lfstudy.study.designs import DENSITY_LIMITED, budget_table, density_limited
-
+    assert designs.DENSITY_LIMITED == 0.2
     base = {"rms_total_mm": [0.02, 0.03], "spacing_mm_x": [0.7, 0.7], "spacing_mm_z": [0.7, 0.7]}
     base |= {"valid_percent": [99.0, 98.0], "oracle_rms_total_mm": [0.005, 0.005]}
     base |= {"recon_added_rms_total_mm": [0.019, 0.029]}
-    dense = _study_with({**base, "particles_per_cell": [0.1, 0.3]})
-    sparse = _study_with({**base, "particles_per_cell": [0.1, DENSITY_LIMITED]})
-    assert density_limited(budget_table(dense)) == [budget_table(dense)["design"].iloc[1]]
-    assert density_limited(budget_table(sparse)) == [] and density_limited(budget_table(_study_with(base))) == []
+    limit = getattr(designs, limited)
+    over, within = _study_with({**base, **hit}), _study_with({**base, **miss})
+    assert limit(designs.budget_table(over)) == [designs.budget_table(over)["design"].iloc[1]]
+    assert limit(designs.budget_table(within)) == [] and limit(designs.budget_table(_study_with(base))) == []
     cfg = load_config(ROOT / "config" / "demo.yaml")
-    text = write_report(dense, {}, cfg, tmp_path / "dense.html", progress=False).read_text()
-    assert "The seeding limits" in text and "up to 0.30 particles" in text
-    text = write_report(sparse, {}, cfg, tmp_path / "sparse.html", progress=False).read_text()
-    assert "The seeding limits" not in text
+    text = write_report(over, {}, cfg, tmp_path / "over.html", progress=False).read_text()
+    assert all(s in text for s in said)
+    text = write_report(within, {}, cfg, tmp_path / "within.html", progress=False).read_text()
+    assert said[0] not in text
