@@ -89,7 +89,11 @@ out): 0.005 ppp, 300 x 300 px, seeds 3 / 4 / 10 / 11 / 12: 88.4 / 14.5, 86.7 / 1
 +0 to +0.6 points, ghosts +0 to +1.2 (seed 12: two splits, both ghosts; 800 x 800 px: 90.3 / 7.6 -> 90.5 / 8.0);
 CPU +0–10 %. It stays off: ghosts rose in 4 of the 7 held-out fits. Most misses are not such pairs: at 0.001 ppp
 single particles near focus fitted 0.55–0.7 voxel off in z (10 of seed 3's 12), at 0.005 ppp ghosts beside one
-found and one missed particle.
+found and one missed particle. Nor does moving those singles along z alone help (a scan of ±1.5 voxel in 0.125
+steps to the lowest exact ‖R‖², the others held; tried on branch h45, not merged): found +0 / +0 / −0.6 points on
+held-out seeds 10–12 at 0.001 ppp. Given the other particles, most of them already sit at the residual's minimum
+along z (by 10²–10³ σ² over the true depth), the rest on a stretch ~1.2 voxel long flat to a few σ² with the true
+depth at its edge: the fix has to move a particle with its neighbours.
 
 The residual is rendered once (the data, before the first candidate is placed) and then kept
 exact incrementally: every change subtracts or adds back an exact image (the choice subtracts the
