@@ -188,7 +188,11 @@ def focus_limited(table: pd.DataFrame) -> list[str]:
     measured volume limits the design. Empty where the study holds no particle scores."""
     if not {FOUND, FOUND_IN_FOCUS, "design"} <= set(table.columns):
         return []
-    hit = table[FOUND_IN_FOCUS] < FOCUS_LIMITED * table[FOUND]
+    return _designs_where(table, table[FOUND_IN_FOCUS] < FOCUS_LIMITED * table[FOUND])
+
+
+def _designs_where(table: pd.DataFrame, hit: pd.Series) -> list[str]:
+    """The design labels of the rows where ``hit`` holds (NaN: no), each once, in order."""
     return list(dict.fromkeys(table.loc[hit.fillna(False).astype(bool), "design"].astype(str)))
 
 
@@ -208,8 +212,7 @@ def density_limited(table: pd.DataFrame) -> list[str]:
     whatever its settings. Empty where the study holds no such column."""
     if not {PER_CELL, "design"} <= set(table.columns):
         return []
-    hit = table[PER_CELL] > DENSITY_LIMITED
-    return list(dict.fromkeys(table.loc[hit.fillna(False).astype(bool), "design"].astype(str)))
+    return _designs_where(table, table[PER_CELL] > DENSITY_LIMITED)
 
 
 def budget_table(study: xr.Dataset) -> pd.DataFrame:
