@@ -484,15 +484,25 @@ rule export_volume:
 #   snakemake --cores all process --config process=path/to/recording.yaml
 # Output: results/<recording name>/ (piv.zarr along time, metrics.csv, report.html, ...). It
 # reruns when the recording config or any of its image files changes.
+#
+# No directory() output: Snakemake clears a job's outputs before it starts, before lfstudy could
+# check them, so a recording kept under results/<name>/ or a user's folder there would be lost
+# (issue 37). The declared output is results/<name>.process.json, the finished run's marker copied
+# beside it (checked at parse time by lfstudy.process.target); `lfstudy process --overwrite`
+# itself replaces results/<name>/ only where it holds an earlier output of its own and nothing else.
 localrules: process
 
 if PROCESS:
     from lfstudy.process.config import load_process_config
     from lfstudy.process.recording import recording_files
+    from lfstudy.process.target import TargetError, process_target
 
     PCFG = load_process_config(PROCESS)
-    POUT = f"results/{PCFG['name']}"
-    if POUT == OUT:
+    try:
+        PTARGET = process_target(PROCESS, PCFG["name"], recording_files(PCFG["recording"]))
+    except TargetError as exc:
+        raise WorkflowError(str(exc)) from None
+    if PTARGET.out == OUT:
         raise WorkflowError(
             f"recording {PROCESS!r}: its name {PCFG['name']!r} is the study's; rename one (both write {OUT})"
         )
@@ -502,19 +512,21 @@ if PROCESS:
         return job_mem_mb(PCFG, "process", attempt)
 
     rule process:
-        input: POUT
+        input: PTARGET.record
 
     rule process_recording:
         input:
             config=PROCESS,
-            images=recording_files(PCFG["recording"]),
-        output: directory(POUT)
+            images=PTARGET.inputs[1:],
+        output: PTARGET.record
+        params: out=PTARGET.out
         log: f"results/{PCFG['name']}.process.log"
         threads: HEAVY
         resources: mem_mb=process_mem_mb
         shell:
-            "python -m lfstudy.cli process {input.config:q} --out {output[0]:q} --overwrite"
+            "python -m lfstudy.cli process {input.config:q} --out {params.out:q} --overwrite"
             " --threads {threads} --quiet > {log:q} 2>&1"
+            " && cp {params.out:q}/.lfstudy-output.json {output:q}"
 
 else:
 

@@ -60,6 +60,10 @@ def _with_defaults(validator_class):
 _Validator = _with_defaults(jsonschema.Draft202012Validator)
 
 
+#: The pattern of a study's or a recording's ``name`` (config/schema.yaml): it names results/<name>/.
+PLAIN_NAME = "^[A-Za-z0-9_-][A-Za-z0-9_.-]*$"
+
+
 def _key(path) -> str:
     return ".".join(str(p) for p in path) or "<root>"
 
@@ -84,6 +88,10 @@ def _describe(err: jsonschema.ValidationError) -> str:
     if err.validator == "minItems":
         n = s["minItems"]
         return f"give at least {n} value{'s' if n > 1 else ''}"
+    if err.validator == "pattern" and s.get("pattern") == PLAIN_NAME:
+        return "a plain name: letters, digits, '_', '-' and '.', not starting with '.' (no path separators)"
+    if err.validator == "maxLength":
+        return f"at most {s['maxLength']} characters"
     if err.validator == "enum":
         return "allowed values are " + ", ".join(repr(e) for e in s["enum"])
     if err.validator == "oneOf":

@@ -24,22 +24,46 @@ def _host() -> str:
     return re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname())
 
 
+def _dead_pid() -> int:
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    return int(dead.stdout)
+
+
 def test_atomic_path_leaves_live_writers_temporaries(tmp_path):
     """Only the temporaries of a dead writer of this host are cleared, not a live run's (nor another
-    host's, which this host cannot tell alive)."""
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    dead_pid = int(dead.stdout)
-    live = tmp_path / f".s.zarr.tmp-{_host()}-{os.getpid()}-0123abcd"
-    killed = tmp_path / f".s.zarr.tmp-{_host()}-{dead_pid}-0123abcd"
-    other = tmp_path / f".s.zarr.tmp-elsewhere-{dead_pid}-0123abcd"
-    old = tmp_path / ".s.zarr.tmp-89abcdef"  # an earlier version's unnamed temporary
-    for p in (live, killed, other, old):
+    host's, which this host cannot tell alive), nor files merely named like a temporary."""
+    dead_pid = _dead_pid()
+    live = tmp_path / f".s.zarr.lfstudy-tmp-{_host()}-{os.getpid()}-0123abcd"
+    killed = tmp_path / f".s.zarr.lfstudy-tmp-{_host()}-{dead_pid}-0123abcd"
+    other = tmp_path / f".s.zarr.lfstudy-tmp-elsewhere-{dead_pid}-0123abcd"
+    users = [tmp_path / ".s.zarr.tmp-89abcdef", tmp_path / f".s.zarr.tmp-{_host()}-{dead_pid}-0123abcd"]
+    for p in (live, killed, other, *users):
         p.mkdir()
+    (users[0] / "keep.txt").write_text("mine")
     with io.atomic_path(tmp_path / "s.zarr") as tmp:
         tmp.mkdir()
-        assert tmp.name.startswith(f".s.zarr.tmp-{_host()}-{os.getpid()}-")
-    assert live.is_dir() and other.is_dir() and not killed.exists() and not old.exists()
+        assert tmp.name.startswith(f".s.zarr.lfstudy-tmp-{_host()}-{os.getpid()}-")
+    assert live.is_dir() and other.is_dir() and not killed.exists()
+    assert all(p.is_dir() for p in users) and (users[0] / "keep.txt").read_text() == "mine"
     assert (tmp_path / "s.zarr").is_dir()
+
+
+def test_a_swap_killed_midway_is_repaired_by_the_next_run(tmp_path):
+    """A writer killed during its swap leaves the earlier output parked as .NAME.lfstudy-old-...: the
+    next run moves it back when nothing replaced it, and removes it when the new output is in place."""
+    dead_pid = _dead_pid()
+    out = tmp_path / "o"
+    with io.output_dir(out, command="piv") as tmp:
+        (tmp / "a").write_text("1")
+    parked = tmp_path / f".o.lfstudy-old-{_host()}-{dead_pid}-0123abcd"
+    out.rename(parked)  # killed after parking the earlier output, before moving the new one in
+    assert io.clear_stale(out) == [parked]
+    assert (out / "a").read_text() == "1" and not parked.exists()
+    parked.mkdir()
+    (parked / "a").write_text("0")  # killed after the swap, before removing the earlier output
+    with io.output_dir(out, command="piv", overwrite=True) as tmp:
+        (tmp / "a").write_text("2")
+    assert (out / "a").read_text() == "2" and not list(tmp_path.glob(".*"))
 
 
 def test_output_dir_marks_and_replaces_only_with_overwrite(tmp_path):
