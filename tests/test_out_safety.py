@@ -134,6 +134,27 @@ def test_piv_out(frames, tmp_path, cli_error, capsys):
     assert "v" in io.open_zarr(vol)
 
 
+def test_piv_leaves_files_named_like_its_own(frames, tmp_path, capsys):
+    """A user's `.NAME.lock` and `.NAME.tmp-*/` beside --out are not lfstudy's lock or temporary: a run
+    leaves them as they were; a swap a killed run left half done is tidied by the next run."""
+    pa, pb = frames
+    out = tmp_path / "pivnew.zarr"
+    lock = tmp_path / ".pivnew.zarr.lock"
+    lock.write_text("mine")
+    keep = tmp_path / ".pivnew.zarr.tmp-0123abcd" / "keep.txt"
+    keep.parent.mkdir()
+    keep.write_text("mine")
+    assert main(_piv(pa, pb, out)) == 0
+    assert lock.read_text() == "mine" and keep.read_text() == "mine"
+    parked = tmp_path / f".pivnew.zarr.lfstudy-old-{_host()}-{_dead_pid()}-0123abcd"
+    parked.mkdir()  # the earlier output of a run killed during its swap, after the new one was moved in
+    (parked / "zarr.json").write_text("{}")
+    assert main(_piv(pa, pb, out, "--overwrite")) == 0
+    assert not parked.exists() and "u" in io.open_zarr(out)
+    assert sorted(p.name for p in tmp_path.glob(".*")) == [".pivnew.zarr.lock", ".pivnew.zarr.tmp-0123abcd"]
+    capsys.readouterr()
+
+
 def test_calibrate_out(tmp_path, cli_error):
     img = xr.DataArray(np.ones((8, 8)), dims=("row", "col"))
     io.write_tiff(img, tmp_path / "p.tif")

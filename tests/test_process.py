@@ -13,6 +13,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -313,6 +314,114 @@ def test_snakemake_process_target(recording, tmp_path):
     assert mem and int(mem.group(1)) == job_mem_mb(load_process_config(cfg), "process"), block[:2000]
 
 
+# ------------------------------------------------------------------ the Snakemake target never loses a recording
+def _sums(root: Path) -> dict[str, str]:
+    """sha256 of every file below ``root`` (relative paths)."""
+    import hashlib
+
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _kept(before: dict[str, str], root: Path) -> None:
+    after = _sums(root)
+    lost = {k for k, v in before.items() if after.get(k) != v}
+    assert not lost, f"lost or changed: {sorted(lost)}"
+
+
+def _user_recording(rec: dict, where: Path, name: str) -> Path:
+    """The recording as a user keeps it: its TIFFs and its config side by side in ``where``."""
+    import shutil
+
+    where.mkdir(parents=True, exist_ok=True)
+    for f in ("pinhole.tif", "frame_1.tif", "frame_2.tif", "dark_1.tif", "dark_2.tif"):
+        shutil.copy(rec["dir"] / f, where / f)
+    cfg = {
+        **rec["base"],
+        "name": name,
+        "recording": {
+            "calibration": {"image": "pinhole.tif"},
+            "dark": "dark_*.tif",
+            "dt": DT,
+            "frames": {"pairs": [["frame_1.tif", "frame_2.tif"]]},
+        },
+    }
+    path = where / "rec.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _snakemake_process(work: Path, cfg: Path, timeout: int = 900) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work)]
+    cmd += ["--configfile", str(TINY), "--cores", "1", "process", "--config", f"process={cfg}"]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("name", ["..", ".", "a/b", ".hidden"])
+def test_snakemake_process_refuses_a_name_that_is_a_path(recording, tmp_path, name):
+    """`name: ..` once deleted the whole working directory through the target's directory() output, and
+    `name: .` another study's results: a name is a plain name, refused before Snakemake removes anything."""
+    work = tmp_path / "W"
+    cfg = _user_recording(recording, work, name)
+    (work / "results" / "other").mkdir(parents=True)
+    (work / "results" / "other" / "study.csv").write_text("a,b\n1,2\n")
+    before = _sums(work)
+    r = _snakemake_process(work, cfg)
+    assert r.returncode != 0
+    assert "config key 'name'" in r.stderr and "a plain name" in r.stderr, r.stderr[-2000:]
+    _kept(before, work)
+
+
+def test_snakemake_process_refuses_a_recording_under_its_output(recording, tmp_path):
+    """A recording kept in results/<name>/ (where the target writes) is refused at parse time: all of its
+    files stay (they were deleted as the directory() output)."""
+    work = tmp_path / "W"
+    cfg = _user_recording(recording, work / "results" / "rec", "rec")
+    before = _sums(work)
+    r = _snakemake_process(work, cfg)
+    assert r.returncode != 0
+    assert "lies inside results/rec/" in r.stderr, r.stderr[-2000:]
+    _kept(before, work)
+    assert len(before) == 6
+
+
+@pytest.mark.slow
+def test_snakemake_process_keeps_user_files_in_its_output(recording, tmp_path):
+    """A user's folder at results/<name>/ is refused by the job (rc 1, notes kept); a finished output is
+    replaced on a rerun only while it holds nothing but lfstudy's files: a note added to it is named
+    and kept, with the earlier output."""
+    work = tmp_path / "W"
+    cfg = _user_recording(recording, tmp_path / "recording", "rec")
+    user = work / "results" / "rec"
+    user.mkdir(parents=True)
+    (user / "notes.txt").write_text("mine")
+    r = _snakemake_process(work, cfg)
+    assert r.returncode != 0
+    log = (work / "results" / "rec.process.log").read_text()
+    assert "exists and is no lfstudy output" in log, log
+    assert (user / "notes.txt").read_text() == "mine" and sorted(p.name for p in user.iterdir()) == ["notes.txt"]
+    assert not (work / "results" / "rec.process.json").exists()
+    (user / "notes.txt").unlink()
+    r = _snakemake_process(work, cfg)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (user / "piv.zarr").is_dir() and io.output_marker(user)["command"] == "process"
+    record = json.loads((work / "results" / "rec.process.json").read_text())
+    assert record == io.output_marker(user)
+    (user / "notes.txt").write_text("mine")
+    with cfg.open("a") as f:
+        f.write("# edited\n")  # the recording's config changed: Snakemake reruns the job
+    before = {d: _sums(d) for d in (user, cfg.parent)}
+    r = _snakemake_process(work, cfg)
+    assert r.returncode != 0
+    log = (work / "results" / "rec.process.log").read_text()
+    assert "holds files lfstudy did not write: 'notes.txt'" in log, log
+    for d, sums in before.items():
+        _kept(sums, d)  # the note, the earlier output and the recording
+
+
 def test_white_image_calibration(recording):
     """A white image (the working aperture: the lenslet disks touch) gives the pinhole image's centres."""
     from lfstudy.lightfield import find_lenslet_centers
@@ -461,6 +570,42 @@ def test_out_that_cannot_be_written_fails_before_processing(recording, cli_error
         ro.mkdir(mode=0o500)
         line = cli_error("process", str(cfg), "--out", str(ro / "o"))
         assert "not writable" in line, line
+    # an output that cannot be moved into place (an immutable empty folder) fails before processing
+    imm = tmp_path / "imm"
+    imm.mkdir()
+    made = subprocess.run(["chattr", "+i", str(imm)], capture_output=True, text=True)
+    if made.returncode != 0:
+        pytest.skip(f"this file system or user cannot make an immutable folder: {made.stderr.strip()}")
+    try:
+        line = cli_error("process", str(cfg), "--out", str(imm))
+    finally:
+        subprocess.run(["chattr", "-i", str(imm)], check=True)
+    assert "cannot be replaced: moving it failed" in line, line
+    assert not any(p.name.startswith(".imm.") for p in tmp_path.iterdir())
+
+
+def test_a_file_added_to_out_while_the_run_writes_is_kept(recording, tmp_path):
+    """An empty --out that gets a file while the run writes is not replaced at the swap: the run fails
+    naming the file, which is kept, and nothing of the run is left behind."""
+    out = tmp_path / "D"
+    out.mkdir()
+    cmd = [sys.executable, "-m", "lfstudy.cli", "process", str(_pair_config(recording)), "--out", str(out), "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for _ in range(12000):  # the run's temporary appears before any processing
+            if list(tmp_path.glob(".D.lfstudy-tmp-*")):
+                break
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.01)
+        (out / "notes.txt").write_text("mine")
+        _, err = proc.communicate(timeout=900)
+    finally:
+        proc.kill()
+    assert proc.returncode == 2, err
+    assert "now holds files lfstudy did not write: 'notes.txt'" in err or "now is no lfstudy output" in err, err
+    assert "Traceback" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"] and (out / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["D"]
 
 
 def test_out_overwrites_only_its_own_output(recording, cli_error, tmp_path, capsys):
@@ -478,6 +623,20 @@ def test_out_overwrites_only_its_own_output(recording, cli_error, tmp_path, caps
     assert main(["process", str(cfg), "--out", str(out), "--quiet", "--overwrite"]) == 0
     assert (out / "metrics.csv").read_text() != "stale" and (out / "piv.zarr").is_dir()
     assert not list(tmp_path.glob(".*"))
+    # --overwrite replaces what lfstudy wrote, never a file put into the output since: it names them
+    import shutil
+
+    (out / "notes.txt").write_text("mine")
+    shutil.copy(recording["dir"] / "frame_1.tif", out / "piv.zarr" / "frame_1.tif")
+    before = _sums(out)
+    capsys.readouterr()
+    assert main(["process", str(cfg), "--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err  # the recording's saturation warning may come first
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("lfstudy process: error: "), err
+    assert "holds files lfstudy did not write: 'notes.txt', 'piv.zarr/frame_1.tif'" in err, err
+    assert _sums(out) == before and not list(tmp_path.glob(".*"))
+    (out / "notes.txt").unlink()
+    (out / "piv.zarr" / "frame_1.tif").unlink()
     marker["command"] = "piv"
     (out / io.MARKER).write_text(json.dumps(marker))
     capsys.readouterr()

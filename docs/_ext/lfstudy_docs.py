@@ -97,7 +97,6 @@ def _allowed(node: Mapping[str, Any]) -> str:
 #: Descriptions of the schema keys that carry none in ``lfstudy/schema.yaml`` (a description
 #: there wins). ``tests/test_docs.py`` fails on an entry whose key is no longer in the schema.
 DESCRIPTIONS: dict[str, str] = {
-    "name": "name of the study: results go to results/<name>/",
     "seed": "study seed; every random stream (particles, rays, pinhole) is derived from it and the "
     "case's settings, so a rerun reproduces every store",
     "camera": "the plenoptic camera (thesis sec. 4.1–4.3, Table 4.3)",
