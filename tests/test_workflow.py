@@ -473,3 +473,16 @@ def test_a_ptv_case_reads_the_particle_lists_in_its_piv_job(tmp_path):
             assert re.search(r"piv\.zarr'? '' \S*volume_a\.particles\.zarr'? \S*volume_b\.particles\.zarr", command)
         else:
             assert not reads and not re.search(r"particles\.zarr", command)
+
+
+def test_a_study_name_that_is_a_path_is_refused(tmp_path):
+    """`name: ..` once planned report.html in the working directory's root: a study's name is a plain
+    name, refused before Snakemake plans or removes anything."""
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "notes.txt").write_text("mine")
+    r = _snakemake(work, "-n", "--config", "name=..")
+    assert r.returncode != 0
+    text = r.stdout + r.stderr
+    assert "config key 'name' = '..': a plain name" in text, text[-2000:]
+    assert (work / "notes.txt").read_text() == "mine"
