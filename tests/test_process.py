@@ -223,7 +223,7 @@ def test_recording_matches_the_simulated_path(recording, series):
 
 # ------------------------------------------------------------------ bad recordings
 def _no_output(out: Path) -> None:
-    assert not out.exists() and not list(out.parent.glob(f".{out.name}.tmp-*"))
+    assert not out.exists() and not list(out.parent.glob(f".{out.name}.lfstudy-*"))
 
 
 def test_frames_of_different_size(recording, cli_error, tmp_path):

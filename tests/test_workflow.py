@@ -216,7 +216,7 @@ def test_deleting_intermediate_reruns_only_dependents_and_a_killed_rerun_restart
     # kill everything hard, so the kill lands in the middle of a write.
     writing = False
     while time.time() < deadline and proc.poll() is None:
-        if any(out.rglob(".stack_a.zarr.tmp-*")):
+        if any(out.rglob(".stack_a.zarr.lfstudy-tmp-*")):
             writing = True
             break
         time.sleep(0.01)
@@ -238,7 +238,7 @@ def test_deleting_intermediate_reruns_only_dependents_and_a_killed_rerun_restart
     for store in out.rglob("*.zarr"):
         io.open_zarr(store)
     # The rerun cleaned the killed writer's temporary output.
-    assert not list(out.rglob(".*.tmp-*"))
+    assert not list(out.rglob(".*.lfstudy-*"))
 
 
 def test_stage_entry_point(tmp_path):
