@@ -848,3 +848,33 @@ def test_the_representative_case_is_the_recommended_design(study_dirs):
     ids = [c for c in table.loc[table["recommended"], "case_id"] if (dirs[c] / "piv.zarr").exists()]
     case, why = _representative(study, dirs, cfg)
     assert ids and case == ids[0] and why.startswith("the recommended design for the uniform_x flow, M −1")
+
+
+def test_the_sigma_figure_has_readable_ticks_and_its_legend_clear_of_the_curves():
+    """Issue 38: eight designs whose σ spans under a decade (0.02-0.07 mm) with errors 1.2-6.8x σ: the tick
+    labels of each panel do not overlap (matplotlib labelled every minor tick of such a span: 36 overlaps
+    before) and the legend lies below the panels, not on them."""
+    from lfstudy.study.figures import error_vs_uncertainty
+
+    curves = {}
+    for k in range(8):
+        s = np.linspace(0.02, 0.06, 6) * (1 + 0.02 * k)
+        bins = {"sigma_rms": s, "error_rms": s * (1.2 + 0.8 * k), "count": np.full(6, 50)}
+        curves[f"M −1, f/2.0, {88.8 + k:.1f} µm lenslets, depth calibration off"] = dict.fromkeys("xyz", bins)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = error_vs_uncertainty(curves)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    r = canvas.get_renderer()
+    panels = list(fig.axes)
+    for a in panels:
+        for axis in (a.xaxis, a.yaxis):
+            boxes = [
+                t.get_window_extent(r) for t in axis.get_ticklabels(which="both") if t.get_visible() and t.get_text()
+            ]
+            assert len(boxes) >= 2
+            assert not any(b1.overlaps(b2) for i, b1 in enumerate(boxes) for b2 in boxes[i + 1 :])
+    legend = fig.legends[0].get_window_extent(r)
+    assert legend.y1 < min(a.get_window_extent(r).y0 for a in panels)
+    assert len(fig.legends[0].get_texts()) == 9  # 8 designs and the 1:1 line

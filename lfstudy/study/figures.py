@@ -724,10 +724,11 @@ def vector_error_slice(piv: xr.Dataset, err: xr.Dataset | None) -> Figure:
                 hatch="///", edgecolor="0.45", lw=0,
             )  # fmt: skip
             hatch = Patch(facecolor="0.85", edgecolor="0.45", hatch="///", label=f"invalid vector ({int((~ok).sum())})")
-            ax2.legend(handles=[hatch], fontsize=7, loc="upper right", framealpha=0.9)
+            # above the map, beside the title: inside it the key covered cells
+            ax2.legend(handles=[hatch], fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), frameon=False)
         cb = fig.colorbar(im, ax=ax2)
         cb.set_label("|error| [mm], valid vectors", fontsize=8)
-        ax2.set_title(f"error magnitude{where}", fontsize=9)
+        ax2.set_title(f"|error|{where}", fontsize=9, loc="left")
         ax2.set_xlabel("x [mm]")
         ax2.set_aspect("equal")
     else:
