@@ -1070,6 +1070,11 @@ def _comparison_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None
         )
 
 
+def _micro(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with "um" in its row labels written µm (the camera's summary spells it in ASCII)."""
+    return df.rename(index=lambda i: re.sub(r"\bum\b", "µm", str(i)))
+
+
 def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]:
     """Per design: resolution, measurable depth and field of view in mm; the cameras and their optics."""
     from lfstudy.study import figures as rf
@@ -1096,7 +1101,7 @@ def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
         "designs",
         "table",
         html="<details><summary>The cameras' optics: every figure</summary>"
-        + _table(pd.DataFrame({k: c.summary() for k, c in cams.items()}))
+        + _table(_micro(pd.DataFrame({k: c.summary() for k, c in cams.items()})))
         + "</details>",
     )
     cam0 = next(iter(cams.values()))
