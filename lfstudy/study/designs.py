@@ -729,7 +729,8 @@ def summary_table(
     Returns
     -------
     pandas.DataFrame
-        Columns ``design``, ``flow`` (where the study has flows), ``error_mm``, ``oracle_mm``,
+        Columns ``design``, ``flow`` (where the study has flows), ``error_mm`` (with replicates its mean, and
+        ``error_mm_sd`` the standard deviation over the seeds), ``oracle_mm``,
         ``ratio`` (error / oracle), ``recon_cut``, ``beat_oracle`` (bool), ``filter_cut`` (where the study
         holds the filtering term), ``component``, ``component_share`` and ``stage``; empty without the oracle.
     """
@@ -739,6 +740,8 @@ def summary_table(
     keys = [c for c in ("design", "flow") if c in bt]
     out = bt[keys].copy()
     out["error_mm"] = bt[TOTAL].astype(float)
+    if f"{TOTAL}_sd" in bt:  # replicates: the scatter of one case
+        out["error_mm_sd"] = bt[f"{TOTAL}_sd"].astype(float)
     out["oracle_mm"] = bt[ORACLE_TOTAL].astype(float)
     out["ratio"] = out["error_mm"] / out["oracle_mm"]
     out["recon_cut"] = [reconstruction_cut(e, a) for e, a in zip(bt[TOTAL], bt[ADDED_TOTAL])]

@@ -566,7 +566,11 @@ def _summary_html(summ: pd.DataFrame, flow: str | None, recommended: str | None)
     out = pd.DataFrame(
         {
             "design": [str(d) + (" (recommended)" if d == recommended else "") for d in sub["design"]],
-            "error [mm]": sub["error_mm"].map(lambda v: f"{v:.3g}"),
+            **(
+                {"error [mm] ± sd": [pm(m, v) for m, v in zip(sub["error_mm"], sub["error_mm_sd"])]}
+                if "error_mm_sd" in sub
+                else {"error [mm]": sub["error_mm"].map(lambda v: f"{v:.3g}")}
+            ),
             "oracle [mm]": sub["oracle_mm"].map(lambda v: f"{v:.3g}"),
             "error / oracle": sub["ratio"].map(lambda v: "–" if not np.isfinite(v) else f"{v:.1f}×"),
             "reconstruction's share": [
