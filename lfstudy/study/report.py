@@ -649,7 +649,7 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
             yield _ranking_block(table, flow)
     yield Block(
         "answer",
-        "sentences",
+        "method",
         html="<p>Designs are compared in millimetres and as a fraction of the true displacement: a voxel is "
         "pitch/|M| across and a fraction of a refocus-plane spacing deep, and differs between designs. A design "
         "is on the Pareto front when no other is better in all of "
