@@ -242,15 +242,17 @@ def piv_convergence(piv: xr.Dataset) -> Figure:
 def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *, bins: int = 50) -> Figure:
     """Histograms of the measured displacement per component with μ and σ (Figs 7.2–7.4, 7.8).
 
-    Valid vectors only, in voxels, object-frame sign. The mean true
-    displacement (from ``errors``) is drawn as a dashed line.
+    Valid vectors only, in mm where the result holds ``<c>_mm`` (else in voxels), object-frame sign. The
+    mean true displacement (from ``errors``) is drawn as a dashed line.
     """
     comps = [(ax, c) for ax, c in _COMP.items() if c in piv]
+    mm = all(f"{c}_mm" in piv for _, c in comps)  # in mm where the result has it: designs compare in mm
+    unit = "mm" if mm else "vox"
     fig = _fig(4.0 * max(1, len(comps)), 3.3, left=0.07, top=0.84, bottom=0.16)
     axes = fig.subplots(1, max(1, len(comps)), squeeze=False)[0]
     valid = piv["valid"].values.astype(bool) if "valid" in piv else None
     for a, (axn, c) in zip(axes, comps):
-        d = np.asarray(piv[c].values, float)
+        d = np.asarray(piv[f"{c}_mm" if mm else c].values, float)
         d = d[valid & np.isfinite(d)] if valid is not None else d[np.isfinite(d)]
         if d.size:
             # The thesis' 50 bins over 4800 vectors; fewer for small grids.
@@ -258,7 +260,7 @@ def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *
             a.text(
                 0.03,
                 0.95,
-                f"μ = {d.mean():+.3f} vox\nσ = {d.std():.3f} vox\nn = {d.size}",
+                f"μ = {d.mean():+.3g} {unit}\nσ = {d.std():.3g} {unit}\nn = {d.size}",
                 transform=a.transAxes,
                 va="top",
                 fontsize=8,
@@ -266,10 +268,11 @@ def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *
             )
         else:
             a.text(0.5, 0.5, "no valid vector", ha="center", transform=a.transAxes)
-        if errors is not None and f"true_{axn}" in errors and np.isfinite(float(errors[f"true_{axn}"])):
-            a.axvline(float(errors[f"true_{axn}"]), color="C3", ls="--", label="true mean")
+        true = f"true_{axn}_mm" if mm else f"true_{axn}"
+        if errors is not None and true in errors and np.isfinite(float(errors[true])):
+            a.axvline(float(errors[true]), color="C3", ls="--", label="true mean")
             a.legend(fontsize=7, loc="upper right")
-        a.set_xlabel(f"{axn} displacement {c} [voxel]")
+        a.set_xlabel(f"{axn} displacement {c} [{'mm' if mm else 'voxel'}]")
     axes[0].set_ylabel("count")
     fig.suptitle("Displacement histograms, valid vectors (cf. Figs 7.2–7.4, 7.8)")
     return fig
@@ -493,6 +496,29 @@ def overview_heatmap(study: xr.Dataset, var: str, dims: Sequence[str]) -> Figure
     return fig
 
 
+#: A metric whose values span less than this fraction of their size is drawn as constant (issue 37: Q ran
+#: 0.835758-0.835772 on the demo designs, and its ticks read as a range).
+STEADY = 1e-3
+
+
+def _steady_axis(ax: Any, values: np.ndarray) -> None:
+    """Where ``values`` span less than :data:`STEADY` of their size, fix the y axis at ±2 % about their
+    mean (ticks with few digits) and write the value in the panel: the spread is rounding, not a finding."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return
+    mean = float(v.mean())
+    if float(np.ptp(v)) > STEADY * abs(mean) or mean == 0.0:
+        return
+    half = 0.02 * abs(mean)
+    ax.set_ylim(mean - half, mean + half)
+    ax.text(
+        0.5, 0.9, f"{mean:.4g} on every case (within {100 * STEADY:g} %)", transform=ax.transAxes, ha="center",
+        fontsize=7, color="0.3", bbox={"fc": "white", "alpha": 0.8, "lw": 0},
+    )  # fmt: skip
+
+
 @_plain_ticks
 def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Figure:
     """A few headline metrics against one swept setting (categorical axis), one line per flow,
@@ -508,6 +534,7 @@ def parameter_panels(study: xr.Dataset, dim: str, metrics: Sequence[str]) -> Fig
     flows = list(study["flow"].values) if "flow" in study.dims and dim != "flow" else [None]
     for ax, m in zip(axes, metrics):
         pos = _categorical(ax, study[dim].values)
+        _steady_axis(ax, np.asarray(study[m].where(study["computed"]) if "computed" in study else study[m], float))
         for i, fl in enumerate(flows):
             sub = study[m].sel(flow=fl) if fl is not None else study[m]
             with warnings.catch_warnings():
@@ -599,33 +626,69 @@ def tolerance_figure(
     return fig
 
 
+def _constant(values: np.ndarray) -> bool:
+    """Whether finite ``values`` are one value (to 1e-6 of it): a colour bar or an axis over them would draw
+    rounding noise as a range."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return v.size == 0 or float(np.ptp(v)) <= 1e-6 * max(float(np.max(np.abs(v))), 1e-300)
+
+
 @_plain_ticks
 def pareto_figure(table: Any, flow: str) -> Figure:
-    """Total RMS error [mm] against in-plane vector spacing [mm], colour: depth spacing [mm];
-    the Pareto designs ringed and labelled, the recommended one starred."""
+    """Total RMS error [mm] against in-plane vector spacing [mm], colour: depth spacing [mm] (no colour bar
+    where it is one value on every design: the title says it); the Pareto designs ringed, the recommended one
+    starred. Every design is numbered beside its point (never on it) and named in the key below the axes."""
     sub = table[table["flow"] == flow] if "flow" in table else table
-    fig = _fig(6.8, 4.4, left=0.11, right=0.86, bottom=0.13, top=0.9)
+    sub = sub.sort_values("rms_total_mm", kind="stable")
+    names = [str(d) for d in sub["design"]] if "design" in sub else [""] * len(sub)
+    key_h = 0.19 * len(names) + 0.2
+    h = 3.9 + key_h
+    c = sub["spacing_mm_z"].to_numpy(float) if "spacing_mm_z" in sub else np.zeros(len(sub))
+    const = _constant(c)
+    fig = _fig(7.2, h, left=0.11, right=0.97 if const else 0.86, bottom=(key_h + 0.55) / h, top=1 - 0.4 / h)
     ax = fig.subplots()
     x, y = sub["spacing_mm_x"].to_numpy(float), sub["rms_total_mm"].to_numpy(float)
-    c = sub["spacing_mm_z"].to_numpy(float) if "spacing_mm_z" in sub else np.zeros(len(sub))
     if "rms_total_mm_sd" in sub:  # replicates: the mean over the seeds, bars their sd
         ax.errorbar(x, y, np.asarray(sub["rms_total_mm_sd"], float), fmt="none", ecolor="0.5", lw=0.8, zorder=2)
-    sc = ax.scatter(x, y, c=c, cmap="viridis", s=36, zorder=3)
+    if const:
+        ax.scatter(x, y, color="C0", s=36, zorder=3)
+    else:
+        sc = ax.scatter(x, y, c=c, cmap="viridis", s=36, zorder=3)
+        cb = fig.colorbar(sc, ax=ax)
+        cb.set_label("vector spacing z [mm] (depth resolution)", fontsize=9)
     front = sub["pareto"].to_numpy(bool) if "pareto" in sub else np.zeros(len(sub), bool)
     ax.scatter(x[front], y[front], s=160, facecolors="none", edgecolors="C3", lw=1.5, zorder=4, label="Pareto front")
     rec = sub["recommended"].to_numpy(bool) if "recommended" in sub else np.zeros(len(sub), bool)
     ax.scatter(x[rec], y[rec], marker="*", s=260, color="C3", zorder=5, label="recommended")
-    for xi, yi, lab in zip(x[front], y[front], sub["design"].to_numpy()[front]):
-        ax.annotate(lab, (xi, yi), textcoords="offset points", xytext=(6, 4), fontsize=6.5)
-    cb = fig.colorbar(sc, ax=ax)
-    cb.set_label("vector spacing z [mm] (depth resolution)", fontsize=8)
-    ax.set_xlabel("vector spacing x [mm] (in-plane resolution)", fontsize=8)
+    # Numbers beside the points, pushed apart where points crowd: a name would run through its neighbours.
+    span = np.ptp(y[np.isfinite(y)]) if np.isfinite(y).any() else 1.0
+    last: dict[float, float] = {}
+    for k, (xi, yi) in enumerate(zip(x, y), start=1):
+        if not (np.isfinite(xi) and np.isfinite(yi)):
+            continue
+        col = round(float(xi), 6)
+        dy = 0
+        if col in last and abs(yi - last[col]) < 0.06 * (span or 1.0):
+            dy = 9  # one label height above its neighbour's
+        last[col] = yi
+        ax.annotate(
+            str(k), (xi, yi), textcoords="offset points", xytext=(9, -4 + dy), fontsize=9, fontweight="bold",
+            bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.8},
+        )  # fmt: skip
+    key = "\n".join(f"{k}  {n}" for k, n in enumerate(names, start=1))
+    fig.text(0.02, (key_h + 0.05) / h, key, fontsize=8.5, va="top", ha="left", family="sans-serif")
+    ax.set_xlabel("vector spacing x [mm] (in-plane resolution)", fontsize=9)
     ax.set_ylabel(
-        "total RMS error [mm]" + (" (mean ± sd over the seeds)" if "rms_total_mm_sd" in sub else ""), fontsize=8
+        "total RMS error [mm]" + (" (mean ± sd over the seeds)" if "rms_total_mm_sd" in sub else ""), fontsize=9
     )
+    ax.tick_params(labelsize=8)
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
-    ax.set_title(f"{flow}: error against resolution (lower left is better)", fontsize=9)
+    ax.legend(fontsize=8, loc="best")
+    title = f"{flow}: error against resolution (lower left is better)"
+    if const and np.isfinite(c).any():
+        title += f"\nvector spacing z {c[np.isfinite(c)][0]:.3g} mm on every design"
+    ax.set_title(title, fontsize=9.5)
     return fig
 
 
@@ -649,10 +712,23 @@ def vector_error_slice(piv: xr.Dataset, err: xr.Dataset | None) -> Figure:
     if err is not None and "u_err_mm" in err:
         comps = [c for c in ("u", "v", "w") if f"{c}_err_mm" in err]
         mag = np.sqrt(sum(err[f"{c}_err_mm"] ** 2 for c in comps)).isel(sl).transpose("y", "x")
-        im = ax2.pcolormesh(x, y, mag.values, shading="nearest", cmap="magma")
+        ok = valid.isel(sl).transpose("y", "x").values.astype(bool) & np.isfinite(mag.values)
+        # An invalid vector has no error to show: grey and hatched, never a colour of the scale (a blank cell
+        # on a light colour map read as the largest error).
+        im = ax2.pcolormesh(x, y, np.where(ok, mag.values, np.nan), shading="nearest", cmap="viridis")
+        if not ok.all():
+            from matplotlib.patches import Patch
+
+            ax2.pcolor(
+                x, y, np.ma.masked_where(ok, np.ones(ok.shape)), shading="nearest", cmap="Greys", vmin=0, vmax=4,
+                hatch="///", edgecolor="0.45", lw=0,
+            )  # fmt: skip
+            hatch = Patch(facecolor="0.85", edgecolor="0.45", hatch="///", label=f"invalid vector ({int((~ok).sum())})")
+            # above the map, beside the title: inside it the key covered cells
+            ax2.legend(handles=[hatch], fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), frameon=False)
         cb = fig.colorbar(im, ax=ax2)
-        cb.set_label("|error| [mm]", fontsize=8)
-        ax2.set_title(f"error magnitude{where} (blank: invalid)", fontsize=9)
+        cb.set_label("|error| [mm], valid vectors", fontsize=8)
+        ax2.set_title(f"|error|{where}", fontsize=9, loc="left")
         ax2.set_xlabel("x [mm]")
         ax2.set_aspect("equal")
     else:
@@ -773,7 +849,16 @@ def error_vs_uncertainty(curves: Mapping[str, Mapping[str, Mapping[str, np.ndarr
     axes_names = [ax for ax in ("x", "y", "z") if any(len(c.get(ax, {}).get("count", ())) for c in curves.values())]
     if not axes_names:
         raise ValueError("no vector with both an error and an uncertainty")
-    fig = _fig(4.3 * len(axes_names) + 1.8, 4.0, left=0.06, right=0.84, top=0.86, bottom=0.14, wspace=0.32)
+    from matplotlib.ticker import LogLocator, NullFormatter, StrMethodFormatter
+
+    # The legend goes below the panels, in columns: beside them (or on the z panel) 8 designs covered the curves.
+    n_lines = len(curves) + 1
+    ncols = 2 if len(axes_names) < 3 else 3
+    leg_h = 0.2 * math.ceil(n_lines / ncols) + 0.3
+    h = 3.6 + leg_h
+    fig = _fig(
+        4.3 * len(axes_names) + 0.6, h, left=0.07, right=0.98, top=1 - 0.5 / h, bottom=(leg_h + 0.55) / h, wspace=0.3
+    )
     axes = fig.subplots(1, len(axes_names), squeeze=False)[0]
     for a, axn in zip(axes, axes_names):
         lo, hi = np.inf, 0.0
@@ -792,11 +877,18 @@ def error_vs_uncertainty(curves: Mapping[str, Mapping[str, Mapping[str, np.ndarr
             a.plot(line, line, "k--", lw=1, label="1:1")
             a.set_xscale("log")
             a.set_yscale("log")
+            # Labels on 1, 2, 5 of each decade only, in plain numbers; unlabelled minor ticks: matplotlib labels
+            # every minor tick of a span under a decade, and they ran into one unreadable strip.
+            for axis in (a.xaxis, a.yaxis):
+                axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0), numticks=6))
+                axis.set_major_formatter(StrMethodFormatter("{x:.2g}"))
+                axis.set_minor_formatter(NullFormatter())
+            a.tick_params(labelsize=8)
         a.set_xlabel(f"predicted σ of {_COMP[axn]} ({axn}), RMS in bin [{unit}]")
         a.set_title(f"{axn}" + (" (depth)" if axn == "z" else ""), fontsize=9)
         a.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel(f"RMS error in bin [{unit}]")
     handles, labels = axes[-1].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="center right", fontsize=7, frameon=False)
+    fig.legend(handles, labels, loc="lower left", bbox_to_anchor=(0.02, 0.01), ncols=ncols, fontsize=8, frameon=False)
     fig.suptitle("Error against the predicted uncertainty (binned by σ; on the 1:1 line where σ is right)")
     return fig

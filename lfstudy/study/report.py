@@ -103,6 +103,7 @@ class Block:
     html: str = ""  # trusted fragment built here (tables are escaped by pandas)
     note: str = ""  # plain text, escaped on output
     case: str | None = None  # per-case blocks are grouped under their case id
+    title: str = ""  # the per-case group's heading (default: the case id)
 
 
 # ---------------------------------------------------------------- helpers
@@ -321,6 +322,28 @@ def piv_figure_blocks(
     )
 
 
+def _case_titles(study: xr.Dataset, names: Mapping[str, str]) -> dict[str, str]:
+    """Per computed case id: its design's readable name and its flow (and seed), the heading of its figures."""
+    from lfstudy.study.designs import design_label
+
+    if "case_id" not in study:
+        return {}
+    df = study[["case_id"]].to_dataframe().reset_index()
+    dims = [str(d) for d in study.dims]
+    rep = replicate_dim(study)
+    out = {}
+    for _, r in df.iterrows():
+        if not r["case_id"]:
+            continue
+        lab = design_label(r, dims)
+        out[str(r["case_id"])] = (
+            names.get(lab, lab)
+            + (f", {r['flow']}" if "flow" in r else "")
+            + (f", seed {format_value(r[rep])}" if rep is not None else "")
+        )
+    return out
+
+
 def _varied(study: xr.Dataset) -> list[str]:
     """The swept settings with two or more values, but the flow and the replicate seed."""
     rep = replicate_dim(study)
@@ -340,26 +363,42 @@ def _cameras(study: xr.Dataset, cfg: Mapping[str, Any]) -> dict[str, PlenopticCa
     """The distinct cameras of the computed cases, labelled by their magnification, f-number and pitch."""
     out: dict[str, PlenopticCamera] = {}
     for cid in _computed_ids(study):
+        from lfstudy.study.designs import readable_design
+
         cam = PlenopticCamera.from_config(case_config(cfg, cid))
-        label = f"M={cam.magnification:g}, f/{format_value(cam.fnumber)}, pl={cam.lenslet_pitch:g} mm" + (
-            f", pp={cam.pixel_pitch:g} mm" if cam.pixel_pitch != 0.0074 else ""
+        label = readable_design({}, cam) + (
+            f", {1000 * cam.pixel_pitch:.3g} µm pixels" if cam.pixel_pitch != 0.0074 else ""
         )
         out.setdefault(label, cam)
     return out
 
 
-def _representative(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> str | None:
-    """The case with the lowest total RMS error whose files exist, else the first existing."""
+def _representative(
+    study: xr.Dataset, case_dirs: Mapping[str, CaseFiles], cfg: Mapping[str, Any] | None = None
+) -> tuple[str, str] | None:
+    """The case shown as representative, and why: the recommended design's (of the first flow that has one
+    with files), else the case with the lowest total RMS error in mm whose files exist, else the first
+    existing."""
+    from lfstudy.study.designs import TOTAL, recommend
+
     existing = [c for c, d in case_dirs.items() if _exists(d)]
     if not existing:
         return None
-    if "rms_total" in study and "case_id" in study:
-        ids = np.asarray(study["case_id"].values).ravel()
-        rms = np.asarray(study["rms_total"].values, dtype=float).ravel()
-        for k in np.argsort(np.where(np.isfinite(rms), rms, np.inf), kind="stable"):
-            if np.isfinite(rms[k]) and ids[k] in existing:
-                return str(ids[k])
-    return existing[0]
+    with contextlib.suppress(Exception):  # no recommendation (no errors in mm): the lowest error instead
+        table, _ = recommend(study, names=_names(study, cfg))
+        if "case_id" in table:
+            for _, r in table[table["recommended"]].iterrows():
+                if str(r["case_id"]) in existing:
+                    flow = f" for the {r['flow']} flow" if "flow" in table else ""
+                    return str(r["case_id"]), f"the recommended design{flow}, {r['design']}"
+    for var in (TOTAL, "rms_total"):
+        if var in study and "case_id" in study:
+            ids = np.asarray(study["case_id"].values).ravel()
+            err = np.asarray(study[var].values, dtype=float).ravel()
+            for k in np.argsort(np.where(np.isfinite(err), err, np.inf), kind="stable"):
+                if np.isfinite(err[k]) and ids[k] in existing:
+                    return str(ids[k]), "lowest total RMS error with its artefacts on disk"
+    return existing[0], "the first case with its artefacts on disk"
 
 
 # ------------------------------------------------------------------ blocks
@@ -388,14 +427,18 @@ def report_blocks(
     """
     cfg = dict(cfg)
     yield from _answer_blocks(study, cfg)
-    yield from _tolerance_blocks(study)
+    yield from _tolerance_blocks(study, _names(study, cfg))
+    names = _names(study, cfg)
     yield from _overview_blocks(study, case_dirs)
-    yield from _comparison_blocks(study)
+    yield from _comparison_blocks(study, names)
     yield from _design_blocks(study, cfg)
-    yield from _uncertainty_blocks(study, case_dirs)
-    yield from _thesis_blocks(study, cfg)
-    yield from _representative_blocks(study, case_dirs)
-    yield from _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
+    yield from _uncertainty_blocks(study, case_dirs, names)
+    yield from _thesis_blocks(study, cfg, names)
+    yield from _representative_blocks(study, case_dirs, cfg)
+    titles = _case_titles(study, names)
+    for b in _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress):
+        b.title = titles.get(b.case or "", "")
+        yield b
     yield from _legend_blocks(study)
 
 
@@ -408,30 +451,206 @@ def _rank_at(cfg: Mapping[str, Any]) -> str:
     return rank_at
 
 
+def _names(study: xr.Dataset, cfg: Mapping[str, Any] | None) -> dict[str, str]:
+    """The designs' readable names (:func:`lfstudy.study.designs.design_names`); the labels where the config
+    cannot name them."""
+    from lfstudy.study.designs import design_names
+
+    try:
+        return design_names(study, cfg or None)
+    except Exception as exc:  # the names are cosmetic: a report never fails on them
+        warnings.warn(f"report: design names failed: {exc!r}", RuntimeWarning, stacklevel=2)
+        return {}
+
+
+#: The terms the report uses before it explains them, defined once at its top (issue 37 §4).
+TERMS = (
+    ("oracle", "the case's PIV (same grid, windows and passes) run on the true particle volumes of both frames: the "
+     "best any reconstruction could hand to the PIV, so its error is what the design's grid and windows resolve"),
+    ("reconstruction's share", "by how much a perfect reconstruction would cut a design's error: 1 − √(error² − "
+     "added²) / error, where the reconstruction adds <i>added</i> in quadrature to the oracle's error (1 − oracle / "
+     "error); 0 where the case beat its oracle"),
+    ("Q", "the reconstruction quality: the normalised correlation of the reconstructed volume with the true "
+     "particles drawn on the same grid (1 is perfect; Elsinga et al. 2006)"),
+    ("IPR", "iterative particle reconstruction (<code>reconstruct.method: ipr</code>): a reconstruction that fits "
+     "particles to the raw images instead of filling voxels (MART)"),
+    ("ppp", "particles per pixel: the seeding density, particles per sensor pixel"),
+    ("depth gain", "measured / true z displacement of the design's depth calibration (a traverse of the volume), "
+     "by which w is divided; blank where the calibration is off"),
+)  # fmt: skip
+
+
+def _terms_html() -> str:
+    return (
+        "<p><b>Terms.</b> "
+        + "; ".join(f"<i>{html.escape(t)}</i>: {d}" for t, d in TERMS)
+        + ". Lengths are in mm or µm.</p>"
+    )
+
+
+def _renderers(study: xr.Dataset, cfg: Mapping[str, Any] | None) -> dict[str, tuple[str, str]]:
+    """Per computed case id: (``raytrace.method``, ``reconstruct.method``) from the case's config (the sweep
+    may set either); the study config's own where a case's cannot be built."""
+    cfg = dict(cfg or {})
+    top = (
+        str((cfg.get("raytrace") or {}).get("method", "exact")),
+        str((cfg.get("reconstruct") or {}).get("method", "")),
+    )
+    out = {}
+    for cid in _computed_ids(study):
+        try:
+            c = case_config(cfg, cid)
+            out[cid] = (str(c["raytrace"].get("method", "exact")), str(c["reconstruct"].get("method", "")))
+        except Exception:  # a config that does not build this case (a test's bare study): the study's own
+            out[cid] = top
+    return out
+
+
+def _fits_particles(method: str) -> bool:
+    from lfstudy.reconstruct.registry import gives_particles
+
+    try:
+        return gives_particles(method)
+    except Exception:
+        return False
+
+
+#: What each renderer is, in the report's words.
+RENDERERS = {
+    "exact": "the exact renderer (<code>raytrace.method: exact</code>: each particle's expected image from the "
+    "analytic model, no rays)",
+    "montecarlo": "the Monte-Carlo renderer (<code>raytrace.method: montecarlo</code>: random rays per particle, "
+    "the thesis' tracer, a model no reconstruction uses)",
+}
+
+
+def _renderer_text(methods: Mapping[str, tuple[str, str]]) -> str:
+    """Which renderer made the images, and the inverse crime where a particle fit met the exact renderer."""
+    if not methods:
+        return ""
+    used = sorted({r for r, _ in methods.values()})
+    s = "The raw images were rendered by " + " and ".join(RENDERERS.get(r, html.escape(r)) for r in used) + "."
+    crime = sorted({m for r, m in methods.values() if r == "exact" and _fits_particles(m)})
+    if crime:
+        s += (
+            f" <b>{html.escape(', '.join(m.upper() for m in crime))} fits particles with the same analytic model "
+            "that rendered its images (an inverse crime): its figures come from the fit's own model and may flatter "
+            "it.</b> Render with <code>raytrace.method: montecarlo</code> for a fair test."
+        )
+    return s
+
+
+def _inverse_crime(methods: Mapping[str, tuple[str, str]], study: xr.Dataset, flow: str) -> str:
+    """The verdict's sentence on a flow whose particle-fit cases were rendered by the exact renderer."""
+    if "case_id" not in study or "flow" not in study.dims:
+        ids = list(methods)
+    else:
+        ids = [c for c in _computed_ids(study.sel(flow=[flow])) if c in methods]
+    crime = sorted({m for c in ids for r, m in [methods[c]] if r == "exact" and _fits_particles(m)})
+    if not crime:
+        return ""
+    return (
+        f" The {', '.join(m.upper() for m in crime)} figures come from the fit's own model (images from the exact "
+        "renderer, an inverse crime) and may flatter it."
+    )
+
+
+def _pct(v: float) -> str:
+    return "–" if not np.isfinite(v) else f"{100 * v:.0f} %"
+
+
+def _summary_html(summ: pd.DataFrame, flow: str | None, recommended: str | None) -> str:
+    """One flow's compact summary table: a row per design, best first, no column that needs a scroll."""
+    sub = summ[summ["flow"] == flow] if flow is not None and "flow" in summ else summ
+    sub = sub.sort_values("error_mm")
+    out = pd.DataFrame(
+        {
+            "design": [str(d) + (" (recommended)" if d == recommended else "") for d in sub["design"]],
+            **(
+                {"error [mm] ± sd": [pm(m, v) for m, v in zip(sub["error_mm"], sub["error_mm_sd"])]}
+                if "error_mm_sd" in sub
+                else {"error [mm]": sub["error_mm"].map(lambda v: f"{v:.3g}")}
+            ),
+            "oracle [mm]": sub["oracle_mm"].map(lambda v: f"{v:.3g}"),
+            "error / oracle": sub["ratio"].map(lambda v: "–" if not np.isfinite(v) else f"{v:.1f}×"),
+            "reconstruction's share": [
+                "0 % (beat its oracle)" if b else _pct(c) for c, b in zip(sub["recon_cut"], sub["beat_oracle"])
+            ],
+            **({"windows' filtering share": sub["filter_cut"].map(_pct)} if "filter_cut" in sub else {}),
+            "dominant component": [
+                f"{c} ({_pct(v)})" if isinstance(c, str) and c else "–"
+                for c, v in zip(sub["component"], sub["component_share"])
+            ],
+            "limiting stage": sub["stage"].replace("", "–"),
+        }
+    )
+    return _table(out, index=False).replace('class="dataframe tbl"', 'class="dataframe tbl summary"')
+
+
 def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> Iterator[Block]:
-    """The recommendation: per flow, the Pareto front over error, in-plane and depth resolution.
+    """The recommendation: per flow, the recommended design, the verdict in words and a compact summary
+    table, then the Pareto front over error, in-plane and depth resolution.
 
     Where the study sweeps imperfections, the designs are ranked at the ideal camera or at their
     worst case over the tolerances (``report.rank_at``), and the sentences say which."""
     from lfstudy.study import figures as rf
-    from lfstudy.study.designs import recommend, spread_columns
+    from lfstudy.study.designs import budget_table, flow_verdict, named, recommend, spread_columns, summary_table
     from lfstudy.study.tolerance import at_ideal, tolerance_dims, worst_case
 
     rank_at = _rank_at(cfg or {})
     tol = tolerance_dims(study)
     ranked = study if not tol else (worst_case(study) if rank_at == "tolerances" else at_ideal(study))
-    table, sentences = recommend(ranked)
+    names = _names(study, cfg)
+    table, sentences = recommend(ranked, names=names)
     reps = replicate_dim(study) is not None
     if tol:
-        sentences = {f: s + _tolerance_sentence(study, table, f, rank_at) for f, s in sentences.items()}
+        sentences = {f: s + _tolerance_sentence(study, table, f, rank_at, names) for f, s in sentences.items()}
     if not sentences:
         yield Block("answer", "none", note="Recommendation: not available (no computed case with errors in mm).")
         return
+    methods = _renderers(study, cfg)
+    yield Block("answer", "terms", html=_terms_html() + f"<p>{_renderer_text(methods)}</p>")
+    summ = summary_table(ranked, named(budget_table(ranked), names), names)
+    front_cols = [c for c in mt.names("front") if c in table]
+    cols = [c for c in ("design", "flow") if c in table] + spread_columns(table, front_cols, se=("rms_total_mm",))
+    cols += ["recommended"] if "recommended" in table else []
+    for flow, sentence in sentences.items():
+        sel = (table["flow"] == flow) if "flow" in table else np.ones(len(table), bool)
+        rec = table.loc[sel & table["recommended"], "design"]
+        pick = str(rec.iloc[0]) if len(rec) else None
+        verdict = (flow_verdict(summ, flow if "flow" in table else None, pick) if not summ.empty else "") + (
+            _inverse_crime(methods, study, flow)
+        )
+        yield Block(
+            "answer",
+            f"verdict_{flow}",
+            html=f"<h3>{html.escape(flow)}</h3><p><b>{html.escape(sentence)}</b></p>"
+            + (f'<p class="verdict">{html.escape(verdict.strip())}</p>' if verdict.strip() else "")
+            + (_summary_html(summ, flow if "flow" in summ else None, pick) if not summ.empty else ""),
+        )
+        yield _try(
+            "answer",
+            f"pareto_{flow}",
+            f"{flow}: every design's total RMS error against its in-plane resolution (colour: depth "
+            "resolution, where it differs); ringed: the Pareto front, star: recommended; numbers: the designs "
+            "in the key, in the summary's order.",
+            "Pareto front",
+            lambda flow=flow: rf.pareto_figure(table, flow),
+        )
+        front = table[sel & table["pareto"]]
+        yield Block(
+            "answer",
+            f"front_{flow}",
+            html=f"<details><summary>Pareto front, {html.escape(flow)}: every column</summary>"
+            + _table(_spread_text(front[cols].sort_values("rms_total_mm")), index=False)
+            + "</details>",
+        )
+        if reps:
+            yield _ranking_block(table, flow)
     yield Block(
         "answer",
-        "sentences",
-        html="".join(f"<p><b>{html.escape(s)}</b></p>" for s in sentences.values())
-        + "<p>Designs are compared in millimetres and as a fraction of the true displacement: a voxel is "
+        "method",
+        html="<p>Designs are compared in millimetres and as a fraction of the true displacement: a voxel is "
         "pitch/|M| across and a fraction of a refocus-plane spacing deep, and differs between designs. A design "
         "is on the Pareto front when no other is better in all of "
         + html.escape(", ".join(f"{m.long_name} ({m.better})" for m in mt.shown_in("pareto")))
@@ -446,29 +665,8 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
         + "</p>",
     )
     if tol:
-        yield _limits_block(study)
-    front_cols = [c for c in mt.names("front") if c in table]
-    cols = [c for c in ("design", "flow") if c in table] + spread_columns(table, front_cols, se=("rms_total_mm",))
-    cols += ["recommended"] if "recommended" in table else []
-    for flow in sentences:
-        yield _try(
-            "answer",
-            f"pareto_{flow}",
-            f"{flow}: every design's total RMS error against its in-plane resolution (colour: depth "
-            "resolution); ringed: the Pareto front, star: recommended.",
-            "Pareto front",
-            lambda flow=flow: rf.pareto_figure(table, flow),
-        )
-        front = table[(table["flow"] == flow) & table["pareto"]] if "flow" in table else table[table["pareto"]]
-        yield Block(
-            "answer",
-            f"front_{flow}",
-            html=f"<h4>Pareto front, {html.escape(flow)}</h4>"
-            + _table(_spread_text(front[cols].sort_values("rms_total_mm")), index=False),
-        )
-        if reps:
-            yield _ranking_block(table, flow)
-    yield from _budget_blocks(study)
+        yield _limits_block(study, names)
+    yield from _budget_blocks(study, names)
 
 
 def _ranking_block(table: pd.DataFrame, flow: str) -> Block:
@@ -497,19 +695,20 @@ def _ranking_block(table: pd.DataFrame, flow: str) -> Block:
     return Block(
         "answer",
         f"ranking_{flow}",
-        html=f"<h4>Every design against the recommended one, {html.escape(flow)}</h4><p>Total RMS error: mean over "
-        "the seeds ± its standard error; the difference to the recommended design is the mean of the per-seed "
-        f"differences ± its standard error, <i>separable</i> where it is at least {SEPARATION:g} standard errors."
-        "</p>" + _table(out, index=False),
+        html=f"<details><summary>Every design against the recommended one, {html.escape(flow)}</summary><p>Total "
+        "RMS error: mean over the seeds ± its standard error; the difference to the recommended design is the mean "
+        "of the per-seed differences ± its standard error, <i>separable</i> where it is at least "
+        f"{SEPARATION:g} standard errors.</p>" + _table(out, index=False) + "</details>",
     )
 
 
-def _limits_block(study: xr.Dataset) -> Block:
+def _limits_block(study: xr.Dataset, names: Mapping[str, str] | None = None) -> Block:
     """Per design: its error at the ideal camera, what each swept imperfection alone adds, its worst
     case over the tolerances and the tolerance that limits it."""
+    from lfstudy.study.designs import named
     from lfstudy.study.tolerance import limiting_tolerances
 
-    lim = limiting_tolerances(study)
+    lim = named(limiting_tolerances(study), names)
     if lim.empty:
         return _na("answer", "limits", "What limits each design at tolerances", "no computed case at the ideal camera")
     if replicate_dim(study) is not None:
@@ -555,8 +754,12 @@ def _limits_block_replicates(study: xr.Dataset, lim: pd.DataFrame) -> Block:
     )
 
 
-def _tolerance_sentence(study: xr.Dataset, table: pd.DataFrame, flow: str, rank_at: str) -> str:
-    """What the tolerance sweep says about the recommended design of ``flow``."""
+def _tolerance_sentence(
+    study: xr.Dataset, table: pd.DataFrame, flow: str, rank_at: str, design_names: Mapping[str, str] | None = None
+) -> str:
+    """What the tolerance sweep says about the recommended design of ``flow`` (``table``'s designs named by
+    ``design_names``)."""
+    from lfstudy.study.designs import named
     from lfstudy.study.tolerance import WORST_BY, limiting_tolerances, tolerance_dims
 
     names = ", ".join(str(study[d].attrs.get("long_name", d)) for d in tolerance_dims(study))
@@ -568,7 +771,7 @@ def _tolerance_sentence(study: xr.Dataset, table: pd.DataFrame, flow: str, rank_
     else:
         head = f" Ranked at tolerances: each design at its worst case over {names} (its largest total RMS error)."
     pick = table[table["recommended"] & ((table["flow"] == flow) if "flow" in table else True)]
-    lim = limiting_tolerances(study)
+    lim = named(limiting_tolerances(study), design_names)
     if pick.empty or lim.empty:
         return head
     row = lim[(lim["design"] == pick["design"].iloc[0]) & ((lim["flow"] == flow) if "flow" in lim else True)]
@@ -595,10 +798,11 @@ def _tolerance_sentence(study: xr.Dataset, table: pd.DataFrame, flow: str, rank_
     )
 
 
-def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
+def _tolerance_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None) -> Iterator[Block]:
     """Per swept imperfection: a table and a figure of the error against its level, per design (the
     other imperfections ideal), with the oracle beside it; and what limits each design."""
     from lfstudy.study import figures as rf
+    from lfstudy.study.designs import named
     from lfstudy.study.tolerance import (
         ideal_levels,
         level_label,
@@ -631,7 +835,7 @@ def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
         + "</p>",
     )
     for d in ideal:
-        t = tolerance_table(study, d)
+        t = named(tolerance_table(study, d), names)
         label = level_label(study, d)
         if t.empty:
             yield _na("tolerances", f"table_{d}", f"Error against {label}", "no computed case")
@@ -651,11 +855,11 @@ def _tolerance_blocks(study: xr.Dataset) -> Iterator[Block]:
         )
 
 
-def _budget_blocks(study: xr.Dataset) -> Iterator[Block]:
+def _budget_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None) -> Iterator[Block]:
     """Per design: the oracle's error beside the error the reconstruction adds, and which dominates."""
-    from lfstudy.study.designs import budget_table
+    from lfstudy.study.designs import budget_table, named
 
-    bt = budget_table(study)
+    bt = named(budget_table(study), names)
     if bt.empty:
         return
     sort = [c for c in ("flow", "design") if c in bt]
@@ -687,7 +891,10 @@ def _budget_blocks(study: xr.Dataset) -> Iterator[Block]:
             else ""
         )
         + "</p>"
+        + "<details><summary>The error budget of every design: every column</summary>"
         + _table(_spread_text(bt.sort_values(sort) if sort else bt), index=False)
+        + "</details>"
+        + _zero_added_text(bt)
         + _focus_text(bt)
         + _density_text(bt),
     )
@@ -710,21 +917,60 @@ def _focus_text(bt: pd.DataFrame) -> str:
     )
 
 
+def _zero_added_text(bt: pd.DataFrame) -> str:
+    """Why the budget shows 0 for the reconstruction's share of some rows: the case beat its oracle."""
+    from lfstudy.study.designs import ADDED_TOTAL, ORACLE_TOTAL, TOTAL
+
+    if not {ADDED_TOTAL, ORACLE_TOTAL, TOTAL} <= set(bt.columns):
+        return ""
+    beat = bt[bt[TOTAL] < bt[ORACLE_TOTAL]]
+    if beat.empty:
+        return ""
+    rows = "; ".join(
+        html.escape(str(r["design"]) + (f" on {r['flow']}" if "flow" in beat else ""))
+        + f" ({r[TOTAL]:.3g} mm against {r[ORACLE_TOTAL]:.3g} mm)"
+        for _, r in beat.iterrows()
+    )
+    return (
+        f"<p><b>The reconstruction adds 0 where a case beat its oracle:</b> {rows}. The oracle's PIV has a "
+        "scatter of its own, and a reconstruction can land below it by chance; the reconstruction's share there "
+        "is nothing measurable, not a gain.</p>"
+    )
+
+
 def _density_text(bt: pd.DataFrame) -> str:
-    """The budget's pointer to the seeding where a design has more particles per depth cell than it resolves."""
-    from lfstudy.study.designs import DENSITY_LIMITED, PER_CELL, density_limited
+    """The budget's pointer to the seeding where a design has more particles per depth cell than it resolves
+    and the reconstruction's share of its error is the larger; the rows as densely seeded whose windows' share
+    is the larger are named as not limited by it. Both from :func:`lfstudy.study.designs.limiting_stage`, the
+    source of the summary's limiting stage too, so the two never name different stages for one row."""
+    from lfstudy.study.designs import DENSITY_LIMITED, PER_CELL, STAGES, density_limited, limiting_stage
 
     designs = density_limited(bt)
     if not designs:
         return ""
-    worst = bt.loc[bt["design"].astype(str).isin(designs), PER_CELL].max()
+    hit = limiting_stage(bt).str.startswith(STAGES["seeding"])
+    worst = bt.loc[hit, PER_CELL].max()
+
+    def rows(sel: pd.Series) -> str:
+        return "; ".join(
+            html.escape(str(r["design"]) + (f" on {r['flow']}" if "flow" in bt else "")) for _, r in bt[sel].iterrows()
+        )
+
+    spared = ~hit & (bt[PER_CELL] > DENSITY_LIMITED).fillna(False).astype(bool)
     return (
-        f"<p><b>The seeding limits {', '.join(html.escape(d) for d in designs)}:</b> up to {worst:.2f} particles "
-        f"share each lenslet and depth cell, above {DENSITY_LIMITED:g}. There two particles behind one lenslet "
-        "often lie within one depth cell (their blur circles differ by less than a lenslet pitch), and no particle "
-        "fit tells them apart: on the demo's coarsest design at 0.30 IPR started from the true positions kept 75 % "
-        "of them, at 0.06-0.15 the other designs 91-97 %. Seed less, or choose a design with more depth cells (a "
-        "larger magnification or a finer lenslet pitch).</p>"
+        f"<p><b>The seeding limits {rows(hit)}:</b> up to {worst:.2f} particles share each lenslet and depth cell, "
+        f"above {DENSITY_LIMITED:g}, and the reconstruction's share of the error is the larger. There two particles "
+        "behind one lenslet often lie within one depth cell (their blur circles differ by less than a lenslet "
+        "pitch), and no particle fit tells them apart: on the demo's coarsest design at 0.30 IPR started from the "
+        "true positions kept 75 % of them, at 0.06-0.15 the other designs 91-97 %. Seed less, or choose a design "
+        "with more depth cells (a larger magnification or a finer lenslet pitch)."
+        + (
+            f" {rows(spared)}: as densely seeded, but there the windows' share of the error is the larger, so the "
+            "seeding limits nothing."
+            if spared.any()
+            else ""
+        )
+        + "</p>"
     )
 
 
@@ -767,7 +1013,24 @@ def _overview_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> I
     )
 
 
-def _comparison_blocks(study: xr.Dataset) -> Iterator[Block]:
+def _by_design(df: pd.DataFrame, names: Mapping[str, str] | None) -> pd.DataFrame:
+    """A table indexed by the swept settings, as one readable ``design`` column (and ``flow``) instead: the
+    settings' columns would make it scroll sideways."""
+    from lfstudy.study.designs import design_label
+
+    if df.empty:
+        return df
+    idx = df.index.to_frame(index=False)
+    dims = [str(c) for c in idx.columns]
+    labels = [design_label(r, dims) for _, r in idx.iterrows()]
+    out = df.reset_index(drop=True)
+    out.insert(0, "design", [(names or {}).get(lab, lab) for lab in labels])
+    if "flow" in idx:
+        out.insert(1, "flow", idx["flow"].to_numpy())
+    return out
+
+
+def _comparison_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None) -> Iterator[Block]:
     from lfstudy.study import figures as rf
 
     varied = _varied(study)
@@ -795,20 +1058,33 @@ def _comparison_blocks(study: xr.Dataset) -> Iterator[Block]:
             yield Block(
                 "comparison",
                 f"table_{p}",
-                html=f"<h4>Mean over the other settings, by {html.escape(p)}</h4>" + _table(marg),
+                html=f"<details><summary>Mean over the other settings, by {html.escape(p)}</summary>"
+                + _table(marg)
+                + "</details>",
             )
     ct = case_table(study)
     if not ct.empty:
         title = "All computed cases" if replicate_dim(study) is None else "All computed designs (mean over the seeds)"
-        yield Block("comparison", "all_cases", html=f"<h4>{title}</h4>" + _table(_spread_text(ct)))
+        yield Block(
+            "comparison",
+            "all_cases",
+            html=f"<details><summary>{title}</summary>"
+            + _table(_spread_text(_by_design(ct, names)), index=False)
+            + "</details>",
+        )
+
+
+def _micro(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with "um" in its row labels written µm (the camera's summary spells it in ASCII)."""
+    return df.rename(index=lambda i: re.sub(r"\bum\b", "µm", str(i)))
 
 
 def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]:
     """Per design: resolution, measurable depth and field of view in mm; the cameras and their optics."""
     from lfstudy.study import figures as rf
-    from lfstudy.study.designs import design_table, spread_columns
+    from lfstudy.study.designs import design_table, named, spread_columns
 
-    dt = design_table(study)
+    dt = named(design_table(study), _names(study, cfg))
     cols = [c for c in ("design", "flow", *mt.names("resolution")) if c in dt]
     if not dt.empty and len(cols) > 2:
         cols = spread_columns(dt, cols)
@@ -825,7 +1101,13 @@ def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
         yield _na("designs", "table", "Camera table", f"{type(exc).__name__}: {exc}")
     if not cams:
         return
-    yield Block("designs", "table", html=_table(pd.DataFrame({k: c.summary() for k, c in cams.items()})))
+    yield Block(
+        "designs",
+        "table",
+        html="<details><summary>The cameras' optics: every figure</summary>"
+        + _table(_micro(pd.DataFrame({k: c.summary() for k, c in cams.items()})))
+        + "</details>",
+    )
     cam0 = next(iter(cams.values()))
     mags = [float(c.magnification) for c in cams.values()]
     yield _try(
@@ -855,9 +1137,41 @@ def _design_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
 MAX_UNCERTAINTY_LINES = 10
 
 
-def _uncertainty_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> Iterator[Block]:
+#: An RMS error / RMS σ ratio beyond this factor either way means σ is wrong: the verdict says not to trust it.
+SIGMA_OFF = 1.5
+
+
+def _uncertainty_verdict(df: pd.DataFrame) -> str:
+    """The verdict in words on the per-vector σ, per component, from the designs' RMS error / RMS σ ratios
+    (``unc_ratio_<axis>``): too small (do not trust it), too large (conservative), about right, or mixed."""
+    from lfstudy.study.metrics import AXES
+
+    out = []
+    for ax, c in AXES.items():
+        col = f"unc_ratio_{ax}"
+        v = pd.to_numeric(df[col], errors="coerce").dropna().to_numpy(float) if col in df else np.array([])
+        if not v.size:
+            continue
+        lo, hi = float(v.min()), float(v.max())
+        span = f"{lo:.2g}×" if f"{lo:.2g}" == f"{hi:.2g}" else f"{lo:.2g}–{hi:.2g}×"
+        what = f"σ of {c} ({ax})"
+        if lo >= 1 and hi > SIGMA_OFF:
+            out.append(f"{what} is {span} too small on these designs: do not trust it.")
+        elif hi <= 1 and lo < 1 / SIGMA_OFF:
+            out.append(f"{what} is too large ({span} the actual error): it overstates the error, a safe bound.")
+        elif lo >= 1 / SIGMA_OFF and hi <= SIGMA_OFF:
+            out.append(f"{what} is about right ({span} the actual error, within {SIGMA_OFF:g}×).")
+        else:
+            out.append(f"{what} is {span} the actual error: right on some designs, not on others; trust it per design.")
+    return " ".join(out)
+
+
+def _uncertainty_blocks(
+    study: xr.Dataset, case_dirs: Mapping[str, CaseFiles], names: Mapping[str, str] | None = None
+) -> Iterator[Block]:
     """Per design and flow: the metric table's ``uncertainty`` metrics (coverage, RMS ratio per
-    component), and the binned RMS error against the predicted σ, pooled over each design's cases."""
+    component) with the verdict in words, and the binned RMS error against the predicted σ, pooled over
+    each design's cases."""
     from lfstudy.study import figures as rf
     from lfstudy.study.designs import design_label
 
@@ -877,7 +1191,9 @@ def _uncertainty_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -
         if "computed" in df:
             df = df[df["computed"].astype(bool)].drop(columns="computed")
         dims = [str(d) for d in ds.dims]
-        df.insert(0, "design", [design_label(r, dims) for _, r in df.iterrows()])
+        df.insert(
+            0, "design", [(names or {}).get(lab, lab) for lab in (design_label(r, dims) for _, r in df.iterrows())]
+        )
         return df
 
     df = rows(study)  # every case: the error-against-σ curves pool each design's seeds
@@ -896,6 +1212,7 @@ def _uncertainty_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -
         "through the parallax of the sub-apertures and has a σ of its own scale."
         + _replicates_note(study)
         + "</p>"
+        + (f'<p class="verdict"><b>{html.escape(v)}</b></p>' if (v := _uncertainty_verdict(df)) else "")
         + _table(shown.sort_values(["design", "flow"] if "flow" in df else ["design"]), index=False),
     )
     groups: dict[str, list[str]] = {}
@@ -973,7 +1290,11 @@ def _uncertainty_curves(
     return curves
 
 
-def _thesis_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]:
+def _thesis_blocks(
+    study: xr.Dataset, cfg: Mapping[str, Any], names: Mapping[str, str] | None = None
+) -> Iterator[Block]:
+    from lfstudy.study.designs import design_label
+
     rows = []
     for flow in study["flow"].values if "flow" in study.dims else []:
         spec = cfg.get("flows", {}).get(str(flow), {})
@@ -994,7 +1315,7 @@ def _thesis_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
                 {
                     "flow": flow,
                     "axis": ax,
-                    **{k: v for k, v in p.items() if k != "flow"},
+                    "design": (names or {}).get(lab := design_label(p, list(p)), lab),
                     "true [mm]": r.get(f"true_{ax}_mm"),
                     "mean [mm]": r.get(f"mean_{ax}_mm"),
                     "true [vox]": r.get(f"true_{ax}"),
@@ -1026,18 +1347,21 @@ def _thesis_blocks(study: xr.Dataset, cfg: Mapping[str, Any]) -> Iterator[Block]
     )
 
 
-def _representative_blocks(study: xr.Dataset, case_dirs: Mapping[str, CaseFiles]) -> Iterator[Block]:
+def _representative_blocks(
+    study: xr.Dataset, case_dirs: Mapping[str, CaseFiles], cfg: Mapping[str, Any] | None = None
+) -> Iterator[Block]:
     from lfstudy.study import figures as rf
 
-    rep = _representative(study, case_dirs)
-    if rep is None:
+    found = _representative(study, case_dirs, cfg)
+    if found is None:
         yield Block("representative", "none", note="Representative case: not available (no case files).")
         return
+    rep, why = found
     d = case_dirs[rep]
     yield Block(
         "representative",
         "id",
-        html=f"<p>Case <code>{html.escape(rep)}</code> (lowest total RMS error with its artefacts on disk).</p>",
+        html=f"<p>Case <code>{html.escape(rep)}</code>: {html.escape(why)}.</p>",
     )
     yield _try(
         "representative",
@@ -1143,11 +1467,13 @@ max-width:1250px;color:#222;line-height:1.4;padding:0 1em}
 h1{border-bottom:2px solid #345}h2{border-bottom:1px solid #ccc;margin-top:2em;color:#234}
 nav ul{columns:2}figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
 figcaption{font-size:.9em;color:#555}.note{color:#a40;font-style:italic}
-table.tbl{border-collapse:collapse;font-size:.82em;margin:.5em 0}
-table.tbl td,table.tbl th{border:1px solid #ddd;padding:2px 6px;text-align:right}
-table.tbl td{white-space:nowrap}
+table.tbl{border-collapse:collapse;font-size:.8em;margin:.5em 0;max-width:100%}
+table.tbl td,table.tbl th{border:1px solid #ddd;padding:2px 5px;text-align:right;overflow-wrap:break-word}
+table.tbl td:first-child,table.tbl th:first-child{text-align:left}table.tbl.summary{font-size:.88em}
+details table.tbl{font-size:.74em}details table.tbl td,details table.tbl th{padding:1px 3px}
 table.tbl th{background:#f2f4f7}details{margin:.4em 0;border:1px solid #e4e4e4;padding:.3em .6em}
-summary{cursor:pointer;font-family:monospace}code{background:#f4f4f4;padding:0 3px}
+summary{cursor:pointer}code{background:#f4f4f4;padding:0 3px}
+.verdict{background:#f5f7fa;border-left:3px solid #345;padding:.4em .8em}h3{color:#234;margin-top:1.6em}
 .scroll{overflow-x:auto;max-width:100%}
 """
 
@@ -1249,15 +1575,19 @@ def write_html(
     """
     parts: dict[str, list[str]] = {s: [] for s in sections}
     per_case: dict[tuple[str, str], list[str]] = {}
+    titles: dict[tuple[str, str], str] = {}
     for b in blocks:
         frag = _render(b)
         b.figure = None  # free the figure before the next is drawn
         if b.case is not None:
             per_case.setdefault((b.section, b.case), []).append(frag)
+            titles.setdefault((b.section, b.case), b.title or b.case)
         else:
             parts[b.section].append(frag)
     for (section, cid), frags in per_case.items():
-        parts[section].append(f"<details><summary>{html.escape(cid)}</summary>{''.join(frags)}</details>")
+        head = titles[(section, cid)]
+        head = html.escape(head) + (f" <code>{html.escape(cid)}</code>" if head != cid else "")
+        parts[section].append(f"<details><summary>{head}</summary>{''.join(frags)}</details>")
     toc = "".join(f'<li><a href="#{s}">{html.escape(t)}</a></li>' for s, t in sections.items())
     body = "".join(
         f'<section id="{s}"><h2>{html.escape(sections[s])}</h2>{"".join(parts[s])}</section>' for s in sections
