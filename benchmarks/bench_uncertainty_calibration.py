@@ -49,12 +49,15 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="the same overrides as the run")
     ap.add_argument("--out", type=Path, required=True, help="the run's directory (the cases' errors.zarr)")
     ap.add_argument("--fit-seeds", nargs="+", type=int, required=True, help="seeds the factor is fitted on")
+    ap.add_argument("--flows", nargs="*", default=None, help="only these flows' cases (fit and check)")
     ap.add_argument("--bins", action="store_true", help="ratio per tercile of the correlation peak height")
     args = ap.parse_args()
 
     cfg = validate_config(read_config(args.config, args.set))
     sw = Sweep(cfg)
     cases = [c for c in sw.cases() if (args.out / sw.locate(c, "errors.zarr")).exists()]
+    if args.flows:
+        cases = [c for c in cases if c["flow"] in args.flows]
     errs = {c.case_id: io.open_zarr(args.out / sw.locate(c, "errors.zarr")).load() for c in cases}
     study = combine_cases([(c, errs[c.case_id]) for c in cases], sw.settings)
     for d in study.dims:
@@ -63,7 +66,9 @@ def main() -> None:
     rows = []
     fit = [c for c in cases if int(c["seed"]) in args.fit_seeds]
     held = [c for c in cases if int(c["seed"]) not in args.fit_seeds]
-    sub = study.sel(seed=list(args.fit_seeds))
+    sub = study.sel(
+        seed=list(args.fit_seeds), flow=sorted({c["flow"] for c in cases}, key=list(study["flow"].values).index)
+    )
     cal = fit_calibration(sub, source=str(args.out))
     print(cal.summary())
     print(f"fitted on {len(fit)} cases (seeds {args.fit_seeds}), checked on {len(held)} held-out cases\n")

@@ -171,6 +171,12 @@ def test_recording_config_checks_the_calibration_before_any_work(study, tmp_path
     off["piv"] = {"uncertainty": "none"}
     with pytest.raises(ConfigError, match=r"piv\.uncertainty is none"):
         validate_process_config(off, base=tmp_path)
+    # cases that disagree by more than SPREAD: a warning that names the axes and the range
+    with pytest.warns(UserWarning, match=r"disagree on σ's scale \(RMS error / RMS σ: x 1\.1\d–4\.5\), so one factor"):
+        study2 = study.copy()
+        study2["unc_ratio_x"] = study2["unc_ratio_x"].where(study2["flow"] != "hill", 3.0 * study2["unc_ratio_x"])
+        io.write_zarr(study2, tmp_path / "res2" / "study.zarr")
+        validate_process_config(_recording_cfg("res2", design={"pitch": 0.0888, "seed": 1}), base=tmp_path)
     # a design of another camera than the recording's: processed, with a warning naming the setting
     other = _recording_cfg("res", design={"pitch": 0.1184})
     with pytest.warns(UserWarning, match=r"camera.lenslet.pitch: the design's 0.1184, the recording's 0.0888"):
