@@ -43,6 +43,7 @@ of ``metrics.csv`` record the calibration.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -173,7 +174,9 @@ def process_recording(
     rec = open_recording(cfg["recording"], cam)
     grid = cl.case_grid(cfg, cam)  # a grid too big for the memory bound fails here, before any work
     _check_volcal_depths(cfg, rec, grid.z)
-    sigma_cal = load_calibration(cfg)  # None without uncertainty.calibration
+    with warnings.catch_warnings():  # its warnings came with the config's validation already
+        warnings.simplefilter("ignore", UserWarning)
+        sigma_cal = load_calibration(cfg)  # None without uncertainty.calibration
     out = Path(out)
     prov = io.provenance(cfg)
     protect = [*recording_files(cfg["recording"]), *inputs]
