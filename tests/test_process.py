@@ -162,6 +162,53 @@ def test_series_metrics_and_report(series, recording):
     assert "peak_ratio_median" in html and "Q" not in re.findall(r"<th>(\w+)</th>", html)
 
 
+def test_sigma_calibrated_by_a_study(series, recording, tmp_path, capsys):
+    """uncertainty.calibration (issue 38): the same recording processed with a study of its design scales σ by
+    the study's factor per component; the raw σ stays beside it, equal to the uncalibrated run's, and the
+    summary, metrics.csv, the attrs and the report name the study and the factors."""
+    import xarray as xr
+
+    from lfstudy.study.sweep import Case
+    from lfstudy.study.table import combine_cases, to_csv
+
+    ratios = {"x": (1.2, 1.8), "y": (0.7, 0.7), "z": (3.0, 5.0)}  # two flows of the tiny design
+    rows = []
+    for k, flow in enumerate(("uniform_x", "hill")):
+        case = Case.of(magnification=-1.0, fnumber="matched", lenslet_pitch=0.0888, ppp=0.004, flow=flow)
+        rows.append((case, xr.Dataset({f"unc_ratio_{ax}": ((), r[k]) for ax, r in ratios.items()})))
+    to_csv(combine_cases(rows), tmp_path / "study" / "study.csv")
+    factor = {ax: float(np.sqrt(r[0] * r[1])) for ax, r in ratios.items()}
+    cfg = _config(
+        recording,
+        "calibrated",
+        {"dark": "dark_*.tif", "frames": {"series": "frame_*.tif"}},
+        uncertainty={"calibration": {"study": str(tmp_path / "study"), "design": {"mag": -1, "pitch": 0.0888}}},
+    )
+    out = tmp_path / "out"
+    assert main(["process", str(cfg), "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "σ calibrated by the study" in said and f"z × {factor['z']:.3g}" in said
+    assert "median σ (calibrated by the study" in said
+    raw = io.open_zarr(series / "piv.zarr").load()
+    cal = io.open_zarr(out / "piv.zarr").load()
+    for c, ax in zip("uvw", "xyz"):
+        for sfx in ("", "_mm"):
+            np.testing.assert_array_equal(cal[f"unc_raw_{c}{sfx}"].values, raw[f"unc_{c}{sfx}"].values)
+            np.testing.assert_allclose(cal[f"unc_{c}{sfx}"].values, factor[ax] * raw[f"unc_{c}{sfx}"].values, rtol=1e-6)
+        assert cal.attrs[f"uncertainty_calibration_factor_{ax}"] == pytest.approx(factor[ax])
+    assert cal.attrs["uncertainty_calibration_study"] == str(tmp_path / "study")
+    m = pd.read_csv(out / "metrics.csv", index_col="time")
+    m0 = pd.read_csv(series / "metrics.csv", index_col="time")
+    for c, ax in zip("uvw", "xyz"):
+        np.testing.assert_allclose(m[f"unc_cal_factor_{ax}"], factor[ax])
+        np.testing.assert_allclose(m[f"unc_raw_median_{c}"], m0[f"unc_median_{c}"], rtol=1e-6)
+        np.testing.assert_allclose(m[f"unc_median_{c}"], factor[ax] * m0[f"unc_median_{c}"], rtol=1e-5)
+    html = (out / "report.html").read_text()
+    # the σ maps of both pairs say which σ they show
+    assert len(re.findall(r"<figcaption>[^<]*σ shown is calibrated by the study", html)) == 2
+    assert "σ shown is calibrated" not in (series / "report.html").read_text()
+
+
 def test_saturation_warns_with_the_fraction(recording, tmp_path, capsys):
     assert max(recording["sat"]) > 0  # the fixture clips the brightest particle images
     pairs = {"pairs": [["frame_1.tif", "frame_2.tif"]]}

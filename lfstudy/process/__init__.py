@@ -5,7 +5,8 @@ Modules: :mod:`~lfstudy.process.config` (the recording config, its schema
 :mod:`~lfstudy.process.recording` (finding, checking and reading the frames),
 :mod:`~lfstudy.process.pipeline` (calibration → registration → refocus →
 reconstruction → PIV, through the case layer of a simulated study),
-:mod:`~lfstudy.process.metrics` (what a measurement says about itself) and
+:mod:`~lfstudy.process.metrics` (what a measurement says about itself),
+:mod:`~lfstudy.process.uncertainty_calibration` (σ scaled by what a simulated study measured) and
 :mod:`~lfstudy.process.report` (the HTML report). Import from this package:
 the modules behind it may move.
 """
@@ -22,6 +23,13 @@ from lfstudy.process.recording import (
     SaturationWarning,
     open_recording,
     read_frame,
+)
+from lfstudy.process.uncertainty_calibration import (
+    CalibrationError,
+    UncertaintyCalibration,
+    apply_calibration,
+    fit_calibration,
+    read_study,
 )
 
 __all__ = [
@@ -40,4 +48,9 @@ __all__ = [
     "peak_ratio",
     "divergence",
     "pair_metrics",
+    "CalibrationError",
+    "UncertaintyCalibration",
+    "read_study",
+    "fit_calibration",
+    "apply_calibration",
 ]

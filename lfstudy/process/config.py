@@ -110,6 +110,7 @@ def validate_process_config(cfg: Mapping[str, Any], base: str | Path | None = No
             "config key 'refocus.model' = 'volumetric' needs the dot-target images: give "
             "recording.volumetric_calibration (images, depths, spacing), or use refocus.model: thin_lens"
         )
+    _check_calibration(out, resolve)
     # a recording has no simulated particles: the memory estimate's simulate stage gets a placeholder
     check_memory({**out, "particles": {"count": 1, "ppp": 1e-9}})
     return out
@@ -128,6 +129,25 @@ def _check_volcal(vc: dict[str, Any]) -> None:
             f"config key 'recording.volumetric_calibration.depths': {len(depths)} depths for a polynomial of order "
             f"{order} in z; give at least order + 1 = {order + 1} (order + 2 for the held-out error)"
         )
+
+
+def _check_calibration(cfg: dict[str, Any], resolve: Any) -> None:
+    """``uncertainty.calibration``: its study path resolved, and the study and design checked now, before any work."""
+    cal = cfg.get("uncertainty", {}).get("calibration")
+    if cal is None:
+        return
+    from lfstudy.process.uncertainty_calibration import CalibrationError, load_calibration
+
+    if cfg["piv"].get("uncertainty", "correlation") in (None, "none"):
+        raise ConfigError(
+            "config key 'uncertainty.calibration' scales σ, but piv.uncertainty is none: "
+            "give piv.uncertainty (correlation, moment, independent) or leave out the calibration"
+        )
+    cal["study"] = resolve(cal["study"])
+    try:
+        load_calibration(cfg)
+    except CalibrationError as exc:
+        raise ConfigError(f"config key 'uncertainty.calibration.{exc.key}': {exc}") from None
 
 
 def load_process_config(path: str | Path) -> dict[str, Any]:

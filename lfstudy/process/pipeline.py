@@ -32,12 +32,18 @@ Output directory::
     frames/<k>/particles.zarr                     the particle list (a method that fits particles: ipr)
     piv.zarr        every pair's vector field along ``time`` (series) or ``pair``
     metrics.zarr, metrics.csv                     measurement metrics per pair (unc_median_<c>: median σ)
+
+With ``uncertainty.calibration`` (:mod:`lfstudy.process.uncertainty_calibration`) ``unc_<c>`` is σ
+scaled by the study's factor per component and ``unc_raw_<c>`` the estimator's own; the attrs of
+``piv.zarr`` and ``metrics.zarr`` and the columns ``unc_cal_factor_<ax>``, ``unc_raw_median_<c>``
+of ``metrics.csv`` record the calibration.
     report.html     self-contained
 """
 
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -55,6 +61,12 @@ from lfstudy.process.recording import (
     read_frame,
     recording_files,
     warn_saturated,
+)
+from lfstudy.process.uncertainty_calibration import (
+    UncertaintyCalibration,
+    apply_calibration,
+    calibration_metrics,
+    load_calibration,
 )
 from lfstudy.study import case as cl
 
@@ -162,6 +174,9 @@ def process_recording(
     rec = open_recording(cfg["recording"], cam)
     grid = cl.case_grid(cfg, cam)  # a grid too big for the memory bound fails here, before any work
     _check_volcal_depths(cfg, rec, grid.z)
+    with warnings.catch_warnings():  # its warnings came with the config's validation already
+        warnings.simplefilter("ignore", UserWarning)
+        sigma_cal = load_calibration(cfg)  # None without uncertainty.calibration
     out = Path(out)
     prov = io.provenance(cfg)
     protect = [*recording_files(cfg["recording"]), *inputs]
@@ -186,6 +201,8 @@ def process_recording(
         if cfg["refocus"].get("model", "thin_lens") != "volumetric":
             volcal = None  # fitted and stored, but the frames are refocused by the thin-lens model
         depth = _depth_calibration(cfg, rec, centers, dark, tmp, prov, say, progress=progress, calibration=volcal)
+        if sigma_cal is not None:
+            say(sigma_cal.summary())
         saturated: dict[str, float] = {}
         results: list[xr.Dataset] = []
         metrics: list[xr.Dataset] = []
@@ -206,7 +223,7 @@ def process_recording(
             for p, (i, j) in enumerate(rec.pairs):
                 if j != k:
                     continue
-                res, m = _measure(cfg, rec, tmp, i, j, depth, progress=progress)
+                res, m = _measure(cfg, rec, tmp, i, j, depth, progress=progress, sigma_cal=sigma_cal)
                 m["saturated_percent"] = (
                     (),
                     100.0 * max(saturated[rec.frames[i].label], saturated[rec.frames[j].label]),
@@ -220,12 +237,16 @@ def process_recording(
         dim = rec.pair_dim
         piv = xr.concat(results, dim=dim, join="outer", combine_attrs="drop_conflicts").assign_coords(coords)
         piv.attrs.update(prov, title="WIDIM PIV of a recording", **_recording_attrs(rec))
+        if sigma_cal is not None:
+            piv.attrs.update(sigma_cal.attrs())
         io.write_zarr(piv, tmp / "piv.zarr")
         summary = uncertainty_summary(piv)
         if summary:
             say(summary)
         table = xr.concat(metrics, dim=dim, combine_attrs="drop_conflicts").assign_coords(coords)
         table.attrs.update(prov, **_recording_attrs(rec))
+        if sigma_cal is not None:
+            table.attrs.update(sigma_cal.attrs())
         io.write_zarr(table, tmp / "metrics.zarr")
         with io.atomic_path(tmp / "metrics.csv") as csv:
             table.to_dataframe().to_csv(csv)
@@ -366,9 +387,10 @@ def _measure(
     depth: xr.Dataset | None = None,
     *,
     progress: bool,
+    sigma_cal: UncertaintyCalibration | None = None,
 ) -> tuple[xr.Dataset, xr.Dataset]:
     """PIV of frames ``i``, ``j`` (their stored volumes), its w mapped through the depth response
-    when there is one, and the pair's metrics."""
+    when there is one, its σ scaled by the study's calibration when there is one, and the pair's metrics."""
     from lfstudy.piv.depth import correct_depth
 
     a = io.open_array(root / frame_dir(i) / "volume.zarr").load()
@@ -376,12 +398,16 @@ def _measure(
     res = cl.case_piv(cfg, a, b, progress=progress)
     if depth is not None:
         res = correct_depth(res, depth)
+    if sigma_cal is not None:  # after the depth correction: the study's σ of w is the corrected one
+        res = apply_calibration(res, sigma_cal)
     ratio = peak_ratio(a, b, res)
     res["peak_ratio"] = ratio
     with contextlib.suppress(ValueError):  # a single window along an axis: no divergence
         res["divergence"] = divergence(res, rec.dt)
     m = pair_metrics(res, ratio, dt=rec.dt)
     m["piv_seconds"] = ((), float(res.attrs["piv_seconds"]), {"units": "s", "long_name": "PIV run time"})
+    if sigma_cal is not None:
+        m.update(calibration_metrics(res, sigma_cal))
     return res, m
 
 
@@ -420,7 +446,9 @@ def uncertainty_summary(piv: xr.Dataset) -> str | None:
     if not parts:
         return None
     n = int(valid.sum())
-    return f"uncertainty: median σ of the {n} valid vectors of all pairs: " + ", ".join(parts)
+    calibrated = any(f"unc_raw_{c}" in piv for c in ("u", "v", "w"))
+    which = " (calibrated by the study; the report shows it, the raw σ is unc_raw_*)" if calibrated else ""
+    return f"uncertainty: median σ{which} of the {n} valid vectors of all pairs: " + ", ".join(parts)
 
 
 def open_result(out: str | Path) -> xr.Dataset:

@@ -21,6 +21,7 @@ import xarray as xr
 
 from lfstudy import io
 from lfstudy.process.recording import Recording, frame_dir
+from lfstudy.process.uncertainty_calibration import calibration_note
 from lfstudy.study import figures as rf
 from lfstudy.study.report import Block, _table, _try, piv_figure_blocks, write_html
 
@@ -166,7 +167,7 @@ def _pair_blocks(
                 "pairs",
                 "uncertainty_maps",
                 "Standard uncertainty σ of each component per vector, middle x–y slice (colour scales over the "
-                "whole field); blank: invalid or replaced vector.",
+                f"whole field); blank: invalid or replaced vector. {calibration_note(piv.attrs)}",
                 "uncertainty maps",
                 lambda one=one: rf.uncertainty_maps(one),
                 case=name,
