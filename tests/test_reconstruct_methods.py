@@ -30,6 +30,7 @@ from lfstudy.reconstruct import (
     reconstruct,
     register_method,
     threshold_dilate,
+    unregister_method,
 )
 from lfstudy.reconstruct.deconvolution import richardson_lucy
 from lfstudy.reconstruct.ipr import ipr
@@ -350,6 +351,52 @@ def test_a_plugin_that_fails_to_load_is_skipped_with_a_warning(plugins):
         get_method("broken")
     with pytest.raises(ConfigError, match=r"reconstruct.method' = 'broken'"):
         validate_config({"camera": camera, "reconstruct": {"method": "broken"}})
+
+
+def test_a_plugin_named_as_a_builtin_method_is_skipped_without_loading(plugins):
+    """The rule of both registries (lfstudy.plugins): an entry point that reuses a built-in's name is
+    skipped with a warning naming it, before it is imported; reconstruct.method mart stays MART."""
+    from lfstudy.reconstruct.mart import MART
+
+    plugins(
+        EntryPoint("mart", "lfstudy_no_such_package.methods:FastMart", ENTRY_POINT_GROUP),
+        EntryPoint("thr2", "lfstudy.reconstruct.threshold:Threshold", ENTRY_POINT_GROUP),
+    )
+    with pytest.warns(RuntimeWarning) as rec:
+        names = available_methods()
+    msgs = [str(w.message) for w in rec]
+    # one warning, naming the entry point and the rule (no ModuleNotFoundError: it was not imported)
+    assert len(msgs) == 1 and "'mart'" in msgs[0] and "lfstudy_no_such_package.methods:FastMart" in msgs[0]
+    assert "built-in reconstruction method" in msgs[0] and "ModuleNotFound" not in msgs[0]
+    assert names.count("mart") == 1 and "thr2" in names
+    assert get_method("mart") is MART
+
+
+def test_register_method_replaces_a_builtin_only_when_asked():
+    from lfstudy.reconstruct.threshold import Threshold
+
+    class MyThreshold(Threshold):
+        name = "threshold"
+
+    with pytest.raises(ReconstructionError, match=r"'threshold' is built in; register_method\(\.\.\., replace=True\)"):
+        register_method(MyThreshold)
+    with pytest.raises(ReconstructionError, match="'mart' is built in"):
+        register_method("mart")
+    assert get_method("threshold") is Threshold
+    try:
+        assert register_method(MyThreshold, replace=True) is MyThreshold
+        assert get_method("threshold") is MyThreshold
+        assert available_methods().count("threshold") == 1
+    finally:
+        unregister_method("threshold")
+    assert get_method("threshold") is Threshold
+    # the decorator forms
+    try:
+        register_method(replace=True)(MyThreshold)
+        assert get_method("threshold") is MyThreshold
+    finally:
+        unregister_method("threshold")
+    assert get_method("threshold") is Threshold
 
 
 # --------------------------------------------------------------------------- methods that fit particles

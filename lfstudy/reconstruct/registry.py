@@ -18,9 +18,11 @@ Built-in methods are listed in :data:`BUILTIN` and imported on first use;
 methods of other packages are found through the entry-point group
 ``lfstudy.reconstruct`` (``name = "package.module:Class"``), so
 ``reconstruct.method: mine`` works without an import in the config (one that
-fails to load is skipped with a warning, so the others and every config that
-does not use it keep working);
-:func:`register_method` adds one at run time (a notebook, a test)::
+fails to load, or that reuses a built-in's name, is skipped with a warning, so the
+others and every config that does not use it keep working: one loader and one rule
+for both registries, :mod:`lfstudy.plugins`);
+:func:`register_method` adds one at run time (a notebook, a test), and replaces a
+built-in only when asked to (``replace=True``)::
 
     @register_method
     class Blur(ReconstructionMethod):
@@ -238,8 +240,8 @@ def _load(spec: str) -> type[ReconstructionMethod]:
 def _plugins() -> tuple[dict[str, type[ReconstructionMethod]], dict[str, str]]:
     """The methods of the entry-point group, loaded: ``({name: class}, {name: why it was skipped})``.
 
-    A plugin that fails to import, is not a method or declares its parameters
-    wrongly is skipped with a warning (as xarray's backend loader does), so one
+    A plugin named as a built-in, or that fails to import, is not a method or declares
+    its parameters wrongly, is skipped with a warning (as xarray's backend loader does), so one
     broken package does not stop every config from loading.
     """
 
@@ -248,7 +250,7 @@ def _plugins() -> tuple[dict[str, type[ReconstructionMethod]], dict[str, str]]:
             raise ReconstructionError(f"{cls!r} is not a ReconstructionMethod subclass")
         detect_parameters(cls)
 
-    return load_plugins(ENTRY_POINT_GROUP, "reconstruction method", check)
+    return load_plugins(ENTRY_POINT_GROUP, "reconstruction method", check, builtin=BUILTIN)
 
 
 def available_methods() -> list[str]:
@@ -324,13 +326,46 @@ def _function_method(name: str, func: Callable[..., xr.DataArray]) -> type[Recon
     )
 
 
-def register_method(obj: Any) -> Any:
-    """Register a method at run time: a :class:`ReconstructionMethod` subclass
-    (``@register_method``), or a name for a plain function ``f(stack, **params)``
-    (``@register_method("name")``)."""
+def register_method(obj: Any = None, *, replace: bool = False) -> Any:
+    """Register a method at run time (a notebook, a test).
+
+    Parameters
+    ----------
+    obj : ReconstructionMethod subclass or str
+        A method class (``@register_method``), or a name for a plain function
+        ``f(stack, **params)`` (``@register_method("name")``).
+    replace : bool
+        Allow the name of a built-in method (:data:`BUILTIN`): the registered one then
+        stands for it until :func:`unregister_method`. Without it a built-in's name is
+        refused, so a config's ``mart`` is the built-in MART unless the session asked
+        otherwise (installed plugins cannot take a built-in's name at all:
+        :mod:`lfstudy.plugins`). Another run-time registration of the same name is
+        replaced either way (a notebook cell run again).
+
+    Returns
+    -------
+    The class (for ``@register_method``) or a decorator.
+
+    Raises
+    ------
+    ReconstructionError
+        An empty or built-in name (without ``replace``), unknown ``requires`` or parameters
+        declared wrongly (:func:`detect_parameters`).
+    """
+    if obj is None:  # @register_method(replace=True)
+        return functools.partial(register_method, replace=replace)
+
+    def free(name: str) -> None:
+        if name in BUILTIN and not replace:
+            raise ReconstructionError(
+                f"reconstruction method {name!r} is built in; register_method(..., replace=True) replaces it "
+                f"for this session (unregister_method({name!r}) restores it), or choose another name"
+            )
+
     if isinstance(obj, type) and issubclass(obj, ReconstructionMethod):
         if not obj.name:
             raise ReconstructionError(f"{obj.__name__}: a reconstruction method needs a non-empty name")
+        free(obj.name)
         bad = set(obj.requires) - set(INPUTS)
         if bad:
             raise ReconstructionError(f"{obj.__name__}.requires: unknown inputs {sorted(bad)}; allowed {INPUTS}")
@@ -339,6 +374,7 @@ def register_method(obj: Any) -> Any:
         return obj
     if not isinstance(obj, str) or not obj:
         raise ReconstructionError(f"reconstruction method name must be a non-empty string, got {obj!r}")
+    free(obj)
 
     def deco(func: Callable[..., xr.DataArray]) -> Callable[..., xr.DataArray]:
         _REGISTERED[obj] = _function_method(obj, func)
@@ -348,7 +384,7 @@ def register_method(obj: Any) -> Any:
 
 
 def unregister_method(name: str) -> None:
-    """Remove a method registered with :func:`register_method` (built-ins stay)."""
+    """Remove a method registered with :func:`register_method` (a built-in it replaced is back)."""
     _REGISTERED.pop(name, None)
 
 
