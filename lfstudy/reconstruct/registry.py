@@ -42,7 +42,7 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -61,6 +61,7 @@ __all__ = [
     "ReconstructionError",
     "ReconstructionInputs",
     "ReconstructionMethod",
+    "ReconstructionSize",
     "available_methods",
     "detect_parameters",
     "get_method",
@@ -111,8 +112,9 @@ class ReconstructionInputs:
         Default: the grid of ``stack`` (its coords).
     calibration : xarray.Dataset, optional
         The volumetric (dot-target) calibration (:func:`lfstudy.lightfield.volcal.fit_volumetric`,
-        Hall et al. 2018) where ``refocus.model`` is ``volumetric``: the methods that model the
-        camera (``mart``, ``ipr``) then place their beams through it instead of the thin lens.
+        Hall et al. 2018; a :class:`~lfstudy.lightfield.volcal.VolumetricCalibration` is taken as its
+        Dataset) where ``refocus.model`` is ``volumetric``: the methods that model the camera (``mart``,
+        ``ipr``) then place their beams through it instead of the thin lens.
     """
 
     stack: xr.DataArray | None = None
@@ -145,12 +147,43 @@ class ReconstructionInputs:
                     f"the light field has {shape_l[0]} x {shape_l[1]} lenslets (rows x cols) but the calibration "
                     f"has {shape_c[0]} x {shape_c[1]}: they do not belong together"
                 )
-        if self.calibration is not None and not (
-            isinstance(self.calibration, xr.Dataset) and "coef" in self.calibration and "valid" in self.calibration
-        ):
-            raise ReconstructionError(
-                "calibration must be the volumetric calibration Dataset of lfstudy.lightfield.volcal.fit_volumetric"
-            )
+        if self.calibration is not None:
+            from lfstudy.lightfield.volcal import VolumetricCalibration, VolumetricCalibrationError
+
+            try:  # a whole fit (the calibration's own check); the methods take its Dataset
+                object.__setattr__(self, "calibration", VolumetricCalibration.of(self.calibration).dataset)
+            except VolumetricCalibrationError as exc:
+                raise ReconstructionError(str(exc)) from None
+
+
+@dataclass(frozen=True)
+class ReconstructionSize:
+    """What sizes one frame's reconstruction, for a method's :meth:`ReconstructionMethod.memory_bytes`.
+
+    Attributes
+    ----------
+    n_pixels : int
+        Sensor pixels.
+    n_lenslets : int
+        Lenslets (rows x columns).
+    pixels_per_lenslet : int
+        The side of a lenslet's block of the light field.
+    n_planes : int
+        Planes of the reconstruction grid.
+    n_voxels : int
+        Voxels of the reconstruction grid.
+    """
+
+    n_pixels: int
+    n_lenslets: int
+    pixels_per_lenslet: int
+    n_planes: int
+    n_voxels: int
+
+    @property
+    def lightfield_bytes(self) -> int:
+        """The float32 light field."""
+        return self.n_lenslets * self.pixels_per_lenslet**2 * 4
 
 
 class ReconstructionMethod:
@@ -162,6 +195,26 @@ class ReconstructionMethod:
     parameters: ClassVar[dict[str, dict[str, Any]]] = {}
     #: True for a method that fits particles: its ``run_particles`` gives the list with the volume.
     particles: ClassVar[bool] = False
+    #: True for a method that models the camera and so places its beams through a volumetric calibration
+    #: (``ReconstructionInputs.calibration``) where ``refocus.model`` is ``volumetric``: a case then needs one.
+    uses_calibration: ClassVar[bool] = False
+
+    @classmethod
+    def memory_bytes(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
+        """Estimated peak memory [bytes] of reconstructing one frame (:mod:`lfstudy.study.resources`).
+
+        The base counts what every method holds: the light field and four float64 volumes on the
+        grid (the focal stack, the result and their working copies). A method with large arrays
+        of its own (weight tables, spectra) adds them.
+
+        Parameters
+        ----------
+        size : ReconstructionSize
+            The camera's and the grid's sizes.
+        params : mapping, optional
+            The method's parameters (``reconstruct.<name>``), for a method whose memory depends on one.
+        """
+        return size.lightfield_bytes + 4 * size.n_voxels * 8
 
     def run(self, inputs: ReconstructionInputs, *, progress: bool = False, **params: Any) -> xr.DataArray:
         raise NotImplementedError  # pragma: no cover - subclasses implement run
