@@ -453,6 +453,10 @@ def test_a_plugin_kind_works_like_a_builtin(plugins):
     msgs = " | ".join(str(w.message) for w in caught)
     assert "'broken'" in msgs and "ImportError" in msgs and "'odd'" in msgs and "velocity(x, y, z)" in msgs
     assert kinds[-1] == "swirl" and "broken" not in kinds and "odd" not in kinds
+    from lfstudy.study.config import load_schema
+
+    text = load_schema()["properties"]["flows"]["additionalProperties"]["properties"]["kind"]["description"]
+    assert "swirl (solid-body rotation about z)" in text and "broken" not in text
     raw = _tiny()
     raw["flows"]["turn"] = {"kind": "swirl", "omega": 0.2}
     raw["sweep"]["flow"] = ["turn"]
