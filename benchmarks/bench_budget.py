@@ -1,5 +1,9 @@
 """The error budget of study configs side by side: each case beside its oracle, with the particle scores.
 
+Reproduces: docs/config.md § "Tracking the fitted particles (`piv.particles`)" (the table of IPR's lists
+correlated with piv.particles none and ptv, demo_focus, seed 21) and § "Correlating the paired particles only
+(`piv.particles: paired`)"; config/demo_focus.yaml (the budgets in its header).
+
 Runs every case of each ``--config`` through the workflow's stage functions (the runner of
 ``bench_uncertainty.py``: no Snakemake needed, each shared output made once, ``--jobs`` tasks side
 by side), then prints per case: total RMS error, the oracle's (PIV on the true volumes) and the

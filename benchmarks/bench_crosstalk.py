@@ -1,5 +1,10 @@
 """Diagnosis of the lateral → axial crosstalk of the MART chain (issue 27, part 2).
 
+Reproduces: docs/conventions.md § "What a voxel is" (the demo design M -0.8, pitch 0.1184: the raw w of a 0.2
+mm x shift and |w| of PIV on the numerically shifted volume: ``--magnification -0.8 --pitch 0.1184 --variants
+shifta``; rerun 2026-11-28, seed 7, 1 thread, load ~17 on 2 cores, 290 s: w +0.0576 mm raw, 0.288 of the
+shift, against the page's +0.060; +0.0005 mm on the shifted volume; the oracle's +0.0037 mm).
+
 One design (a demo or thesis config, with ``--magnification`` / ``--pitch`` set), one uniform
 lateral shift (``--shift`` mm at ``--angle`` degrees from +x) and a sub-lenslet phase of the particle
 field (``--phase PX PY``, fractions of one lenslet at the focal plane, pl/|M|) run through the case

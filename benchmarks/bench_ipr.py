@@ -1,5 +1,8 @@
 """IPR on a crop of the Table 4.3 camera: particles found, ghosts, position errors, time, memory (issue 27).
 
+Reproduces: lfstudy/reconstruct/ipr.py (its module docstring: found, ghosts and time on crops, the full
+frame's 7.18 GB peak with ``--memory``); docs/architecture.md § "Benchmarks".
+
     python benchmarks/bench_ipr.py [--crop 600 600] [--ppp 0.001 0.005] [--rays 2000]
         [--photons 25000] [--threads 2] [--iterations N] [--seed 0] [--compare jacobian=forward ...]
     python benchmarks/bench_ipr.py --memory [--memory-particles 100] [--threads 1]

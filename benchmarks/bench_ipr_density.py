@@ -1,5 +1,8 @@
 """Why IPR finds fewer particles on one design than another: image density, candidates, the fit from the truth.
 
+Reproduces: docs/config.md § "How much seeding a design resolves (`particles_per_cell`)";
+lfstudy/study/designs.py (DENSITY_LIMITED: the share kept from the truth per particles per cell).
+
 For each IPR case of a study config (frame a), beside the case's own fit (``volume_a.particles.zarr``,
 scored where ``bench_budget.py`` wrote it in the same ``--out``):
 

@@ -1,5 +1,8 @@
 """IPR's per-particle images, exact against fast quadrature: CPU ms per image and the error (issue 27).
 
+Reproduces: lfstudy/reconstruct/ipr.py (its module docstring: CPU ms per particle image, fast against exact
+quadrature); docs/architecture.md § "Benchmarks".
+
     python benchmarks/bench_particle_image.py [--crop 300 300] [--ppp 0.005] [--seed 7] [--reps 3]
 
 The particles of a ``--ppp`` field over the crop of the Table 4.3 camera (7 mm deep) are rendered

@@ -1,5 +1,8 @@
 """Benchmark of lfstudy.piv.widim (prints its figures; not a test).
 
+Reproduces: docs/architecture.md § "Benchmarks" (WIDIM on the thesis' 32 x 193 x 289 stack, the ratio to
+OpenPIV); lfstudy/piv/engine.py (widim's ``order``: the quintic against the cubic deformation's bias).
+
 1. ``compare``: one correlation pass over the same windows of the same volume
    pair against OpenPIV's ``openpiv.pyprocess3D.extended_search_area_piv3D``
    (optional: ``pip install 'lfstudy[bench]'``), like for like: same window

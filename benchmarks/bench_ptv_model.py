@@ -1,5 +1,8 @@
 """The PTV uncertainty's model (curvature) term against the truth, re-binned on a study's stored particle lists.
 
+Reproduces: docs/config.md § "The uncertainty's model term (`piv.ptv_model_box`)" (the coverage and ratio
+table); lfstudy/piv/ptv.py (MODEL_BOX).
+
 For each case directory of a ``bench_budget.py --out`` run whose config sweeps ``piv.particles: [none, ptv]``
 (IPR's particle lists ``volume_{a,b}.particles.zarr``, WIDIM's result and errors under
 ``piv.particles~none``), the lists are tracked about the WIDIM field and binned again as the piv stage

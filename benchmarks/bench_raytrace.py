@@ -1,5 +1,8 @@
 """Ray-tracer throughput and memory on the full Table 4.3 sensor (a script, not a test).
 
+Reproduces: docs/architecture.md § "Benchmarks" (rays/s at 1 and 2 threads, peak memory, ratio to NumPy; the
+targets below).
+
     python benchmarks/bench_raytrace.py [--rays 25000] [--ppp 0.001] [--threads 1 2]
 
 Prints rays/s for each thread count (numba.set_num_threads), wall time, peak

@@ -1,5 +1,8 @@
 """Benchmark of the reconstructions on one grid: threshold, deconvolution and MART (issue: depth).
 
+Reproduces: docs/architecture.md § "Benchmarks" (the methods on the same images); config/thesis.yaml (the
+uniform_z_thesis flow: ``--thesis72``).
+
 Table 4.3 optics (``config/thesis.yaml``), full sensor by default (``--sensor W H`` for a
 central region). For every flow and seeding density: the particle fields, both raw images
 (Monte-Carlo ray tracing, 25,000 rays), the pinhole calibration, registration and the focal

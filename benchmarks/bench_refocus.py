@@ -1,5 +1,8 @@
 """Benchmark: full-size (Table 4.3) calibration, registration and refocusing.
 
+Reproduces: docs/architecture.md § "Benchmarks" (calibration and refocus of the full Table 4.3 sensor; the
+targets below).
+
 Prints seconds, peak memory and the calibration error against the targets:
 calibration <= 30 s and <= 0.05 px RMS; light field -> 32 resized planes
 <= 10 s on 2 cores with <= 3 GB peak memory. The lenslet grid is calibrated

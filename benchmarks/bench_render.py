@@ -1,5 +1,8 @@
 """Exact rendering against the Monte-Carlo tracer on the Table 4.3 camera (issue 16; a script, not a test).
 
+Reproduces: docs/architecture.md § "Benchmarks" (exact against Monte-Carlo images: agreement, speed, memory);
+lfstudy/schema.yaml (raytrace.method).
+
     python benchmarks/bench_render.py [--particles 300] [--crop W H] [--rays 1e3 1e4 1e5 1e6]
         [--ppp 0.01] [--mc-fraction 0.1] [--threads 1] [--skip-agreement] [--skip-speed]
         [--thesis [--thesis-crop W H] [--thesis-seeds S ...]] [--pinhole [--pinhole-seeds S ...]]

@@ -1,5 +1,8 @@
 """End-to-end benchmark: the thesis' uniform-x case at full size (sec. 7.1).
 
+Reproduces: docs/architecture.md § "Benchmarks" (the sec. 7.1 case end to end, each stage timed);
+lfstudy/reconstruct/threshold.py (focal_stack_as_is: PIV of the plain stack spreads less in y and z).
+
 Table 4.3 camera (4872 x 3248 px, 289 x 193 lenslets), 0.001 ppp (15,824
 particles; ``--ppp 0.01``: 158,243), the config's rendering method (exact;
 ``--method montecarlo`` traces ``--rays`` per particle, thesis 25,000), 7 mm

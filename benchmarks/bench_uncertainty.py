@@ -1,5 +1,9 @@
 """Per-vector uncertainty against the truth on study cases (issue 28): coverage and RMS ratio.
 
+Reproduces: docs/architecture.md § "Benchmarks": no figure of its own is documented; it is the runner of
+bench_budget.py and bench_ipr_density.py (their coverage and ratio columns in the config reference) and prints
+issue 28's coverage and ratio per case.
+
 Runs the cases of a config (default: the thesis camera, Table 4.3) through the same stage
 functions the Snakefile's rules call, in this process's workers (no Snakemake: this also runs
 on a machine with many cores and no Snakemake), each stage's distinct output once as in the

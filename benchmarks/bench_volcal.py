@@ -1,6 +1,9 @@
 """Volumetric (dot-target) calibration against the thin-lens model and the traverse depth
 calibration on an imperfect camera (issue 29 §2).
 
+Reproduces: docs/config.md § "Volumetric calibration (`refocus.model`, `volumetric_calibration`)" (the ideal
+and imperfect camera table) and § "Volumetric or traverse depth calibration?".
+
 The thesis camera (Table 4.3) on a cropped sensor (default 1200 x 900 px) at 0.001 ppp, a
 uniform x shift and a uniform z (axial) shift; every row runs the same cases through the case
 stage functions in this process (images, lenslet calibration, registration, refocus,

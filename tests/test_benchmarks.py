@@ -57,3 +57,29 @@ def test_benchmark_imports_and_parses_options(script):
     res = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "usage:" in res.stdout
+
+
+_REPRODUCES = re.compile(r"(?m)^Reproduces: (.+?)(?:\n\n|\Z)", re.S)
+_CITED = re.compile(r"((?:docs|lfstudy|config)/[\w/.-]+\.(?:md|py|yaml))((?:[^;]*?§ \"[^\"]+\")*)")
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda p: p.name)
+def test_each_benchmark_says_which_documented_figure_it_reproduces(script):
+    """A benchmark is kept for a figure a reader may want to reproduce: its module docstring has a
+    ``Reproduces:`` paragraph citing the files (and the sections of the doc pages) that hold the figure,
+    and each cited file names the script (so the figure there says where it came from)."""
+    import ast
+
+    doc = ast.get_docstring(ast.parse(script.read_text())) or ""
+    m = _REPRODUCES.search(doc)
+    assert m, f"{script.name}: no 'Reproduces:' paragraph in its docstring"
+    cited = _CITED.findall(" ".join(m.group(1).split()))
+    assert cited, f"{script.name}: 'Reproduces:' cites no file under docs/, lfstudy/ or config/"
+    for path, sections in cited:
+        f = ROOT / path
+        assert f.is_file(), f"{script.name} cites {path}, which does not exist"
+        text = f.read_text()
+        assert re.search(rf"\b{re.escape(script.stem)}\b(?!_)", text), f"{path} does not name {script.name}"
+        headings = {h.strip() for h in re.findall(r"(?m)^#+ (.+)$", text)}
+        for title in re.findall(r'§ "([^"]+)"', sections):
+            assert title in headings, f"{script.name} cites {path} § {title!r}, not a heading there"

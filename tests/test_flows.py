@@ -453,6 +453,10 @@ def test_a_plugin_kind_works_like_a_builtin(plugins):
     msgs = " | ".join(str(w.message) for w in caught)
     assert "'broken'" in msgs and "ImportError" in msgs and "'odd'" in msgs and "velocity(x, y, z)" in msgs
     assert kinds[-1] == "swirl" and "broken" not in kinds and "odd" not in kinds
+    from lfstudy.study.config import load_schema
+
+    text = load_schema()["properties"]["flows"]["additionalProperties"]["properties"]["kind"]["description"]
+    assert "swirl (solid-body rotation about z)" in text and "broken" not in text
     raw = _tiny()
     raw["flows"]["turn"] = {"kind": "swirl", "omega": 0.2}
     raw["sweep"]["flow"] = ["turn"]
@@ -473,6 +477,28 @@ def test_a_plugin_kind_works_like_a_builtin(plugins):
         validate_config(raw)
     with pytest.raises(FlowError, match=r"'broken'.*failed to load: ImportError"):
         flow_from_config({"kind": "broken"})
+
+
+def test_a_plugin_named_as_a_builtin_kind_is_skipped_without_loading(plugins):
+    """The rule of both registries (lfstudy.plugins): an entry point that reuses a built-in's name is
+    skipped with a warning naming it, before it is imported; the config's kind stays the built-in."""
+    loaded = []
+
+    def load():
+        loaded.append("uniform")
+        return Swirl
+
+    impostor = SimpleNamespace(name="uniform", value="pkg.module:Uniform", group=registry.ENTRY_POINT_GROUP, load=load)
+    plugins += [impostor, _ep("swirl", Swirl)]
+    with pytest.warns(RuntimeWarning) as caught:
+        kinds = available_kinds()
+    msgs = [str(w.message) for w in caught]
+    assert len(msgs) == 1 and "'uniform'" in msgs[0] and "pkg.module:Uniform" in msgs[0]
+    assert "built-in flow kind" in msgs[0] and registry.ENTRY_POINT_GROUP in msgs[0]
+    assert loaded == []  # never imported
+    assert kinds.count("uniform") == 1 and kinds[-1] == "swirl"
+    assert registry.get_flow_class("uniform") is UniformFlow
+    assert isinstance(flow_from_config({"kind": "uniform", "displacement": [1, 0, 0]}), UniformFlow)
 
 
 def test_a_plugin_must_declare_its_constructor_parameters():

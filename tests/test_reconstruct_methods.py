@@ -30,6 +30,7 @@ from lfstudy.reconstruct import (
     reconstruct,
     register_method,
     threshold_dilate,
+    unregister_method,
 )
 from lfstudy.reconstruct.deconvolution import richardson_lucy
 from lfstudy.reconstruct.ipr import ipr
@@ -345,11 +346,80 @@ def test_a_plugin_that_fails_to_load_is_skipped_with_a_warning(plugins):
     assert any("'broken'" in m and "lfstudy_no_such_package" in m and "ModuleNotFoundError" in m for m in msgs)
     assert any("'notamethod'" in m and "not a ReconstructionMethod" in m for m in msgs)
     assert cfg["reconstruct"]["thr2"] == {"k": 3.0, "dilation_radius": 1, "dilation_ndim": 2}
+    # the schema's text lists the installed method with the built-ins, from the registry
+    text = load_schema()["properties"]["reconstruct"]["properties"]["method"]["description"]
+    assert all(f"{m} ({get_method(m).description})" in text for m in ("thr2", *BUILTIN)) and "broken" not in text
     assert "thr2" in available_methods() and "broken" not in available_methods()
     with pytest.raises(ReconstructionError, match=r"'broken': the method installed .* failed to load: ModuleNot"):
         get_method("broken")
     with pytest.raises(ConfigError, match=r"reconstruct.method' = 'broken'"):
         validate_config({"camera": camera, "reconstruct": {"method": "broken"}})
+
+
+def test_the_schema_lists_no_method_or_kind_by_hand():
+    """schema.yaml states no list of methods or flow kinds (it went stale: ipr was missing); the assembled
+    schema's descriptions name every one, with its class's description."""
+    from lfstudy.config import read_schema
+    from lfstudy.simulate.flows import BUILTIN as KINDS
+    from lfstudy.simulate.flows import get_flow_class
+
+    raw = read_schema("schema.yaml")["properties"]
+    hand = raw["reconstruct"]["properties"]["method"]["description"]
+    hand_kind = raw["flows"]["additionalProperties"]["properties"]["kind"]["description"]
+    assert not any(f"{m}:" in hand or f"{m} (" in hand for m in BUILTIN)
+    assert not any(f"{k}," in hand_kind or f"{k} (" in hand_kind for k in KINDS)
+    full = load_schema()["properties"]
+    text = full["reconstruct"]["properties"]["method"]["description"]
+    assert all(f"{m} ({get_method(m).description})" in text for m in BUILTIN)
+    kind = full["flows"]["additionalProperties"]["properties"]["kind"]
+    assert kind["enum"][: len(KINDS)] == list(KINDS)
+    assert all(f"{k} ({get_flow_class(k).description})" in kind["description"] for k in KINDS)
+
+
+def test_a_plugin_named_as_a_builtin_method_is_skipped_without_loading(plugins):
+    """The rule of both registries (lfstudy.plugins): an entry point that reuses a built-in's name is
+    skipped with a warning naming it, before it is imported; reconstruct.method mart stays MART."""
+    from lfstudy.reconstruct.mart import MART
+
+    plugins(
+        EntryPoint("mart", "lfstudy_no_such_package.methods:FastMart", ENTRY_POINT_GROUP),
+        EntryPoint("thr2", "lfstudy.reconstruct.threshold:Threshold", ENTRY_POINT_GROUP),
+    )
+    with pytest.warns(RuntimeWarning) as rec:
+        names = available_methods()
+    msgs = [str(w.message) for w in rec]
+    # one warning, naming the entry point and the rule (no ModuleNotFoundError: it was not imported)
+    assert len(msgs) == 1 and "'mart'" in msgs[0] and "lfstudy_no_such_package.methods:FastMart" in msgs[0]
+    assert "built-in reconstruction method" in msgs[0] and "ModuleNotFound" not in msgs[0]
+    assert names.count("mart") == 1 and "thr2" in names
+    assert get_method("mart") is MART
+
+
+def test_register_method_replaces_a_builtin_only_when_asked():
+    from lfstudy.reconstruct.threshold import Threshold
+
+    class MyThreshold(Threshold):
+        name = "threshold"
+
+    with pytest.raises(ReconstructionError, match=r"'threshold' is built in; register_method\(\.\.\., replace=True\)"):
+        register_method(MyThreshold)
+    with pytest.raises(ReconstructionError, match="'mart' is built in"):
+        register_method("mart")
+    assert get_method("threshold") is Threshold
+    try:
+        assert register_method(MyThreshold, replace=True) is MyThreshold
+        assert get_method("threshold") is MyThreshold
+        assert available_methods().count("threshold") == 1
+    finally:
+        unregister_method("threshold")
+    assert get_method("threshold") is Threshold
+    # the decorator forms
+    try:
+        register_method(replace=True)(MyThreshold)
+        assert get_method("threshold") is MyThreshold
+    finally:
+        unregister_method("threshold")
+    assert get_method("threshold") is Threshold
 
 
 # --------------------------------------------------------------------------- methods that fit particles

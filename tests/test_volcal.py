@@ -141,6 +141,49 @@ def test_bad_settings_name_the_field(ideal):
         vc.volumetric_stack(lf, cal, np.array([0.0, 5.0]), xg, yg)
 
 
+def test_the_calibration_type_owns_its_range_and_shape_checks(ideal):
+    """VolumetricCalibration is the one place of the checks: a whole fit, the light field it was fitted on,
+    depths within the calibrated ones (5 % of their range either side); the refocus, MART's projector
+    and the reconstruction inputs all say the same."""
+    from lfstudy.reconstruct import ReconstructionError, ReconstructionInputs
+    from lfstudy.reconstruct.grid import ReconstructionGrid
+    from lfstudy.reconstruct.projector import PlenopticProjector, ProjectorError
+
+    centers, cal = ideal
+    vcal = vc.VolumetricCalibration(cal)
+    assert vc.VolumetricCalibration.of(vcal) is vcal and vc.VolumetricCalibration.of(cal).dataset is cal
+    assert vcal.z_range == (DEPTHS.min(), DEPTHS.max())
+    lf = register(rt.render(CAM, make_field([0.0], [0.0], [0.0], [1.0]), 1000, 0), centers, CAM)
+    assert vcal.lightfield_shape == (lf.sizes["lrow"], lf.sizes["lcol"], lf.sizes["prow"])
+    vcal.check_lightfield(lf)
+    # the margin, on both sides: 6 mm calibrated, 0.3 mm allowed beyond either end
+    lo, hi = vcal.z_range
+    vcal.check_depths([lo - 0.29, hi + 0.29])
+    for z in ([lo - 0.31, 0.0], [0.0, hi + 0.31]):
+        with pytest.raises(vc.VolumetricCalibrationError, match=r"depths cover z = -3\.\.3 mm but the grid spans"):
+            vcal.check_depths(z)
+    # not a whole fit: the missing variable or attr is named
+    with pytest.raises(vc.VolumetricCalibrationError, match="lacks 'coef'"):
+        vc.VolumetricCalibration(cal.drop_vars("coef"))
+    bare = cal.copy()
+    bare.attrs = {k: v for k, v in cal.attrs.items() if k != "z_max"}
+    with pytest.raises(vc.VolumetricCalibrationError, match=r"lacks the attrs \['z_max'\]"):
+        vc.VolumetricCalibration(bare)
+    with pytest.raises(vc.VolumetricCalibrationError, match="got DataArray"):
+        vc.VolumetricCalibration(cal["coef"])
+    with pytest.raises(ReconstructionError, match="lacks 'valid'"):
+        ReconstructionInputs(calibration=cal.drop_vars("valid"))
+    # another light field's calibration: the same message from each user
+    other = cal.assign_attrs(n_lcol=cal.attrs["n_lcol"] + 1)
+    nr, nc, n = vcal.lightfield_shape
+    msg = rf"light field \({nr} x {nc} lenslets, {n} px each\) is not the one .* fitted on \({nr} x {nc + 1}, {n} px\)"
+    xg, yg, _ = _grid()
+    with pytest.raises(vc.VolumetricCalibrationError, match=msg):
+        vc.volumetric_stack(lf, other, np.array([0.0]), xg, yg)
+    with pytest.raises(ProjectorError, match=msg):
+        PlenopticProjector(lf, CAM, ReconstructionGrid(xg, yg, np.array([0.0, 1.0])), calibration=other)
+
+
 # ------------------------------------------------------------------ MART's projector and IPR's frame
 def _point_volume(grid, x, y, z):
     """A unit point on the grid's tent voxels (bilinear in x, y; on the plane at z)."""

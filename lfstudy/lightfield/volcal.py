@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import uuid
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import dask
@@ -46,6 +47,7 @@ import xarray as xr
 from lfstudy.optics import PlenopticCamera
 
 __all__ = [
+    "VolumetricCalibration",
     "VolumetricCalibrationError",
     "dot_grid",
     "fit_volumetric",
@@ -58,6 +60,114 @@ __all__ = [
 
 class VolumetricCalibrationError(ValueError):
     """The dot-target data or a volumetric-calibration setting do not allow the fit (names the field)."""
+
+
+#: How far beyond its calibrated depths a calibration may be used, as a fraction of their range: the
+#: polynomial's extrapolation there stays within its fit (the grid's end planes may sit a little outside).
+DEPTH_MARGIN = 0.05
+
+#: The attrs :func:`fit_volumetric` writes that using a calibration reads.
+_ATTRS = ("x_scale", "y_scale", "z_center", "z_scale", "z_min", "z_max", "n_lrow", "n_lcol", "pixels_per_lenslet")
+
+
+@dataclass(frozen=True, eq=False)
+class VolumetricCalibration:
+    """A fitted volumetric calibration (the Dataset of :func:`fit_volumetric`) and the checks of what it can map.
+
+    The Dataset stays what is stored and passed around; this type owns the checks every user of it
+    makes: that it is a whole calibration, that a light field is the one it was fitted on
+    (:meth:`check_lightfield`) and that a grid's depths are within its calibrated range
+    (:meth:`check_depths`, :data:`DEPTH_MARGIN`).
+
+    Parameters
+    ----------
+    dataset : xarray.Dataset
+        From :func:`fit_volumetric` (``coef``, ``exponents``, ``valid`` and its attrs).
+
+    Raises
+    ------
+    VolumetricCalibrationError
+        Not a Dataset, or a variable or attribute of the fit missing (naming it).
+    """
+
+    dataset: xr.Dataset
+
+    def __post_init__(self) -> None:
+        cal = self.dataset
+        if not isinstance(cal, xr.Dataset):
+            raise VolumetricCalibrationError(
+                f"calibration must be the volumetric calibration Dataset of lfstudy.lightfield.volcal.fit_volumetric, "
+                f"got {type(cal).__name__}"
+            )
+        for key in ("coef", "exponents", "valid"):
+            if key not in cal:
+                raise VolumetricCalibrationError(
+                    f"the volumetric calibration lacks {key!r}: fit it with lfstudy.lightfield.volcal.fit_volumetric"
+                )
+        missing = [k for k in _ATTRS if k not in cal.attrs]
+        if missing:
+            raise VolumetricCalibrationError(
+                f"the volumetric calibration lacks the attrs {missing}: fit it with "
+                "lfstudy.lightfield.volcal.fit_volumetric"
+            )
+
+    @classmethod
+    def of(cls, calibration: xr.Dataset | VolumetricCalibration) -> VolumetricCalibration:
+        """``calibration`` as this type (checked once; an instance is returned as it is)."""
+        return calibration if isinstance(calibration, cls) else cls(calibration)
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        """The calibrated depths' (min, max) [mm]."""
+        a = self.dataset.attrs
+        return float(a["z_min"]), float(a["z_max"])
+
+    @property
+    def lightfield_shape(self) -> tuple[int, int, int]:
+        """(lenslet rows, lenslet columns, pixels per lenslet) of the light fields it was fitted on."""
+        a = self.dataset.attrs
+        return int(a["n_lrow"]), int(a["n_lcol"]), int(a["pixels_per_lenslet"])
+
+    def check_lightfield(self, lightfield: xr.DataArray) -> None:
+        """Raise unless ``lightfield`` has the lenslets and pixels per lenslet the calibration was fitted on.
+
+        Raises
+        ------
+        VolumetricCalibrationError
+            Naming both shapes.
+        """
+        shape = (lightfield.sizes["lrow"], lightfield.sizes["lcol"], lightfield.sizes["prow"])
+        want = self.lightfield_shape
+        if shape != want:
+            raise VolumetricCalibrationError(
+                f"the light field ({shape[0]} x {shape[1]} lenslets, {shape[2]} px each) is not the one the volumetric "
+                f"calibration was fitted on ({want[0]} x {want[1]}, {want[2]} px)"
+            )
+
+    def check_depths(self, z: Any, what: str = "grid") -> None:
+        """Raise unless the depths ``z`` [mm] lie within the calibrated ones, :data:`DEPTH_MARGIN` of their
+        range either side (beyond, the polynomial would extrapolate).
+
+        Parameters
+        ----------
+        z : array_like
+            The depths [mm] to be mapped (a grid's planes).
+        what : str
+            What spans them, for the message.
+
+        Raises
+        ------
+        VolumetricCalibrationError
+            Naming ``volumetric_calibration.depths`` and both ranges.
+        """
+        zg = np.asarray(z, dtype=float)
+        lo, hi = self.z_range
+        tol = DEPTH_MARGIN * (hi - lo)
+        if zg.min() < lo - tol or zg.max() > hi + tol:
+            raise VolumetricCalibrationError(
+                f"volumetric_calibration.depths cover z = {lo:.4g}..{hi:.4g} mm but the {what} spans "
+                f"{zg.min():.4g}..{zg.max():.4g} mm: the polynomial would extrapolate; calibrate over the grid's depth"
+            )
 
 
 def dot_grid(
@@ -565,7 +675,7 @@ def _vplane(rays: _VolRays, attrs: dict, z: float, xg: np.ndarray, yg: np.ndarra
 
 def volumetric_stack(
     lightfield: xr.DataArray,
-    calibration: xr.Dataset,
+    calibration: xr.Dataset | VolumetricCalibration,
     z: np.ndarray,
     x: np.ndarray,
     y: np.ndarray,
@@ -584,7 +694,7 @@ def volumetric_stack(
     lightfield : xarray.DataArray
         A registered light field (:func:`lfstudy.lightfield.register`) with the shape the
         calibration was fitted on.
-    calibration : xarray.Dataset
+    calibration : xarray.Dataset or VolumetricCalibration
         From :func:`fit_volumetric`.
     z, x, y : ndarray
         The object grid [mm]: ascending depths (within the calibrated depths, 5 % of their range
@@ -599,20 +709,12 @@ def volumetric_stack(
     xarray.DataArray ``intensity``, dims ``("z", "y", "x")``, lazy (one dask chunk per plane),
     laid out as :func:`lfstudy.lightfield.focal_stack` with ``resize=True``.
     """
+    vcal = VolumetricCalibration.of(calibration)
+    calibration = vcal.dataset
     a = calibration.attrs
-    shape = (lightfield.sizes["lrow"], lightfield.sizes["lcol"], lightfield.sizes["prow"])
-    if shape != (a["n_lrow"], a["n_lcol"], a["pixels_per_lenslet"]):
-        raise VolumetricCalibrationError(
-            f"the light field ({shape[0]} x {shape[1]} lenslets, {shape[2]} px each) is not the one the volumetric "
-            f"calibration was fitted on ({a['n_lrow']} x {a['n_lcol']}, {a['pixels_per_lenslet']} px)"
-        )
+    vcal.check_lightfield(lightfield)
     zg, xg, yg = (np.asarray(v, dtype=float) for v in (z, x, y))
-    tol = 0.05 * (a["z_max"] - a["z_min"])
-    if zg.min() < a["z_min"] - tol or zg.max() > a["z_max"] + tol:
-        raise VolumetricCalibrationError(
-            f"volumetric_calibration.depths cover z = {a['z_min']:.4g}..{a['z_max']:.4g} mm but the grid spans "
-            f"{zg.min():.4g}..{zg.max():.4g} mm: the polynomial would extrapolate; calibrate over the grid's depth"
-        )
+    vcal.check_depths(zg)
     rays = _VolRays(lightfield, calibration)
     tag = uuid.uuid4().hex
     rays_d = dask.delayed(rays, name=f"volcal-rays-{tag}")

@@ -266,13 +266,14 @@ def _recording_attrs(rec: Recording) -> dict[str, Any]:
 def _check_volcal_depths(cfg: Mapping[str, Any], rec: Recording, z: np.ndarray) -> None:
     """Refuse, before any work, a volumetric refocus onto depths the dot target does not cover
     (the polynomial would extrapolate; :func:`lfstudy.lightfield.volcal.volumetric_stack` allows
-    5 % of the calibrated range either side)."""
+    :data:`~lfstudy.lightfield.volcal.DEPTH_MARGIN` of the calibrated range either side)."""
+    from lfstudy.lightfield.volcal import DEPTH_MARGIN
     from lfstudy.process.recording import RecordingError
 
     if cfg["refocus"].get("model", "thin_lens") != "volumetric" or not rec.volcal_depths:
         return
     lo, hi = min(rec.volcal_depths), max(rec.volcal_depths)
-    tol = 0.05 * (hi - lo)
+    tol = DEPTH_MARGIN * (hi - lo)  # the margin VolumetricCalibration.check_depths allows the fitted one
     if float(z.min()) < lo - tol or float(z.max()) > hi + tol:
         raise RecordingError(
             f"recording.volumetric_calibration.depths cover z = {lo:.4g}..{hi:.4g} mm but the reconstruction grid "

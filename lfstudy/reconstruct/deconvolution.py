@@ -25,6 +25,7 @@ in Fourier space for all plane pairs at once.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
@@ -35,7 +36,12 @@ from tqdm.auto import tqdm
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct.grid import ReconstructionGrid
 from lfstudy.reconstruct.projector import PlenopticProjector
-from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs, ReconstructionMethod
+from lfstudy.reconstruct.registry import (
+    ReconstructionError,
+    ReconstructionInputs,
+    ReconstructionMethod,
+    ReconstructionSize,
+)
 
 __all__ = ["RichardsonLucy", "refocused_psf", "richardson_lucy"]
 
@@ -193,6 +199,12 @@ class RichardsonLucy(ReconstructionMethod):
             "description": "floor of the model in S / (H E), relative to the stack maximum",
         },
     }
+
+    @classmethod
+    def memory_bytes(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
+        """The base's arrays, the nz x nz PSF spectra over the padded planes and six float64 volumes."""
+        nz, nvox = size.n_planes, size.n_voxels
+        return super().memory_bytes(size, params) + (nz * nz * nvox / nz * 8 * 1.3 + 6 * nvox * 8)
 
     def run(
         self,

@@ -212,6 +212,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numba
@@ -224,7 +225,12 @@ from tqdm.auto import tqdm
 
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct.grid import ReconstructionGrid, default_voxel_z
-from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs, ReconstructionMethod
+from lfstudy.reconstruct.registry import (
+    ReconstructionError,
+    ReconstructionInputs,
+    ReconstructionMethod,
+    ReconstructionSize,
+)
 from lfstudy.reconstruct.truth import render_truth
 from lfstudy.simulate._render_common import (
     _G_HH,
@@ -1629,6 +1635,7 @@ class IPR(ReconstructionMethod):
     description = "iterative particle reconstruction (Wieneke 2013) with shaking, fitted with the exact renderer"
     requires = ("lightfield", "centers", "camera", "grid")
     particles = True
+    uses_calibration = True
     parameters: ClassVar[dict[str, dict[str, Any]]] = {
         "iterations": {"type": "integer", "minimum": 0, "maximum": 100, "description": "outer iterations"},
         "peak_threshold": {
@@ -1742,6 +1749,20 @@ class IPR(ReconstructionMethod):
             "description": "sigma [voxels] of the output volume's particles; 0: the case's truth sigma",
         },
     }
+
+    @classmethod
+    def memory_bytes(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
+        """The base's arrays, the candidate MART's on the case grid refined ``_REFINE_XY`` x ``_REFINE_XY`` x
+        ``_REFINE_Z`` (its weight tables: (kx + ky) ~ 17 float32 weights and 2 int16 starts per plane and
+        light-field sample, 16.1 weights on the full Table 4.3 frame; the four subsets' float32 coverage; six
+        float64 volumes: a MART volume's buffers and the peak search's copies) and three float64 copies of the
+        raw frame the fit compares with. On the full Table 4.3 frame (33 planes) 7.16 GB with the process's
+        0.3 GB, against the 7.18 GB peak ``benchmarks/bench_ipr.py --memory`` measured there (with its scene's
+        0.48 GB); the shake's patches (0.59 GB a batch of 256 there) stay below the MART's peak."""
+        nz = _REFINE_Z * size.n_planes
+        nvox = _REFINE_XY * _REFINE_XY * _REFINE_Z * size.n_voxels
+        tables = nz * size.n_lenslets * size.pixels_per_lenslet * (17 * 4 + 2 * 2)
+        return super().memory_bytes(size, params) + (tables + nvox * (4 * 4 + 6 * 8) + 3 * size.n_pixels * 8)
 
     def run(
         self,

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -51,7 +52,12 @@ from tqdm.auto import tqdm
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct.grid import ReconstructionGrid
 from lfstudy.reconstruct.projector import PlenopticProjector
-from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs, ReconstructionMethod
+from lfstudy.reconstruct.registry import (
+    ReconstructionError,
+    ReconstructionInputs,
+    ReconstructionMethod,
+    ReconstructionSize,
+)
 
 __all__ = ["MART", "MartPlan", "mart", "mart_plan"]
 
@@ -421,6 +427,7 @@ class MART(ReconstructionMethod):
     name = "mart"
     description = "multiplicative ART with plenoptic weights from the camera model and the calibration"
     requires = ("lightfield", "camera", "grid")
+    uses_calibration = True
     parameters: ClassVar[dict[str, dict[str, Any]]] = {
         "iterations": {
             "type": "integer",
@@ -475,6 +482,13 @@ class MART(ReconstructionMethod):
             "description": "Gaussian sigma [voxels] filtering the volume after MLOS and every iteration (0: none)",
         },
     }
+
+    @classmethod
+    def memory_bytes(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
+        """The base's arrays, the weight tables ((kx + ky) ~ 12 float32 weights and 2 int32 starts per plane and
+        light-field sample: an upper bound, int16 starts where the grid allows) and eight float64 volumes."""
+        tables = size.n_planes * size.n_lenslets * size.pixels_per_lenslet * (12 * 4 + 2 * 4)
+        return super().memory_bytes(size, params) + (tables + 8 * size.n_voxels * 8)
 
     def run(
         self,

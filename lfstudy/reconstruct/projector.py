@@ -50,6 +50,7 @@ import numpy as np
 import xarray as xr
 from numba import njit, prange
 
+from lfstudy.lightfield.volcal import VolumetricCalibration, VolumetricCalibrationError
 from lfstudy.optics import PlenopticCamera
 from lfstudy.reconstruct.grid import ReconstructionGrid
 
@@ -630,24 +631,16 @@ def _volumetric_centres(
     shear : float
         The largest distance [mm] between a sample's own centre and its per-axis table entry.
     """
-    for key in ("coef", "valid", "exponents"):
-        if key not in cal:
-            raise ProjectorError(f"the volumetric calibration lacks {key!r}: fit it with lfstudy.lightfield.volcal")
+    z = np.asarray(grid.z, dtype=np.float64)
+    try:  # the calibration's own checks: a whole fit, of this light field, over the grid's depths
+        vcal = VolumetricCalibration.of(cal)
+        vcal.check_lightfield(lf)
+        vcal.check_depths(z, "reconstruction grid")
+    except VolumetricCalibrationError as exc:
+        raise ProjectorError(str(exc)) from None
+    cal = vcal.dataset
     a = cal.attrs
     nly, nlx, n = lf.sizes["lrow"], lf.sizes["lcol"], lf.sizes["prow"]
-    if (nly, nlx, n) != (a["n_lrow"], a["n_lcol"], a["pixels_per_lenslet"]):
-        raise ProjectorError(
-            f"the light field ({nly} x {nlx} lenslets, {n} px each) is not the one the volumetric calibration was "
-            f"fitted on ({a['n_lrow']} x {a['n_lcol']}, {a['pixels_per_lenslet']} px)"
-        )
-    z = np.asarray(grid.z, dtype=np.float64)
-    tol = 0.05 * (a["z_max"] - a["z_min"])
-    if z.min() < a["z_min"] - tol or z.max() > a["z_max"] + tol:
-        raise ProjectorError(
-            f"volumetric_calibration.depths cover z = {a['z_min']:.4g}..{a['z_max']:.4g} mm but the reconstruction "
-            f"grid spans {z.min():.4g}..{z.max():.4g} mm: the polynomial would extrapolate; calibrate over the grid's "
-            "depth"
-        )
     exps = np.asarray(cal["exponents"].values, dtype=np.int64)
     coef = np.asarray(cal["coef"].values, dtype=np.float64)  # (axis, prow, pcol, term)
     pairs = sorted({(int(e[0]), int(e[1])) for e in exps})

@@ -18,9 +18,11 @@ Built-in methods are listed in :data:`BUILTIN` and imported on first use;
 methods of other packages are found through the entry-point group
 ``lfstudy.reconstruct`` (``name = "package.module:Class"``), so
 ``reconstruct.method: mine`` works without an import in the config (one that
-fails to load is skipped with a warning, so the others and every config that
-does not use it keep working);
-:func:`register_method` adds one at run time (a notebook, a test)::
+fails to load, or that reuses a built-in's name, is skipped with a warning, so the
+others and every config that does not use it keep working: one loader and one rule
+for both registries, :mod:`lfstudy.plugins`);
+:func:`register_method` adds one at run time (a notebook, a test), and replaces a
+built-in only when asked to (``replace=True``)::
 
     @register_method
     class Blur(ReconstructionMethod):
@@ -40,7 +42,7 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -59,6 +61,7 @@ __all__ = [
     "ReconstructionError",
     "ReconstructionInputs",
     "ReconstructionMethod",
+    "ReconstructionSize",
     "available_methods",
     "detect_parameters",
     "get_method",
@@ -109,8 +112,9 @@ class ReconstructionInputs:
         Default: the grid of ``stack`` (its coords).
     calibration : xarray.Dataset, optional
         The volumetric (dot-target) calibration (:func:`lfstudy.lightfield.volcal.fit_volumetric`,
-        Hall et al. 2018) where ``refocus.model`` is ``volumetric``: the methods that model the
-        camera (``mart``, ``ipr``) then place their beams through it instead of the thin lens.
+        Hall et al. 2018; a :class:`~lfstudy.lightfield.volcal.VolumetricCalibration` is taken as its
+        Dataset) where ``refocus.model`` is ``volumetric``: the methods that model the camera (``mart``,
+        ``ipr``) then place their beams through it instead of the thin lens.
     """
 
     stack: xr.DataArray | None = None
@@ -143,12 +147,43 @@ class ReconstructionInputs:
                     f"the light field has {shape_l[0]} x {shape_l[1]} lenslets (rows x cols) but the calibration "
                     f"has {shape_c[0]} x {shape_c[1]}: they do not belong together"
                 )
-        if self.calibration is not None and not (
-            isinstance(self.calibration, xr.Dataset) and "coef" in self.calibration and "valid" in self.calibration
-        ):
-            raise ReconstructionError(
-                "calibration must be the volumetric calibration Dataset of lfstudy.lightfield.volcal.fit_volumetric"
-            )
+        if self.calibration is not None:
+            from lfstudy.lightfield.volcal import VolumetricCalibration, VolumetricCalibrationError
+
+            try:  # a whole fit (the calibration's own check); the methods take its Dataset
+                object.__setattr__(self, "calibration", VolumetricCalibration.of(self.calibration).dataset)
+            except VolumetricCalibrationError as exc:
+                raise ReconstructionError(str(exc)) from None
+
+
+@dataclass(frozen=True)
+class ReconstructionSize:
+    """What sizes one frame's reconstruction, for a method's :meth:`ReconstructionMethod.memory_bytes`.
+
+    Attributes
+    ----------
+    n_pixels : int
+        Sensor pixels.
+    n_lenslets : int
+        Lenslets (rows x columns).
+    pixels_per_lenslet : int
+        The side of a lenslet's block of the light field.
+    n_planes : int
+        Planes of the reconstruction grid.
+    n_voxels : int
+        Voxels of the reconstruction grid.
+    """
+
+    n_pixels: int
+    n_lenslets: int
+    pixels_per_lenslet: int
+    n_planes: int
+    n_voxels: int
+
+    @property
+    def lightfield_bytes(self) -> int:
+        """The float32 light field."""
+        return self.n_lenslets * self.pixels_per_lenslet**2 * 4
 
 
 class ReconstructionMethod:
@@ -160,6 +195,26 @@ class ReconstructionMethod:
     parameters: ClassVar[dict[str, dict[str, Any]]] = {}
     #: True for a method that fits particles: its ``run_particles`` gives the list with the volume.
     particles: ClassVar[bool] = False
+    #: True for a method that models the camera and so places its beams through a volumetric calibration
+    #: (``ReconstructionInputs.calibration``) where ``refocus.model`` is ``volumetric``: a case then needs one.
+    uses_calibration: ClassVar[bool] = False
+
+    @classmethod
+    def memory_bytes(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
+        """Estimated peak memory [bytes] of reconstructing one frame (:mod:`lfstudy.study.resources`).
+
+        The base counts what every method holds: the light field and four float64 volumes on the
+        grid (the focal stack, the result and their working copies). A method with large arrays
+        of its own (weight tables, spectra) adds them.
+
+        Parameters
+        ----------
+        size : ReconstructionSize
+            The camera's and the grid's sizes.
+        params : mapping, optional
+            The method's parameters (``reconstruct.<name>``), for a method whose memory depends on one.
+        """
+        return size.lightfield_bytes + 4 * size.n_voxels * 8
 
     def run(self, inputs: ReconstructionInputs, *, progress: bool = False, **params: Any) -> xr.DataArray:
         raise NotImplementedError  # pragma: no cover - subclasses implement run
@@ -238,8 +293,8 @@ def _load(spec: str) -> type[ReconstructionMethod]:
 def _plugins() -> tuple[dict[str, type[ReconstructionMethod]], dict[str, str]]:
     """The methods of the entry-point group, loaded: ``({name: class}, {name: why it was skipped})``.
 
-    A plugin that fails to import, is not a method or declares its parameters
-    wrongly is skipped with a warning (as xarray's backend loader does), so one
+    A plugin named as a built-in, or that fails to import, is not a method or declares
+    its parameters wrongly, is skipped with a warning (as xarray's backend loader does), so one
     broken package does not stop every config from loading.
     """
 
@@ -248,7 +303,7 @@ def _plugins() -> tuple[dict[str, type[ReconstructionMethod]], dict[str, str]]:
             raise ReconstructionError(f"{cls!r} is not a ReconstructionMethod subclass")
         detect_parameters(cls)
 
-    return load_plugins(ENTRY_POINT_GROUP, "reconstruction method", check)
+    return load_plugins(ENTRY_POINT_GROUP, "reconstruction method", check, builtin=BUILTIN)
 
 
 def available_methods() -> list[str]:
@@ -324,13 +379,46 @@ def _function_method(name: str, func: Callable[..., xr.DataArray]) -> type[Recon
     )
 
 
-def register_method(obj: Any) -> Any:
-    """Register a method at run time: a :class:`ReconstructionMethod` subclass
-    (``@register_method``), or a name for a plain function ``f(stack, **params)``
-    (``@register_method("name")``)."""
+def register_method(obj: Any = None, *, replace: bool = False) -> Any:
+    """Register a method at run time (a notebook, a test).
+
+    Parameters
+    ----------
+    obj : ReconstructionMethod subclass or str
+        A method class (``@register_method``), or a name for a plain function
+        ``f(stack, **params)`` (``@register_method("name")``).
+    replace : bool
+        Allow the name of a built-in method (:data:`BUILTIN`): the registered one then
+        stands for it until :func:`unregister_method`. Without it a built-in's name is
+        refused, so a config's ``mart`` is the built-in MART unless the session asked
+        otherwise (installed plugins cannot take a built-in's name at all:
+        :mod:`lfstudy.plugins`). Another run-time registration of the same name is
+        replaced either way (a notebook cell run again).
+
+    Returns
+    -------
+    The class (for ``@register_method``) or a decorator.
+
+    Raises
+    ------
+    ReconstructionError
+        An empty or built-in name (without ``replace``), unknown ``requires`` or parameters
+        declared wrongly (:func:`detect_parameters`).
+    """
+    if obj is None:  # @register_method(replace=True)
+        return functools.partial(register_method, replace=replace)
+
+    def free(name: str) -> None:
+        if name in BUILTIN and not replace:
+            raise ReconstructionError(
+                f"reconstruction method {name!r} is built in; register_method(..., replace=True) replaces it "
+                f"for this session (unregister_method({name!r}) restores it), or choose another name"
+            )
+
     if isinstance(obj, type) and issubclass(obj, ReconstructionMethod):
         if not obj.name:
             raise ReconstructionError(f"{obj.__name__}: a reconstruction method needs a non-empty name")
+        free(obj.name)
         bad = set(obj.requires) - set(INPUTS)
         if bad:
             raise ReconstructionError(f"{obj.__name__}.requires: unknown inputs {sorted(bad)}; allowed {INPUTS}")
@@ -339,6 +427,7 @@ def register_method(obj: Any) -> Any:
         return obj
     if not isinstance(obj, str) or not obj:
         raise ReconstructionError(f"reconstruction method name must be a non-empty string, got {obj!r}")
+    free(obj)
 
     def deco(func: Callable[..., xr.DataArray]) -> Callable[..., xr.DataArray]:
         _REGISTERED[obj] = _function_method(obj, func)
@@ -348,7 +437,7 @@ def register_method(obj: Any) -> Any:
 
 
 def unregister_method(name: str) -> None:
-    """Remove a method registered with :func:`register_method` (built-ins stay)."""
+    """Remove a method registered with :func:`register_method` (a built-in it replaced is back)."""
     _REGISTERED.pop(name, None)
 
 

@@ -453,8 +453,8 @@ def case_reconstruction(
     """:func:`case_volume` and, for a method that fits particles (``ipr``), the particle list the
     volume was rendered from, out of the same fit (:func:`lfstudy.reconstruct.reconstruct_particles`).
 
-    With ``refocus.model: volumetric`` the methods that model the camera (``mart``, ``ipr``) place
-    their beams through the dot-target ``calibration`` (:func:`case_volcal`; Hall et al. 2018), the
+    With ``refocus.model: volumetric`` the methods that model the camera (``uses_calibration``: ``mart``,
+    ``ipr``) place their beams through the dot-target ``calibration`` (:func:`case_volcal`; Hall et al. 2018), the
     same mapping the focal stack was sampled through: one switch for the whole chain. Under the
     thin-lens model a calibration is not used.
 
@@ -464,7 +464,7 @@ def case_reconstruction(
     particles : xarray.Dataset or None
         Over ``particle`` (x, y, z [mm], intensity, ...); None for a method that fits no particles.
     """
-    from lfstudy.reconstruct import ReconstructionInputs, reconstruct_particles
+    from lfstudy.reconstruct import ReconstructionInputs, get_method, reconstruct_particles
 
     cam = case_camera(ccfg)
     grid = case_grid(ccfg, cam)
@@ -472,7 +472,7 @@ def case_reconstruction(
     method = r["method"]
     if ccfg["refocus"].get("model", "thin_lens") != "volumetric":
         calibration = None
-    elif calibration is None and method in ("mart", "ipr"):
+    elif calibration is None and get_method(method).uses_calibration:
         raise ValueError(
             f"refocus.model = 'volumetric' with reconstruct.method = {method!r} needs the dot-target calibration "
             "(volumetric_calibration; lfstudy.study.case.case_volcal)"

@@ -2,7 +2,9 @@
 
 The estimates are the stages' own large arrays (image buffers, light field, volumes,
 weight tables, correlation batches), rounded up; the interpreter and libraries add
-about 0.3 GB per process. :func:`check_memory` turns a case that cannot fit into one
+about 0.3 GB per process. The reconstruction's comes from its method's class
+(:meth:`lfstudy.reconstruct.ReconstructionMethod.memory_bytes`), so a plugin method
+states its own. :func:`check_memory` turns a case that cannot fit into one
 clear config error before anything runs, instead of an out-of-memory kill hours into
 a study.
 :func:`job_mem_mb` gives the same estimate to the workflow as each rule's Snakemake
@@ -43,6 +45,7 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
     """
     from lfstudy.optics import PlenopticCamera
     from lfstudy.reconstruct.grid import default_voxel_z
+    from lfstudy.reconstruct.registry import ReconstructionSize, get_method
 
     cam = PlenopticCamera.from_config(ccfg)
     npx = cam.n_pixels_x * cam.n_pixels_y
@@ -74,12 +77,11 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
         else int(depth / (g.get("voxel_z") or default_voxel_z(cam))) + 1
     )
     nvox = nz * round(cam.n_lenslets_x * d0 / dxy) * round(cam.n_lenslets_y * d0 / dxy)
-    method = (ccfg.get("reconstruct", {}) or {}).get("method", "threshold")
-    reconstruct = lf + 4 * nvox * 8
-    if method == "mart":  # weight tables: (kx + ky) ~ 12 float32 + 2 int32 per (plane, sample) + volumes
-        reconstruct += nz * cam.n_lenslets_x * cam.n_lenslets_y * n * (12 * 4 + 2 * 4) + 8 * nvox * 8
-    elif method == "deconvolution":  # the nz x nz PSF spectra over the padded planes
-        reconstruct += nz * nz * nvox / nz * 8 * 1.3 + 6 * nvox * 8
+    # the method's own estimate (its weight tables, spectra, candidate volumes: the class knows them)
+    rcfg = ccfg.get("reconstruct", {}) or {}
+    method = rcfg.get("method", "threshold")
+    size = ReconstructionSize(npx, cam.n_lenslets_x * cam.n_lenslets_y, n, nz, nvox)
+    reconstruct = get_method(method).memory_bytes(size, rcfg.get(method, {}) or {})
     piv = 2 * nvox * 4 + 4 * nvox * 8 + 2**25 * 4 * 3  # volumes, spline coefficients, a correlation batch
     out = {"simulate": simulate, "register": register, "reconstruct": reconstruct, "piv": piv}
     return {k: v + _BASE for k, v in out.items()}

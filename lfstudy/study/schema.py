@@ -4,7 +4,9 @@ The schema file (``config/schema.yaml`` links to it) states the sections; each
 reconstruction method declares its own parameters (``reconstruct.<name>``,
 from :mod:`lfstudy.reconstruct`) and each flow kind its own (``flows.<name>``,
 from :mod:`lfstudy.simulate.flows`), so the full schema is assembled here, above
-the config plumbing (:mod:`lfstudy.config`) and both registries.
+the config plumbing (:mod:`lfstudy.config`) and both registries. The lists of
+methods and flow kinds in the descriptions of ``reconstruct.method`` and
+``flows.<name>.kind`` come from the registries too (built-in and installed ones).
 """
 
 from __future__ import annotations
@@ -14,8 +16,8 @@ import functools
 from typing import Any
 
 from lfstudy.config import read_schema
-from lfstudy.reconstruct.registry import available_methods, method_schemas
-from lfstudy.simulate.flows import flow_schema
+from lfstudy.reconstruct.registry import available_methods, get_method, method_schemas
+from lfstudy.simulate.flows import flow_schema, get_flow_class
 
 __all__ = ["load_schema"]
 
@@ -24,10 +26,18 @@ __all__ = ["load_schema"]
 def _schema() -> dict[str, Any]:
     schema = read_schema("schema.yaml")
     rec = schema["properties"]["reconstruct"]["properties"]
-    rec["method"]["enum"] = available_methods()
+    names = available_methods()
+    rec["method"]["enum"] = names
+    # the list of methods is the registry's, each with its class's description (never a hand-kept copy)
+    listed = "; ".join(f"{n} ({get_method(n).description})" for n in names)
+    rec["method"]["description"] = f"{rec['method']['description'].strip()} {listed}"
     for name, sub in method_schemas().items():
         rec[name] = sub
     return schema
+
+
+def _kinds_text(kinds: list[str]) -> str:
+    return "; ".join(f"{k} ({getattr(get_flow_class(k), 'description', '')})" for k in kinds)
 
 
 def load_schema() -> dict[str, Any]:
@@ -38,6 +48,8 @@ def load_schema() -> dict[str, Any]:
     schema = copy.deepcopy(_schema())
     flows = schema["properties"]["flows"]["additionalProperties"]
     sub = flow_schema()
-    flows["properties"]["kind"]["enum"] = sub["properties"]["kind"]["enum"]
+    kind = flows["properties"]["kind"]
+    kind["enum"] = sub["properties"]["kind"]["enum"]
+    kind["description"] = f"{kind['description'].strip()} {_kinds_text(kind['enum'])}"
     flows["allOf"] = sub["allOf"]
     return schema

@@ -14,9 +14,9 @@ its class by keyword. A kind is a class with
 A constructor argument without a default is required. The defaults live in the
 constructor only. Kinds of other packages are found through the entry-point
 group :data:`ENTRY_POINT_GROUP` (``mykind = "package.module:Class"``, the entry
-point's name is the kind); one that fails to load is skipped with a warning, so
-every config that does not use it keeps working (as
-:mod:`lfstudy.reconstruct.registry`).
+point's name is the kind); one that fails to load, or that reuses a built-in's name,
+is skipped with a warning, so every config that does not use it keeps working (one
+loader and one rule for both registries: :mod:`lfstudy.plugins`).
 """
 
 from __future__ import annotations
@@ -111,16 +111,14 @@ def _plugins() -> tuple[dict[str, type], dict[str, str]]:
     """The kinds of the entry-point group, loaded: ``({name: class}, {name: why it was skipped})``."""
 
     def check(name: str, cls: Any) -> None:
-        if name in BUILTIN:
-            raise FlowError(f"{name!r} is a built-in flow kind")
         flow_parameters(cls)
 
-    return load_plugins(ENTRY_POINT_GROUP, "flow kind", check)
+    return load_plugins(ENTRY_POINT_GROUP, "flow kind", check, builtin=BUILTIN)
 
 
 def available_kinds() -> list[str]:
     """Every flow kind a config may name: the built-ins (in their order), then installed ones (sorted)."""
-    return [*BUILTIN, *sorted(k for k in _plugins()[0] if k not in BUILTIN)]
+    return [*BUILTIN, *sorted(_plugins()[0])]
 
 
 def get_flow_class(kind: str) -> type:
