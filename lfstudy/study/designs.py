@@ -194,7 +194,7 @@ def design_names(study: xr.Dataset, cfg: Mapping[str, object] | None = None) -> 
     A name shared by two designs falls back to their labels (a design is never renamed into another)."""
     from lfstudy.optics import PlenopticCamera
     from lfstudy.study.config import case_config
-    from lfstudy.study.tolerance import tolerance_dims
+    from lfstudy.study.sweep import tolerance_dims
 
     extra = [v for v in ("computed", "case_id") if v in study]
     if not study.dims or not extra:

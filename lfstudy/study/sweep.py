@@ -221,6 +221,12 @@ NAMED: dict[str, Setting] = {
 _SAFE = re.compile(r"^[A-Za-z0-9_.+-]+$")
 
 
+def tolerance_dims(study: Any) -> list[str]:
+    """The dimensions of a study Dataset that sweep an imperfection (:data:`TOLERANCES`) over two or more
+    levels, in the study's order (a dimension's config path is its ``sweep_key`` attribute)."""
+    return [str(d) for d in study.dims if study.sizes[d] > 1 and is_tolerance(str(study[d].attrs.get("sweep_key", d)))]
+
+
 def format_value(value: Any) -> str:
     """A swept value as written in case ids and study coordinates (``0.001``, ``matched``, ``8x16x16``)."""
     if isinstance(value, bool):

@@ -35,7 +35,7 @@ import xarray as xr
 
 from lfstudy.study import metric_table as mt
 from lfstudy.study.replicates import REPLICATE_DIM, replicate_dim, replicate_stats, separable
-from lfstudy.study.sweep import format_value, is_tolerance
+from lfstudy.study.sweep import format_value, tolerance_dims
 
 __all__ = [
     "RANK_AT",
@@ -59,12 +59,6 @@ WORST_BY = "rms_total_mm"
 def _path(study: xr.Dataset, dim: str) -> str:
     """The config path of a study dimension: its ``sweep_key`` attribute (the dotted path)."""
     return str(study[dim].attrs.get("sweep_key", dim))
-
-
-def tolerance_dims(study: xr.Dataset) -> list[str]:
-    """The study's dimensions that sweep an imperfection (:data:`~lfstudy.study.sweep.TOLERANCES`)
-    over two or more levels, in the study's order."""
-    return [str(d) for d in study.dims if study.sizes[d] > 1 and is_tolerance(_path(study, str(d)))]
 
 
 def _schema_default(path: str) -> Any:
