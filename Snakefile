@@ -53,7 +53,8 @@ CONFIG_DIR = os.path.dirname(os.path.abspath(_CONFIG_FILES[-1])) if _CONFIG_FILE
 for _path in _CONFIG_FILES:
     if os.path.isfile(_path):
         read_yaml(_path)
-CFG = validate_config(config, base=CONFIG_DIR)  # one clear error on a bad config, defaults filled
+# one clear error on a bad config (PIV windows too large for the volumes included), defaults filled
+CFG = validate_config(config, base=CONFIG_DIR, piv_grid=True)
 NAME = CFG["name"]
 SWEEP = Sweep(CFG)
 if workflow.is_main_process:  # the size of what is planned next (a large sweep takes a while)

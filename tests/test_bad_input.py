@@ -218,7 +218,7 @@ def test_bad_configs(tmp_path, cli_error, edit, match):
     line = cli_error("cases", str(path))
     assert re.search(match, line), line
     with pytest.raises(ConfigError, match=match):
-        validate_config(raw)
+        validate_config(raw, piv_grid=True)
 
 
 def test_zero_or_negative_rays_in_the_api():

@@ -18,7 +18,7 @@ def run(args: argparse.Namespace) -> int:
     from lfstudy.study.case import case_grid, case_planes
     from lfstudy.study.config import case_config, load_config
 
-    cfg = load_config(args.config, piv_grid=False)  # no PIV here: its windows need not fit
+    cfg = load_config(args.config)
     if args.case:
         cfg = case_config(cfg, args.case)
     cam = PlenopticCamera.from_config(cfg)

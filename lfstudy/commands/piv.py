@@ -41,12 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from lfstudy import io
     from lfstudy.study.config import load_config, validate_config
 
-    # the piv section applies to the volumes given here, not to the config's reconstruction grid
-    cfg = (
-        load_config(args.config, piv_grid=False)
-        if args.config
-        else validate_config({"camera": _NO_CAMERA}, piv_grid=False)
-    )
+    cfg = load_config(args.config) if args.config else validate_config({"camera": _NO_CAMERA})
     p = dict(cfg["piv"])
     for key in ("window", "spacing", "levels"):
         if getattr(args, key) is not None:

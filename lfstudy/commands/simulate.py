@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from lfstudy.study.case import simulate_case
     from lfstudy.study.config import case_config, expand_cases, load_config
 
-    cfg = load_config(args.config, piv_grid=False)  # no PIV here: its windows need not fit
+    cfg = load_config(args.config)
     case_id = args.case or expand_cases(cfg)[0].case_id
     ccfg = case_config(cfg, case_id)
     t0 = time.perf_counter()

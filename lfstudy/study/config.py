@@ -43,7 +43,9 @@ __all__ = [
 MAX_CASES = 2000
 
 
-def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None, *, piv_grid: bool = True) -> dict[str, Any]:
+def validate_config(
+    cfg: Mapping[str, Any], base: str | Path | None = None, *, piv_grid: bool = False
+) -> dict[str, Any]:
     """Validate a config mapping, returning a deep copy with defaults filled in.
 
     Besides the schema, checks what a schema cannot: that the camera can be
@@ -60,8 +62,11 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None, *, p
         relative to it (and made absolute). Default: the working directory.
     piv_grid : bool
         Check that every case's PIV windows fit its reconstruction grid
-        (:func:`check_piv_grid`); off where the ``piv`` section is applied to other
-        volumes (``lfstudy piv``).
+        (:func:`check_piv_grid`): on where the whole study is to run (the ``Snakefile``,
+        ``lfstudy cases``), so that windows too large for the volumes stop it before any
+        job; off by default, for the stage commands and the API that simulate, calibrate
+        or refocus a config without its PIV (a small sensor's images), and ``lfstudy piv``
+        (whose volumes are given, not the grid's).
 
     Raises
     ------
@@ -259,7 +264,7 @@ def _check_particles_setting(ccfg: Mapping[str, Any], case_id: str) -> None:
         )
 
 
-def load_config(path: str | Path, *, piv_grid: bool = True) -> dict[str, Any]:
+def load_config(path: str | Path, *, piv_grid: bool = False) -> dict[str, Any]:
     """Read a YAML config file and validate it (defaults filled in); a file flow's path is
     relative to the config file's folder. ``piv_grid``: see :func:`validate_config`."""
     return validate_config(read_yaml(path), base=Path(path).resolve().parent, piv_grid=piv_grid)
