@@ -218,22 +218,26 @@ class UniqueKeyLoader(yaml.SafeLoader):
         return node
 
 
-def _check_unique(node: yaml.Node, where: str) -> None:
+def _check_unique(node: yaml.Node, where: str, seen_nodes: set[int] | None = None) -> None:
+    seen_nodes = set() if seen_nodes is None else seen_nodes
+    if id(node) in seen_nodes:  # an alias: its anchor's node was checked (and may refer to itself)
+        return
+    seen_nodes.add(id(node))
     if isinstance(node, yaml.MappingNode):
-        seen: dict[Any, int] = {}
+        seen: dict[tuple[str, str], int] = {}
         for key_node, value_node in node.value:
             if key_node.tag == "tag:yaml.org,2002:merge" or not isinstance(key_node, yaml.ScalarNode):
                 continue
-            key = key_node.value
-            path = f"{where}.{key}" if where else str(key)
+            key = (key_node.tag, key_node.value)  # 1 and "1" are different keys
+            path = f"{where}.{key_node.value}" if where else str(key_node.value)
             line = key_node.start_mark.line + 1
             if key in seen:
                 raise _DuplicateKey(path, seen[key], line)
             seen[key] = line
-            _check_unique(value_node, path)
+            _check_unique(value_node, path, seen_nodes)
     elif isinstance(node, yaml.SequenceNode):
         for k, item in enumerate(node.value):
-            _check_unique(item, f"{where}.{k}" if where else str(k))
+            _check_unique(item, f"{where}.{k}" if where else str(k), seen_nodes)
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:

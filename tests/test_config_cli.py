@@ -230,9 +230,10 @@ def test_sweep_size_limit_is_checked_before_the_cases(tmp_path, capsys, monkeypa
     assert "makes 16 cases (the product of its lists' lengths), more than the limit of 15" in capsys.readouterr().err
     monkeypatch.setenv("LFSTUDY_MAX_CASES", "16")
     assert main(["cases", str(demo), "--ids"]) == 0
-    monkeypatch.setenv("LFSTUDY_MAX_CASES", "many")
-    assert main(["cases", str(demo), "--ids"]) == 2
-    assert "LFSTUDY_MAX_CASES = 'many': expected an integer >= 1" in capsys.readouterr().err
+    for bad in ("many", "0"):
+        monkeypatch.setenv("LFSTUDY_MAX_CASES", bad)
+        assert main(["cases", str(demo), "--ids"]) == 2
+        assert f"LFSTUDY_MAX_CASES = {bad!r}: expected an integer >= 1" in capsys.readouterr().err
 
 
 def test_duplicate_keys_name_the_key_path_and_lines(tmp_path, capsys):
