@@ -99,7 +99,7 @@ def test_bad_calibration_images(files, cli_error, tmp_path):
     line = cli_error("calibrate", str(files / "truncated.tif"), "--out", str(tmp_path / "c.zarr"))
     assert "truncated.tif" in line and "TIFF" in line
     line = cli_error("calibrate", str(files / "zero.tif"), "--out", str(tmp_path / "c.zarr"))
-    assert "blank" in line
+    assert f"image file {str(files / 'zero.tif')!r}: image is blank" in line, line
     line = cli_error(
         "calibrate",
         str(files / "wide.tif"),
