@@ -81,15 +81,14 @@ def _describe(err: jsonschema.ValidationError) -> str:
     if err.validator == "type":  # jsonschema's own message repeats the whole value
         kinds = s["type"] if isinstance(s["type"], list) else [s["type"]]
         return "expected " + " or ".join(_TYPES.get(k, k) for k in kinds)
-    if err.validator in ("minItems", "maxItems"):
-        lo, hi = s.get("minItems"), s.get("maxItems")
-        n = s[err.validator]
-        plural = "s" if n > 1 else ""
-        if lo is not None and lo == hi:
-            return f"give exactly {n} value{plural}, not {len(err.instance)}"
-        if err.validator == "maxItems":
-            return f"give at most {n} value{plural}, not {len(err.instance)}"
-        return f"give at least {n} value{plural}"
+    if err.validator in ("minItems", "maxItems") and s.get("minItems") == s.get("maxItems"):
+        return f"give exactly {s['minItems']} values, not {len(err.instance)}"  # a pair
+    if err.validator == "maxItems":
+        n = s["maxItems"]
+        return f"give at most {n} value{'s' if n > 1 else ''}, not {len(err.instance)}"
+    if err.validator == "minItems":
+        n = s["minItems"]
+        return f"give at least {n} value{'s' if n > 1 else ''}"
     if err.validator == "enum":
         return "allowed values are " + ", ".join(repr(e) for e in s["enum"])
     if err.validator == "oneOf":
