@@ -26,6 +26,7 @@ import sys
 
 from snakemake.exceptions import WorkflowError
 
+from lfstudy.config import read_yaml
 from lfstudy.piv.ptv import PARTICLE_MODES
 from lfstudy.reconstruct import gives_particles
 from lfstudy.simulate.flows import flow_input_files
@@ -48,9 +49,16 @@ PROCESS = config.pop("process", None)
 # absolute by Snakemake; else the Snakefile's own config/demo.yaml); validate_config makes it absolute.
 _CONFIG_FILES = list(workflow.overwrite_configfiles) or list(workflow.configfiles)
 CONFIG_DIR = os.path.dirname(os.path.abspath(_CONFIG_FILES[-1])) if _CONFIG_FILES else os.getcwd()
-CFG = validate_config(config, base=CONFIG_DIR)  # one clear error on a bad config, defaults filled
+# Snakemake reads --configfile keeping the last of a key given twice; lfstudy's reader refuses it.
+for _path in _CONFIG_FILES:
+    if os.path.isfile(_path):
+        read_yaml(_path)
+# one clear error on a bad config (PIV windows too large for the volumes included), defaults filled
+CFG = validate_config(config, base=CONFIG_DIR, piv_grid=True)
 NAME = CFG["name"]
 SWEEP = Sweep(CFG)
+if workflow.is_main_process:  # the size of what is planned next (a large sweep takes a while)
+    print(f"lfstudy: study {NAME!r} sweeps {len(SWEEP)} cases", file=sys.stderr)
 CASES = [c.case_id for c in SWEEP.cases()]
 IDS = {stage: SWEEP.stage_ids(stage) for stage in STAGES}  # stage -> {where it writes: a case}
 # Where the reconstruction fits particles (reconstruct.method: ipr): those jobs also write the

@@ -22,7 +22,7 @@ from typing import Any
 import jsonschema
 import yaml
 
-__all__ = ["ConfigError", "read_schema", "read_yaml", "validate_section"]
+__all__ = ["ConfigError", "UniqueKeyLoader", "read_schema", "read_yaml", "validate_section"]
 
 
 class ConfigError(ValueError):
@@ -85,6 +85,11 @@ def _describe(err: jsonschema.ValidationError) -> str:
     if err.validator == "type":  # jsonschema's own message repeats the whole value
         kinds = s["type"] if isinstance(s["type"], list) else [s["type"]]
         return "expected " + " or ".join(_TYPES.get(k, k) for k in kinds)
+    if err.validator in ("minItems", "maxItems") and s.get("minItems") == s.get("maxItems"):
+        return f"give exactly {s['minItems']} values, not {len(err.instance)}"  # a pair
+    if err.validator == "maxItems":
+        n = s["maxItems"]
+        return f"give at most {n} value{'s' if n > 1 else ''}, not {len(err.instance)}"
     if err.validator == "minItems":
         n = s["minItems"]
         return f"give at least {n} value{'s' if n > 1 else ''}"
@@ -105,6 +110,49 @@ def _describe(err: jsonschema.ValidationError) -> str:
                 opts.append(sub.get("type", "?"))
         return "allowed: " + " or ".join(opts)
     return err.message
+
+
+_JSON_TYPES = {list: "array", dict: "object", str: "string", bool: "boolean", type(None): "null"}
+
+
+def _json_type(value: Any) -> str:
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, int):
+        return "integer"
+    if isinstance(value, float):
+        return "number"
+    return next((t for cls, t in _JSON_TYPES.items() if isinstance(value, cls)), "?")
+
+
+def _declares(option: Mapping[str, Any], kind: str) -> bool:
+    """Whether a schema option declares the JSON type ``kind`` (an integer is a number too)."""
+    t = option.get("type")
+    declared = set(t if isinstance(t, list) else [t] if t is not None else [])
+    return kind in declared or (kind == "integer" and "number" in declared)
+
+
+def _meant_option(err: jsonschema.ValidationError) -> jsonschema.ValidationError:
+    """For a ``oneOf`` that no option fits: the error of the option a list or mapping was meant for.
+
+    "allowed: string or array" says nothing useful about a list (``series: []``, a pair of three
+    files): it is an array already. When exactly one option declares the value's type, that
+    option's own (deepest) error is the message — "give at least 2 values". Otherwise, for a
+    scalar (``fnumber: wide`` is neither 'matched' nor a number: both are worth saying), or when
+    several options fit, the ``oneOf`` error stays.
+    """
+    while err.validator == "oneOf" and err.context and isinstance(err.instance, (list, dict)):
+        options = err.schema["oneOf"]
+        failed = {sub.relative_schema_path[0] for sub in err.context}
+        if len(failed) < len(options):  # some option fits: the value is valid under several
+            break
+        kind = _json_type(err.instance)
+        meant = [i for i, opt in enumerate(options) if _declares(opt, kind)]
+        if len(meant) != 1:
+            break
+        subs = [sub for sub in err.context if sub.relative_schema_path[0] == meant[0]]
+        err = max(subs, key=lambda e: len(e.absolute_path))
+    return err
 
 
 def _short(value: Any, limit: int = 80) -> str:
@@ -145,8 +193,8 @@ def validate_section(
     errors = list(_Validator(schema, **kw).iter_errors(out))
     if errors:
         # The deepest, most specific message is the useful one.
-        err = max(errors, key=lambda e: len(e.path))
-        where = ".".join(p for p in (prefix, _key(err.path) if err.path else "") if p)
+        err = _meant_option(max(errors, key=lambda e: len(e.path)))
+        where = ".".join(p for p in (prefix, _key(err.absolute_path) if err.absolute_path else "") if p)
         if err.validator == "additionalProperties" and isinstance(err.instance, dict):
             raise ConfigError(_unknown_keys(err, where))
         raise ConfigError(f"config key '{where or '<root>'}' = {_short(err.instance)}: {_describe(err)}")
@@ -155,19 +203,71 @@ def validate_section(
     return out
 
 
+class _DuplicateKey(yaml.YAMLError):
+    def __init__(self, path: str, first: int, second: int) -> None:
+        super().__init__(path)
+        self.path, self.first, self.second = path, first, second
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader refusing a key given twice in one mapping.
+
+    YAML says keys are unique, yet PyYAML keeps the last of duplicates silently: a config
+    with two ``piv:`` sections would run with the second only. The composed node tree is
+    walked before construction, so the error names the key's dotted path and both lines.
+    Merge keys (``<<: *anchor``) are not duplicates: what they bring in may be overridden.
+    """
+
+    def get_single_node(self) -> yaml.Node | None:
+        node = super().get_single_node()
+        if node is not None:
+            _check_unique(node, "")
+        return node
+
+
+def _check_unique(node: yaml.Node, where: str, seen_nodes: set[int] | None = None) -> None:
+    seen_nodes = set() if seen_nodes is None else seen_nodes
+    if id(node) in seen_nodes:  # an alias: its anchor's node was checked (and may refer to itself)
+        return
+    seen_nodes.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        seen: dict[tuple[str, str], int] = {}
+        for key_node, value_node in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge" or not isinstance(key_node, yaml.ScalarNode):
+                continue
+            key = (key_node.tag, key_node.value)  # 1 and "1" are different keys
+            path = f"{where}.{key_node.value}" if where else str(key_node.value)
+            line = key_node.start_mark.line + 1
+            if key in seen:
+                raise _DuplicateKey(path, seen[key], line)
+            seen[key] = line
+            _check_unique(value_node, path, seen_nodes)
+    elif isinstance(node, yaml.SequenceNode):
+        for k, item in enumerate(node.value):
+            _check_unique(item, f"{where}.{k}" if where else str(k), seen_nodes)
+
+
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML config file as a mapping (not validated).
 
     Raises
     ------
     ConfigError
-        The file is missing, not valid YAML, or not a mapping at the top level.
+        The file is missing, a folder, not valid YAML (a key given twice in one mapping
+        included), or not a mapping at the top level.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"config file {str(path)!r} is a folder; give the YAML file in it")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.load(path.read_text(), Loader=UniqueKeyLoader)  # a SafeLoader
     except FileNotFoundError:
         raise ConfigError(f"config file {str(path)!r} does not exist") from None
+    except _DuplicateKey as exc:
+        raise ConfigError(
+            f"config file {str(path)!r}: key '{exc.path}' is given twice (lines {exc.first} and {exc.second}); "
+            "YAML keeps only the last, so keep one"
+        ) from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"config file {str(path)!r} is not valid YAML: {exc}") from None
     if not isinstance(raw, dict):

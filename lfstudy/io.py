@@ -89,6 +89,9 @@ def write_zarr(
         # with the dask chunks of what we computed; chunking follows dask.
         v.encoding = {}
     encoding = {v: {"compressors": [ZstdCodec(level=compressor_level)]} for v in ds.data_vars}
+    # Every chunk is written, even one all fill value (NaN: invalid vectors), and the store says so:
+    # a chunk missing from such a store is damage, which open_zarr reports instead of NaN data.
+    ds.attrs[_EVERY_CHUNK] = 1
     path = Path(path)
     # Consolidated metadata: readers (xarray, a notebook) open the store from one file, without
     # listing its directory (where Snakemake drops a .snakemake_timestamp) or warning. zarr-python
@@ -99,14 +102,39 @@ def write_zarr(
             from dask.diagnostics import ProgressBar
 
             with ProgressBar():
-                ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=True)
+                ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=True, write_empty_chunks=True)
         else:
-            ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=True)
+            ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=True, write_empty_chunks=True)
     return path
 
 
+#: Root attribute of a store whose every chunk :func:`write_zarr` wrote (stores of older versions lack it).
+_EVERY_CHUNK = "lfstudy_every_chunk_written"
+
+
+def _missing_chunks(path: Path) -> tuple[str, int, int] | None:
+    """The first array of a store with chunks missing: (name, missing, total); None if complete."""
+    import zarr
+
+    group = zarr.open_group(path, mode="r")
+    for name, arr in sorted(group.arrays()):
+        missing = arr.nchunks - arr.nchunks_initialized
+        if missing:
+            return name, missing, arr.nchunks
+    return None
+
+
 def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.DataArray:
-    """Open a store lazily (dask). With ``name``, return that variable as a DataArray."""
+    """Open a store lazily (dask). With ``name``, return that variable as a DataArray.
+
+    Raises
+    ------
+    FileNotFoundError
+        The store does not exist.
+    ValueError
+        The store cannot be read, lacks chunks :func:`write_zarr` wrote (damaged: zarr
+        would read them as fill values, NaN), or has no variable ``name``.
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"zarr store {str(path)!r} does not exist")
@@ -122,6 +150,15 @@ def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.D
             f"zarr store {str(path)!r} cannot be read ({type(exc).__name__}: {exc}); it is damaged or not a "
             "zarr v3 store: delete it and run again to remake it"
         ) from None
+    if ds.attrs.pop(_EVERY_CHUNK, None):
+        gap = _missing_chunks(path)
+        if gap is not None:
+            var, missing, total = gap
+            raise ValueError(
+                f"zarr store {str(path)!r} is damaged: variable {var!r} lacks {missing} of its {total} chunk files "
+                "(deleted or lost; zarr would read them as fill values, NaN); delete the store and run again to "
+                "remake it"
+            )
     if name is not None and name not in ds:
         raise ValueError(f"zarr store {str(path)!r} has no variable {name!r} (it holds {', '.join(ds.data_vars)})")
     return ds[name] if name is not None else ds
@@ -155,6 +192,8 @@ def read_image(path: str | Path) -> xr.DataArray:
     ``col``) with the JSON metadata of :func:`write_tiff` (if any) as attrs.
     """
     path = Path(path)
+    if path.is_dir() and not path.name.endswith(".zarr") and not (path / "zarr.json").exists():
+        raise ValueError(f"image file {str(path)!r} is a folder, not a TIFF image or a zarr store")
     if path.name.endswith(".zarr") or path.is_dir():
         return open_zarr(path, name="intensity").load()
     if not path.exists():
@@ -248,6 +287,8 @@ def read_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"image file {str(path)!r} does not exist")
+    if path.is_dir():  # not "[Errno 21] Is a directory"
+        raise ValueError(f"image file {str(path)!r} is a folder, not a TIFF image")
     try:
         with tifffile.TiffFile(path) as tf:
             data = tf.asarray()

@@ -1,6 +1,10 @@
 from __future__ import annotations
 
 import copy
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -139,3 +143,112 @@ def test_cli_cases_and_errors(capsys, tmp_path):
     )
     assert main(["cases", str(bad)]) == 2
     assert "camera.magnification" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ study configs through Snakemake
+def _snakemake_dry_run(config: Path, workdir: Path, **env: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(workdir)]
+    cmd += ["--configfile", str(config), "-n", "--quiet", "rules", "--cores", "1"]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, env={**os.environ, **env})
+
+
+def _tiny(tmp_path: Path, name: str, edit=None, extra: str = "") -> Path:
+    """tests/data/tiny.yaml edited (re-dumped) or as written, with ``extra`` lines appended."""
+    text = (ROOT / "tests" / "data" / "tiny.yaml").read_text()
+    if edit is not None:
+        raw = yaml.safe_load(text)
+        edit(raw)
+        text = yaml.safe_dump(raw, sort_keys=False)
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text + extra)
+    return path
+
+
+def _big_sweep(c: dict) -> None:  # 100 x 100 = 10,000 cases
+    c["sweep"] = {"ppp": [round(0.001 + 1e-5 * k, 6) for k in range(100)], "seed": list(range(100))}
+
+
+@pytest.mark.parametrize(
+    ("name", "edit", "extra", "message"),
+    [
+        (
+            "rays",
+            lambda c: c["raytrace"].update(rays_per_particle=10**8),
+            "",
+            "config key 'raytrace.rays_per_particle' = 100000000: allowed range is [1, 10000000]",
+        ),
+        ("dup", None, "seed: 4\n", "key 'seed' is given twice (lines 3 and 20); YAML keeps only the last"),
+        (
+            "window",
+            lambda c: c["piv"].update(window=[8, 64, 64]),
+            "",
+            "config key 'piv.window' = [8, 64, 64] (case mag~-1/fnum~matched/pitch~0.0888/ppp~0.002/flow~uniform_x): "
+            "64 along y exceeds 32, 64 along x exceeds 32 voxels of the reconstruction grid of 12 x 32 x 32 voxels "
+            "(z, y, x); allowed range per axis is z [4, 12], y [4, 32], x [4, 32]",
+        ),
+        (
+            "big",
+            _big_sweep,
+            "",
+            "config key 'sweep': the sweep makes 10000 cases (the product of its lists' lengths), more than the "
+            "limit of 2000; validating and planning that many takes minutes before any job runs. Sweep fewer "
+            "values, or set LFSTUDY_MAX_CASES=10000 in the environment to run them all",
+        ),
+    ],
+)
+def test_snakemake_refuses_bad_study_configs(tmp_path, name, edit, extra, message):
+    """Before the DAG: a ray count the renderer cannot take, a key given twice (Snakemake's YAML reader
+    keeps the last), PIV windows larger than the volumes (found otherwise at the PIV jobs, after the
+    images, calibration and reconstruction), a 100 x 100 sweep (which sat in "Building DAG" for over 300 s)."""
+    config = _tiny(tmp_path, name, edit, extra)
+    t0 = time.perf_counter()
+    r = _snakemake_dry_run(config, tmp_path / "work")
+    seconds = time.perf_counter() - t0
+    assert r.returncode != 0, r.stdout[-2000:]
+    text = " ".join((r.stdout + r.stderr).split())
+    assert message in text, text[-3000:]
+    assert "Building DAG" not in text, text[-3000:]
+    assert seconds < 120, seconds  # the start of Python and Snakemake; no per-case work
+
+
+def test_snakemake_says_how_many_cases(tmp_path):
+    r = _snakemake_dry_run(ROOT / "tests" / "data" / "tiny.yaml", tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "lfstudy: study 'tiny' sweeps 2 cases" in r.stderr
+
+
+def test_sweep_size_limit_is_checked_before_the_cases(tmp_path, capsys, monkeypatch):
+    """`lfstudy cases` refuses the 100 x 100 sweep at once; LFSTUDY_MAX_CASES moves the limit."""
+    config = _tiny(tmp_path, "big", _big_sweep)
+    t0 = time.perf_counter()
+    assert main(["cases", str(config)]) == 2
+    assert time.perf_counter() - t0 < 5  # validating 10,000 cases would take minutes
+    assert "the sweep makes 10000 cases" in capsys.readouterr().err
+    demo = ROOT / "config" / "demo.yaml"  # 16 cases
+    monkeypatch.setenv("LFSTUDY_MAX_CASES", "15")
+    assert main(["cases", str(demo), "--ids"]) == 2
+    assert "makes 16 cases (the product of its lists' lengths), more than the limit of 15" in capsys.readouterr().err
+    monkeypatch.setenv("LFSTUDY_MAX_CASES", "16")
+    assert main(["cases", str(demo), "--ids"]) == 0
+    for bad in ("many", "0"):
+        monkeypatch.setenv("LFSTUDY_MAX_CASES", bad)
+        assert main(["cases", str(demo), "--ids"]) == 2
+        assert f"LFSTUDY_MAX_CASES = {bad!r}: expected an integer >= 1" in capsys.readouterr().err
+
+
+def test_duplicate_keys_name_the_key_path_and_lines(tmp_path, capsys):
+    path = tmp_path / "dup.yaml"
+    text = (ROOT / "config" / "demo.yaml").read_text()
+    path.write_text(text + "camera:\n  magnification: -2.0\n")
+    assert main(["cases", str(path)]) == 2
+    first = 1 + text.splitlines().index(next(ln for ln in text.splitlines() if ln.startswith("camera:")))
+    assert f"key 'camera' is given twice (lines {first} and {len(text.splitlines()) + 1})" in capsys.readouterr().err
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("name: n\ncamera:\n  lenslet: {pitch: 0.1}\n  sensor: {}\n  lenslet:\n    pitch: 0.2\n")
+    assert main(["cases", str(nested)]) == 2
+    assert "key 'camera.lenslet' is given twice (lines 3 and 5)" in capsys.readouterr().err
+    merged = tmp_path / "merged.yaml"  # a merge key's values may be overridden: not a duplicate
+    merged.write_text("a: &b {window: [8, 16, 16], spacing: [4, 8, 8]}\nb:\n  <<: *b\n  window: [4, 4, 4]\n")
+    from lfstudy.config import read_yaml
+
+    assert read_yaml(merged)["b"] == {"window": [4, 4, 4], "spacing": [4, 8, 8]}

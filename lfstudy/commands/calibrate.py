@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from lfstudy import io
-    from lfstudy.lightfield.calibrate import expected_centers, find_lenslet_centers
+    from lfstudy.lightfield.calibrate import CalibrationError, expected_centers, find_lenslet_centers
 
     cam = None
     params = None
@@ -42,7 +42,10 @@ def run(args: argparse.Namespace) -> int:
     image = io.read_image(args.pinhole)
     inputs = [args.pinhole, *([args.config] if args.config else [])]
     with io.output_dir(args.out, command="calibrate", inputs=inputs, overwrite=args.overwrite) as tmp:
-        centers = find_lenslet_centers(image, cam, pixel_pitch=args.pixel_pitch)
+        try:
+            centers = find_lenslet_centers(image, cam, pixel_pitch=args.pixel_pitch)
+        except CalibrationError as exc:  # "image is blank": say which
+            raise CalibrationError(f"image file {args.pinhole!r}: {exc}") from None
         centers.attrs.update(io.provenance(params), source=str(args.pinhole))
         io.write_zarr(centers, tmp)
     a = centers.attrs

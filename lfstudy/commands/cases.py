@@ -18,7 +18,7 @@ def run(args: argparse.Namespace) -> int:
 
     from lfstudy.study.config import cases_table, load_config
 
-    table = cases_table(load_config(args.config))
+    table = cases_table(load_config(args.config, piv_grid=True))  # the study as it would run
     if args.ids:
         print("\n".join(table.index))
         return 0

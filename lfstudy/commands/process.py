@@ -41,17 +41,23 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("results") / cfg["name"]
     if cfg["compute"]["scheduler"] != "threads":
         print(f"dask: {describe(cfg['compute'])}")
-    with warnings.catch_warnings(record=True) as caught:
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        # a recording's warnings as one line each, in the CLI's style, printed when they arise: a
+        # later error ends the run, and the warning (a lenslet pitch 10 % off) is often its cause
+        if issubclass(category, (SaturationWarning, PitchWarning)):
+            print(f"lfstudy process: warning: {message}", file=sys.stderr, flush=True)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    with warnings.catch_warnings():
         warnings.simplefilter("always", SaturationWarning)
         warnings.simplefilter("always", PitchWarning)
+        warnings.showwarning = show
         # the scheduler is chosen here, at the edge; the pipeline is the same under either
         with dask_scheduler(cfg["compute"], threads=args.threads):
             process_recording(
                 cfg, out, overwrite=args.overwrite, inputs=[args.config], progress=not args.quiet, log=print
             )
-    for w in caught:  # a recording's warnings as one line each, in the CLI's style; others as they were
-        if issubclass(w.category, (SaturationWarning, PitchWarning)):
-            print(f"lfstudy process: warning: {w.message}", file=sys.stderr)
-        else:
-            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     return 0

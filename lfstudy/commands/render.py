@@ -28,6 +28,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from lfstudy import io
+    from lfstudy.lightfield import RegistrationError
     from lfstudy.study.case import render_volume
     from lfstudy.study.config import case_config, load_config
 
@@ -46,7 +47,10 @@ def run(args: argparse.Namespace) -> int:
         ]
         raw = io.read_image(args.raw)
         centers = io.open_zarr(args.centers).load()
-        lf, stack, volume = render_volume(raw, centers, cfg)
+        try:
+            lf, stack, volume = render_volume(raw, centers, cfg)
+        except RegistrationError as exc:  # "raw image is all zero": say which
+            raise RegistrationError(f"image file {args.raw!r}: {exc}") from None
         prov = io.provenance(cfg, cfg.get("seed"))
         for obj, tmp in zip((lf, stack, volume), tmps):
             obj.attrs.update(prov, source=str(args.raw))

@@ -113,6 +113,12 @@ def validate_process_config(cfg: Mapping[str, Any], base: str | Path | None = No
     _check_calibration(out, resolve)
     # a recording has no simulated particles: the memory estimate's simulate stage gets a placeholder
     check_memory({**out, "particles": {"count": 1, "ppp": 1e-9}})
+    # the volumes have the grid's shape: PIV windows that cannot fit are refused now, not after
+    # the calibration, refocusing and reconstruction of every frame
+    from lfstudy.study.case import case_grid
+    from lfstudy.study.config import check_piv_grid
+
+    check_piv_grid(out, case_grid(out).shape)
     return out
 
 

@@ -186,7 +186,7 @@ def process_recording(
             dark_da = xr.DataArray(dark, dims=("row", "col"), name="intensity", attrs={"units": "counts", **prov})
             dark_da.attrs["long_name"] = f"mean of {len(rec.dark)} dark frames"
             io.write_zarr(dark_da, tmp / "dark.zarr")
-        calib, _ = read_frame(rec, rec.calibration, dark, key="recording.calibration.image")
+        calib, _ = read_frame(rec, rec.calibration, dark, key="recording.calibration.image", counts=False)
         centers = calibrate_recording(calib, cam, rec.calibration_kind)
         centers.attrs.update(prov, source=str(rec.calibration.path), kind=rec.calibration_kind)
         calib.attrs.update(prov)

@@ -124,6 +124,8 @@ def tiff_info(path: str | Path, *, key: str = "recording", bit_depth: int | None
     import tifffile
 
     path = Path(path)
+    if path.is_dir():
+        raise RecordingError(f"{key}: {str(path)!r} is a folder, not an image file; name the TIFF files in it")
     if not path.is_file():
         raise FileNotFoundError(f"{key}: image file {str(path)!r} does not exist")
     try:
@@ -466,8 +468,28 @@ def mean_dark(recording: Recording) -> np.ndarray | None:
     return acc / len(recording.dark)
 
 
+def _check_counts(img: np.ndarray, dtype: np.dtype, frame: Frame, key: str, *, dark: bool) -> None:
+    """A frame to register holds counts >= 0, not all zero (registration's checks, naming the file)."""
+    where = f"{key}: {frame.label!r} ({str(frame.path)!r})"
+    low = float(img.min())
+    if low < 0:
+        raise RecordingError(
+            f"{where} has {int(np.count_nonzero(img < 0))} negative pixels (min {low:.4g}, {dtype}): a recorded "
+            "image holds counts >= 0; a signed (int16) file of an unsigned camera, or a wrongly converted one? "
+            "(dark frames, recording.dark, are subtracted with clipping at 0)"
+        )
+    if not np.any(img > 0):
+        what = "nowhere above the mean dark frame" if dark else "all zero"
+        raise RecordingError(f"{where} is {what}: nothing was recorded (exposure, or the wrong file?)")
+
+
 def read_frame(
-    recording: Recording, frame: Frame, dark: np.ndarray | None = None, *, key: str = "recording.frames"
+    recording: Recording,
+    frame: Frame,
+    dark: np.ndarray | None = None,
+    *,
+    key: str = "recording.frames",
+    counts: bool = True,
 ) -> tuple[xr.DataArray, float]:
     """Read one image, subtract the mean dark frame (clipped at 0) and measure its saturation.
 
@@ -480,6 +502,10 @@ def read_frame(
         :func:`mean_dark`.
     key : str
         Config key of the frame, for the messages.
+    counts : bool
+        Refuse an image registration cannot take: negative pixels (after the dark
+        frame), or nothing recorded. Off for the calibration image, whose own checks
+        (:func:`~lfstudy.process.pipeline.calibrate_recording`) apply.
 
     Returns
     -------
@@ -491,7 +517,9 @@ def read_frame(
     Raises
     ------
     RecordingError
-        Pixels above the full scale of ``recording.bit_depth``, or an unreadable page.
+        Pixels above the full scale of ``recording.bit_depth``, negative pixels or an image
+        with nothing recorded (all zero, or nowhere above the mean dark frame) where
+        ``counts``, or an unreadable page; the message names the file.
     """
     raw = _read(frame, key)
     saturated = 0.0
@@ -508,6 +536,8 @@ def read_frame(
     if dark is not None:
         img -= dark
         np.maximum(img, 0.0, out=img)  # a pixel darker than the mean dark: noise, not negative light
+    if counts:  # what registration refuses, said here with the file's name
+        _check_counts(img, raw.dtype, frame, key, dark=dark is not None)
     da = xr.DataArray(
         img,
         dims=("row", "col"),

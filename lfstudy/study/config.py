@@ -33,10 +33,20 @@ __all__ = [
     "case_config",
     "stage_config",
     "cases_table",
+    "check_piv_grid",
+    "check_sweep_size",
+    "MAX_CASES",
 ]
 
+#: Cases a sweep may make unless ``LFSTUDY_MAX_CASES`` allows more: validating a case took 62 ms (tiny.yaml,
+#: 500 cases, a loaded 2-core machine) and Snakemake then plans several jobs per case, so 2000 cases already
+#: take minutes before any job runs, and the issue's 100 x 100 sweep sat in "Building DAG" for over 300 s.
+MAX_CASES = 2000
 
-def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> dict[str, Any]:
+
+def validate_config(
+    cfg: Mapping[str, Any], base: str | Path | None = None, *, piv_grid: bool = False
+) -> dict[str, Any]:
     """Validate a config mapping, returning a deep copy with defaults filled in.
 
     Besides the schema, checks what a schema cannot: that the camera can be
@@ -51,6 +61,13 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
     base : str or Path, optional
         The config file's folder: a file flow's relative ``path`` is taken
         relative to it (and made absolute). Default: the working directory.
+    piv_grid : bool
+        Check that every case's PIV windows fit its reconstruction grid
+        (:func:`check_piv_grid`): on where the whole study is to run (the ``Snakefile``,
+        ``lfstudy cases``), so that windows too large for the volumes stop it before any
+        job; off by default, for the stage commands and the API that simulate, calibrate
+        or refocus a config without its PIV (a small sensor's images), and ``lfstudy piv``
+        (whose volumes are given, not the grid's).
 
     Raises
     ------
@@ -79,6 +96,7 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
         )
 
     sweep = sweep_of(cfg)
+    check_sweep_size(len(sweep))  # before the per-case checks below: they take time per case
     schema = load_schema()
     dotted = [s for s in sweep.settings if s.key not in NAMED]
     for case in sweep.cases():
@@ -116,6 +134,8 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
             grid = case_grid(ccfg)
         except GridError as exc:
             raise ConfigError(f"config key 'grid' (case {case.case_id}): {exc}") from None
+        if piv_grid:
+            check_piv_grid(ccfg, grid.shape, where=f"case {case.case_id}")
         zc = par.get("z_center", 0.0)
         if zc != 0.0 and not grid.z[0] - 1e-9 <= zc <= grid.z[-1] + 1e-9:
             raise ConfigError(
@@ -125,6 +145,96 @@ def validate_config(cfg: Mapping[str, Any], base: str | Path | None = None) -> d
             )
         check_memory(ccfg, where=f"case {case.case_id}")
     return cfg
+
+
+def check_sweep_size(n: int) -> None:
+    """Refuse a sweep of more than :data:`MAX_CASES` cases (``LFSTUDY_MAX_CASES`` raises the limit).
+
+    A 100 x 100 sweep is 10,000 cases: validating them and building Snakemake's DAG of their
+    jobs takes many minutes before the first job runs, which looks like a hang. Counting them is
+    instant, so a sweep that large is refused at once with its size, unless asked for.
+
+    Raises
+    ------
+    ConfigError
+        ``n`` above the limit, naming the count and how to proceed.
+    """
+    import os
+
+    raw = os.environ.get("LFSTUDY_MAX_CASES", "")
+    try:
+        limit = int(raw) if raw.strip() else MAX_CASES
+    except ValueError:
+        limit = 0
+    if limit < 1:
+        raise ConfigError(f"environment variable LFSTUDY_MAX_CASES = {raw!r}: expected an integer >= 1")
+    if n > limit:
+        raise ConfigError(
+            f"config key 'sweep': the sweep makes {n} cases (the product of its lists' lengths), more than the "
+            f"limit of {limit}; validating and planning that many takes minutes before any job runs. Sweep fewer "
+            f"values, or set LFSTUDY_MAX_CASES={n} in the environment to run them all"
+        )
+
+
+def check_piv_grid(ccfg: Mapping[str, Any], shape: tuple[int, ...], where: str = "") -> None:
+    """The PIV settings of a config against the reconstruction grid's ``shape`` (z, y, x), before any work.
+
+    The volumes PIV correlates have the grid's shape, so a first-level window larger than the grid
+    (or spacings, levels the windows cannot take) is known from the config and the camera alone;
+    without this check it surfaces only at the PIV stage, after calibration, refocusing and
+    reconstruction.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``piv.window``, ``piv.spacing`` or ``piv.levels`` with the allowed range, or
+        the ``piv`` setting at fault.
+    """
+    from lfstudy.piv.engine import WidimSettings
+
+    p = ccfg["piv"]
+    win = [int(w) for w in p["window"]]
+    shape = tuple(int(n) for n in shape)
+    at = f" ({where})" if where else ""
+    grid = f"the reconstruction grid of {' x '.join(map(str, shape))} voxels (z, y, x)"
+    big = [(d, w, n) for d, w, n in zip("zyx", win, shape) if w > n]
+    if big:
+        too = ", ".join(f"{w} along {d} exceeds {n}" for d, w, n in big)
+        allowed = ", ".join(f"{d} [4, {n}]" for d, n in zip("zyx", shape))
+        raise ConfigError(
+            f"config key 'piv.window' = {win}{at}: {too} voxels of {grid}; allowed range per axis is {allowed}. "
+            "Use a smaller window, or a larger grid (grid.z_range, grid.voxel_xy, grid.voxel_z)"
+        )
+    spacing = [int(v) for v in p["spacing"]]
+    wide = [(d, sp, w) for d, sp, w in zip("zyx", spacing, win) if sp > w]
+    if wide:
+        allowed = ", ".join(f"{d} [1, {w}]" for d, w in zip("zyx", win))
+        raise ConfigError(
+            f"config key 'piv.spacing' = {spacing}{at}: "
+            + ", ".join(f"{sp} along {d} exceeds the window's {w}" for d, sp, w in wide)
+            + f"; allowed range per axis is {allowed} (windows may overlap, not leave gaps)"
+        )
+    levels = int(p["levels"])
+    sizes = WidimSettings(tuple(win), tuple(spacing), levels=levels).sizes  # the windows of each level
+    small = next((k for k, (w, _) in enumerate(sizes, start=1) if min(w) < 4), None)
+    if small is not None:
+        raise ConfigError(
+            f"config key 'piv.levels' = {levels}{at}: level {small} refines piv.window {win} to "
+            f"{list(sizes[small - 1][0])}, below the 4 voxels a window needs; allowed range is [1, {small - 1}] "
+            "for this window"
+        )
+    try:
+        WidimSettings.build(
+            shape,
+            window=tuple(win),
+            spacing=tuple(p["spacing"]),
+            levels=p["levels"],
+            mode=p["mode"],
+            subpixel=p["subpixel"],
+            predictor_filter=p["predictor_filter"],
+        )
+    except ValueError as exc:
+        raise ConfigError(f"config key 'piv'{at}: {exc} (on {grid})") from None
 
 
 def _check_particles_setting(ccfg: Mapping[str, Any], case_id: str) -> None:
@@ -157,10 +267,10 @@ def _check_particles_setting(ccfg: Mapping[str, Any], case_id: str) -> None:
         )
 
 
-def load_config(path: str | Path) -> dict[str, Any]:
+def load_config(path: str | Path, *, piv_grid: bool = False) -> dict[str, Any]:
     """Read a YAML config file and validate it (defaults filled in); a file flow's path is
-    relative to the config file's folder."""
-    return validate_config(read_yaml(path), base=Path(path).resolve().parent)
+    relative to the config file's folder. ``piv_grid``: see :func:`validate_config`."""
+    return validate_config(read_yaml(path), base=Path(path).resolve().parent, piv_grid=piv_grid)
 
 
 def sweep_of(cfg: Mapping[str, Any]) -> Sweep:

@@ -280,9 +280,18 @@ def displacement_histograms(piv: xr.Dataset, errors: xr.Dataset | None = None, *
 
 def _quiver(ax: Any, x: Any, y: Any, u: Any, v: Any, **kw: Any) -> Any:
     """``ax.quiver``, with a fixed scale when no arrow has a length (a pair of identical frames):
-    matplotlib's autoscale divides by the mean arrow length."""
+    matplotlib's autoscale divides by the mean arrow length.
+
+    Arrows all at the origin (one vector per axis on a grid centred on 0: a small recording)
+    are drawn with ``angles="uv"``: with ``angles="xy"`` matplotlib measures the arrows over a
+    step of 0.001 times the data's extent, which is 0 there, and divides by it at draw time
+    (``RuntimeWarning: invalid value encountered in divide`` on every such run). With the axes'
+    equal default range about a single point both give the same arrow.
+    """
     if not np.any(np.nan_to_num(np.hypot(u, v))):
         kw.setdefault("scale", 1.0)
+    if kw.get("angles") == "xy" and not np.any(np.nan_to_num(np.abs(x))) and not np.any(np.nan_to_num(np.abs(y))):
+        kw["angles"] = "uv"
     return ax.quiver(x, y, u, v, **kw)
 
 
