@@ -166,7 +166,9 @@ def _pair_blocks(
                 "pairs",
                 "uncertainty_maps",
                 "Standard uncertainty σ of each component per vector, middle x–y slice (colour scales over the "
-                "whole field); blank: invalid or replaced vector.",
+                "whole field); blank: invalid or replaced vector. Red crosses: vectors flagged unresolved, "
+                "where the measured field's curvature says the final window's averaging of the flow likely "
+                "exceeds σ (σ covers the random error of what a window measures, not that averaging).",
                 "uncertainty maps",
                 lambda one=one: rf.uncertainty_maps(one),
                 case=name,
