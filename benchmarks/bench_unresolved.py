@@ -15,6 +15,34 @@ Runs the *oracle* of study cases (the case's PIV on the true particle volumes,
     python benchmarks/bench_unresolved.py [--config config/thesis.yaml]
         [--set camera.sensor.n_pixels_x=1600 camera.sensor.n_pixels_y=1200 ...]
         [--flows uniform_x hill] [--ppp 0.001 0.005] [--factors 0.5 1 2]
+
+Findings (run 2026-11-28 on 2 cores at load 11-17, NUMBA_NUM_THREADS=1; thesis camera cropped to
+1600 x 1200 px, the study's seed, final window 8 x 16 x 16 voxels = 4 x 2 x 2 mm at spacing
+4 x 8 x 8, grid 7 x 8 x 10; the config's hill and lamb_oseen):
+
+* The filter term explains the oracle on Hill: filter_rms_total 0.0268 / 0.0267 mm against the
+  oracle's 0.0295 / 0.0317 mm at 0.001 / 0.005 ppp (0.91 / 0.84 of it; per axis x 0.0125 of 0.0129,
+  y 0.0124 of 0.0129, z 0.0202 of 0.0232-0.0260). Uniform flow: 0.0000. Lamb-Oseen: only 0.51-0.53
+  of it (0.0319 of 0.0603-0.0625 mm; x 0.028 of 0.047): there the windows whose particles sit to one
+  side of the seeded slab add the rest (bench_uncertainty_resolution.py's cen*grad).
+* σ against the window-averaged truth, oracle: Hill coverage 0.25-0.45, ratio 1.35-2.21 (against the
+  point truth 0.12-0.40 / 4.6-6.7); lamb_oseen x 0.18-0.20 / 3.3-4.2, z 0.21-0.30 / 2.1-2.9, y (no
+  flow) 0.68-0.73 / 0.76-0.85; uniform 0.82-0.96 / 0.46-0.64 (σ too large for the oracle's tiny error).
+* The flag (measured curvature x L²/24 against factor σ), flagged % / hit / false:
+  uniform 0.001: factor 0.5 32 %, 1 9 %, 2 2 %; 0.005: 25 %, 4 %, 1 %.
+  Hill 0.001: factor 0.5 85 % / 0.91 / 0.56, 1 58 % / 0.67 / 0.52, 2 17 % / 0.19 / 0.55;
+  Hill 0.005: 90 % / 0.99 / 0.46, 63 % / 0.80 / 0.39, 19 % / 0.29 / 0.35;
+  lamb_oseen factor 1: 58 % / 0.75 / 0.50 (0.001), 65 % / 0.85 / 0.25 (0.005).
+  The estimate reads 2.3-3.1x short in x, y on Hill (least-squares slope against the true filter,
+  r 0.46-0.49; z r 0.73-0.86): a 4 mm z window over a 3 mm sphere sampled every 2 mm in z leaves no
+  curvature to measure. A 3x3x3 mean of the field before the second differences cuts the uniform
+  flags to 0-1 % but the Hill hits to 0.38-0.47 (factor 1).
+* On a MART reconstruction (1200 x 900 px crop, 0.005 ppp, bench_uncertainty.py): uniform 23 % flagged
+  at factor 1 (2 % at 2), Hill 52 % / hit 0.46 / false 0.70: the reconstruction's noise dominates the
+  second differences. The other candidate, the final pass against a pass at another window, is
+  bench_uncertainty_richardson.py's two-level estimate: noise on the real PIV (r −0.63 to +0.22).
+  Neither meets the issue's targets (hit >= 0.8 with false <= 0.2); UNRESOLVED_FACTOR stays 1, the
+  closest on the oracles.
 """
 
 from __future__ import annotations

@@ -12,11 +12,12 @@ design comparison it appears in. Everything else reads this table at call time:
   Pareto-front, resolution and error-budget tables (``front``, ``resolution``, ``budget``);
 - the report's uncertainty table (``uncertainty``).
 
-Two name prefixes carry a meaning of their own: ``oracle_<stat>`` is the statistic ``<stat>`` of
+Three name prefixes carry a meaning of their own: ``oracle_<stat>`` is the statistic ``<stat>`` of
 :func:`~lfstudy.study.metrics.case_errors` on the *oracle* (the case's PIV run on the true particle
-volumes, :func:`lfstudy.study.case.oracle_piv`), and ``recon_added_<stat>`` is the share of the
-case's ``<stat>`` the oracle does not explain, sqrt(max(case² − oracle², 0))
-(:func:`lfstudy.study.metrics.error_budget`). A row with either prefix needs no code of its own.
+volumes, :func:`lfstudy.study.case.oracle_piv`), ``recon_added_<stat>`` is the share of the
+case's ``<stat>`` the oracle does not explain, sqrt(max(case² − oracle², 0)), and ``rest_<stat>`` the
+oracle's beyond the windows' filtering ``filter_<stat>``, sqrt(max(oracle² − filter², 0))
+(:func:`lfstudy.study.metrics.error_budget`). A row with any of them needs no code of its own.
 
 Adding a metric is one :class:`Metric` row plus the code that computes its value
 (``docs/howto/add-metric.md``). Like xclim's indicators, units and long names are declared once
