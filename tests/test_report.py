@@ -44,7 +44,11 @@ def fake_piv(shift_vox: float, noise: float, seed: int, shape=(3, 4, 5), unc: bo
     data["corrector_rms"] = ("pass", [2.0, 0.3, 0.05, 0.02])
     data["valid_percent"] = ("pass", [88.0, 95.0, 98.0, 98.5])
     data["level"] = ("pass", [1, 1, 2, 2])
-    return xr.Dataset(data, coords={**coords, "pass": ("pass", [1, 2, 3, 4])}, attrs={"final_spacing": [8, 8, 8]})
+    return xr.Dataset(
+        data,
+        coords={**coords, "pass": ("pass", [1, 2, 3, 4])},
+        attrs={"final_spacing": [8, 8, 8], "final_window": [16, 16, 16]},
+    )
 
 
 def fake_images(d: Path, seed: int) -> None:
