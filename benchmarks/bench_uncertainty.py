@@ -10,7 +10,9 @@ on a machine with many cores and no Snakemake), each stage's distinct output onc
 workflow (shared images, calibration and depth calibration). Then prints, per case and
 component, the fraction of valid vectors whose |error| is within their standard uncertainty
 (``unc_coverage``; 0.68 where σ is right) and RMS(error)/RMS(σ) (``unc_ratio``; 1 where it is
-right), with the error and the oracle's beside them, the z row on its own.
+right), both against the truth averaged over each final window (issue 38) and against the point
+truth, with the error, the oracle's and the windows' filtering beside them, the z row on its own,
+and the ``unresolved`` flag's scores per case.
 
 Targets (issue 28): coverage 0.55-0.80 and ratio 0.7-1.4 per component, on the thesis camera
 at 0.001 and 0.005 ppp (uniform, Hill and a new flow) and on a demo design.
@@ -212,7 +214,7 @@ def _table(cfg: dict[str, Any], out: Path) -> None:
         e = io.open_zarr(out / sw.locate(c, "errors.zarr")).load()
         rows.append((c, e))
     keys = [s.key for s in sw.swept]
-    print("\ncase" + " " * 34 + "ax  coverage  ratio   rms_mm  oracle_mm  valid%")
+    print("\ncase" + " " * 34 + "ax  coverage  ratio   rms_mm  oracle_mm  valid%  point cov/ratio  filter_mm")
     zrows = []
     for c, e in rows:
         name = " ".join(f"{k}={c[k]}" for k in keys) or c.case_id
@@ -220,7 +222,9 @@ def _table(cfg: dict[str, Any], out: Path) -> None:
             line = (
                 f"{name[:37]:<38}{ax:>2}  {float(e[f'unc_coverage_{ax}']):8.3f}  {float(e[f'unc_ratio_{ax}']):5.2f}"
                 f"  {float(e[f'rms_{ax}_mm']):7.4f}  {float(e.get(f'oracle_rms_{ax}_mm', np.nan)):9.4f}"
-                f"  {float(e['valid_percent']):6.1f}"
+                f"  {float(e['valid_percent']):6.1f}  {float(e.get(f'unc_coverage_point_{ax}', np.nan)):6.3f}/"
+                f"{float(e.get(f'unc_ratio_point_{ax}', np.nan)):4.2f}"
+                f"  {float(e.get(f'filter_rms_{ax}_mm', np.nan)):9.4f}"
             )
             (zrows if ax == "z" else []).append(line)
             if ax != "z":
@@ -228,6 +232,13 @@ def _table(cfg: dict[str, Any], out: Path) -> None:
     print("z (on its own):")
     for line in zrows:
         print(line)
+    print("\nunresolved flag (percent flagged, hit of > 2σ, false of the flags < σ):")
+    for c, e in rows:
+        name = " ".join(f"{k}={c[k]}" for k in keys) or c.case_id
+        print(
+            f"{name[:37]:<38}  {float(e.get('unresolved_percent', np.nan)):5.1f} %  hit "
+            f"{float(e.get('unresolved_hit', np.nan)):.2f}  false {float(e.get('unresolved_false', np.nan)):.2f}"
+        )
     cov = np.array([[float(e[f"unc_coverage_{ax}"]) for ax in "xyz"] for _, e in rows])
     rat = np.array([[float(e[f"unc_ratio_{ax}"]) for ax in "xyz"] for _, e in rows])
     inside = (cov >= TARGET_COV[0]) & (cov <= TARGET_COV[1]) & (rat >= TARGET_RATIO[0]) & (rat <= TARGET_RATIO[1])

@@ -45,7 +45,8 @@ def synthetic_piv(
     data["peak"] = (("z", "y", "x"), np.full(shape, 0.8))
     data["corrector_rms"] = ("pass", [1.0, 0.2, 0.05])
     data["valid_percent"] = ("pass", [90.0, 97.0, 99.0])
-    ds = xr.Dataset(data, coords=coords, attrs={"final_spacing": list(spacing)})
+    attrs = {"final_spacing": list(spacing), "final_window": [2 * v for v in spacing]}  # 50 % overlap
+    ds = xr.Dataset(data, coords=coords, attrs=attrs)
     return ds.assign_coords({"pass": ("pass", [1, 2, 3]), "level": ("pass", [1, 2, 2])})
 
 
@@ -341,6 +342,8 @@ def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
     assert float(out["crosstalk_z"]) == pytest.approx(0.1 / 4.5) and float(out["oracle_crosstalk_z"]) == zero
     assert float(out["time_oracle"]) == 1.5 and float(out["oracle_valid_percent"]) == 100.0
     assert out["oracle_w_mm"].dims == ("z", "y", "x") and bool(out["oracle_valid"].all())
+    # the budget's third term: a uniform flow has no filtering, so the oracle's error is all rest (here 0)
+    assert float(out["filter_rms_total_mm"]) == zero and float(out["rest_rms_total_mm"]) == zero
     with pytest.raises(ValueError, match="oracle's PIV grid differs"):
         case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle.isel(x=[0]))
     # every scalar is a row of the table and carries its attrs; every row but the derived ones is computed
@@ -394,8 +397,9 @@ def test_error_budget_splits_in_quadrature():
     oracle = {"oracle_rms_total_mm": 0.007, "oracle_rms_x_mm": 0.004, "oracle_rms_y_mm": 0.002,
               "oracle_rms_z_mm": 0.005}  # fmt: skip
     out = error_budget(case, oracle)
-    # one value per recon_added_ row of the table
-    assert set(out) == {m.name for m in METRICS if m.name.startswith("recon_added_")}
+    # one value per recon_added_ and rest_ row of the table (the rests NaN here: no filter term)
+    assert set(out) == {m.name for m in METRICS if m.name.startswith(("recon_added_", "rest_"))}
+    assert math.isnan(out["rest_rms_total_mm"])
     assert out["recon_added_rms_total_mm"] == pytest.approx(math.sqrt(0.067**2 - 0.007**2))
     assert out["recon_added_rms_z_mm"] ** 2 + 0.005**2 == pytest.approx(0.063**2)
 
@@ -449,6 +453,9 @@ def test_uncertainty_coverage_and_ratio_against_the_truth(in_mm):
     ok = valid & np.isfinite(sig)
     assert float(err["unc_coverage_x"]) == pytest.approx(np.mean(np.abs(e[ok]) <= 0.05), abs=1e-12)
     assert float(err["unc_ratio_x"]) == pytest.approx(np.sqrt(np.mean(e[ok] ** 2)) / 0.05, rel=1e-9)
+    # a uniform flow: the window-averaged truth is the point truth
+    assert float(err["unc_coverage_point_x"]) == float(err["unc_coverage_x"])
+    assert float(err["unc_ratio_point_x"]) == pytest.approx(float(err["unc_ratio_x"]), rel=1e-12)
     assert np.isnan(float(err["unc_coverage_y"])) and np.isnan(float(err["unc_ratio_z"]))  # no unc_v, unc_w
     assert err["unc_ratio_x"].attrs["units"] == "1" and metric("unc_coverage_z").long_name
 
@@ -507,3 +514,93 @@ def test_particles_per_cell_counts_lenslets_and_depth_cells_of_the_depth_of_fiel
     thin = [(-2.0, 2.0), (-2.0, 2.0), (-0.01, 0.01)]
     inside = int(np.sum(np.abs(xyz[:, 2]) <= 0.01))
     assert particles_per_cell(cam, parts, thin) == pytest.approx(inside / lenslets)
+
+
+class _Shear2:
+    """A steady flow u = a y² + b z² (v = w = 0): particles keep y and z, so the displacement is u·dt
+    exactly and its top-hat average over a box of sides L_y, L_z is a (y² + L_y²/12) + b (z² + L_z²/12)."""
+
+    name = "shear2"
+
+    def __init__(self, a: float, b: float) -> None:
+        self.a, self.b = a, b
+
+    def velocity(self, x, y, z):
+        return self.a * y**2 + self.b * z**2, np.zeros_like(x), np.zeros_like(x)
+
+
+def test_window_average_of_a_quadratic_flow_is_the_top_hat_curvature_term():
+    """The filter term of a quadratic flow is (L²/24) ∂²u/∂x² per axis, exactly (Gauss-Legendre)."""
+    from lfstudy.study.metrics import window_average
+
+    y, z = np.meshgrid(np.linspace(-1, 1, 5), np.linspace(-2, 2, 4), indexing="ij")
+    centres = {"x": np.zeros_like(y), "y": y, "z": z}
+    win = {"x": 0.5, "y": 2.0, "z": np.full(y.shape, 4.0)}
+    box = window_average(_Shear2(0.03, 0.01), centres, win, n_steps=4)
+    np.testing.assert_allclose(box["x"], 0.03 * (y**2 + 4.0 / 12) + 0.01 * (z**2 + 16.0 / 12), rtol=1e-12)
+    assert np.all(box["y"] == 0) and np.all(box["z"] == 0)
+    with pytest.raises(ValueError, match="window_mm"):
+        window_average(_Shear2(0.03, 0.01), centres, {**win, "y": 0.0})
+
+
+def test_filter_term_and_window_averaged_uncertainty_figures():
+    """case_errors' filter_rms is the RMS of (window-averaged − point) truth: 0 for a uniform flow,
+    a L_y²/12 + b L_z²/12 for the quadratic one; unc_coverage/ratio judge σ against the window-averaged
+    truth, the _point ones against the point truth; without final_window the window figures are NaN."""
+    a, b = 0.03, 0.01
+    win = [8, 16, 16]  # voxels of VOX along z, y, x
+    ly, lz = 16 * VOX, 8 * VOX
+    shift = a * ly**2 / 12 + b * lz**2 / 12
+    piv = synthetic_piv(0.0, 0.0, 0.0).assign_attrs(final_window=win)
+    zz, yy = np.meshgrid(piv.z.values, piv.y.values, indexing="ij")
+    point = (a * yy**2 + b * zz**2)[:, :, None] * np.ones(piv.sizes["x"])
+    rng = np.random.default_rng(1)
+    noise = rng.normal(0.0, 0.002, point.shape)
+    measured = point + shift + noise  # a window that measures its average, plus random error
+    piv["u_mm"] = (("z", "y", "x"), measured)
+    piv["u"] = piv["u_mm"] / VOX
+    piv["unc_u_mm"] = (("z", "y", "x"), np.full(point.shape, 0.002))
+    err = case_errors(piv, _Shear2(a, b), n_steps=4)
+    assert float(err["filter_rms_x_mm"]) == pytest.approx(shift, rel=1e-9)
+    assert float(err["filter_rms_y_mm"]) == 0 and float(err["filter_rms_z_mm"]) == 0
+    assert float(err["filter_rms_total_mm"]) == pytest.approx(shift, rel=1e-9)
+    np.testing.assert_allclose(err["u_filter_mm"].values, shift, rtol=1e-9)
+    assert float(err["unc_coverage_x"]) == pytest.approx(np.mean(np.abs(noise) <= 0.002), abs=1e-12)
+    assert float(err["unc_ratio_x"]) == pytest.approx(np.sqrt(np.mean(noise**2)) / 0.002, rel=1e-6)
+    assert float(err["unc_ratio_point_x"]) == pytest.approx(np.sqrt(np.mean((noise + shift) ** 2)) / 0.002, rel=1e-6)
+    assert float(err["unc_coverage_point_x"]) < float(err["unc_coverage_x"])
+    uni = case_errors(synthetic_piv(4.5, 0.0, 0.0).assign_attrs(final_window=win), UniformFlow((0.5625, 0.0, 0.0)))
+    assert float(uni["filter_rms_total_mm"]) == pytest.approx(0.0, abs=1e-15)  # the rule's weights' rounding
+    bare = synthetic_piv(4.5, 0.0, 0.0)
+    del bare.attrs["final_window"]
+    bare = case_errors(bare, UniformFlow((0.5625, 0.0, 0.0)))
+    assert math.isnan(float(bare["filter_rms_total_mm"])) and math.isnan(float(bare["unc_coverage_x"]))
+
+
+def test_error_budget_rest_is_the_oracle_beyond_the_filter():
+    """case² = filter² + recon_added² + rest²: rest = sqrt(oracle² − filter²); NaN without the filter."""
+    from lfstudy.study.metrics import error_budget
+
+    case = {"rms_total_mm": 0.05, "rms_x_mm": 0.03, "rms_y_mm": 0.0, "rms_z_mm": 0.04, "filter_rms_total_mm": 0.024,
+            "filter_rms_x_mm": 0.012, "filter_rms_y_mm": 0.0, "filter_rms_z_mm": 0.021}  # fmt: skip
+    oracle = {"oracle_rms_total_mm": 0.03, "oracle_rms_x_mm": 0.02, "oracle_rms_y_mm": 0.0, "oracle_rms_z_mm": 0.022}
+    out = error_budget(case, oracle)
+    assert out["rest_rms_total_mm"] == pytest.approx(0.018)
+    parts = out["rest_rms_total_mm"] ** 2 + 0.024**2 + out["recon_added_rms_total_mm"] ** 2
+    assert parts == pytest.approx(0.05**2)
+    assert out["rest_rms_z_mm"] == pytest.approx(math.sqrt(0.022**2 - 0.021**2))
+    no_filter = {k: v for k, v in case.items() if not k.startswith("filter_")}
+    assert math.isnan(error_budget(no_filter, oracle)["rest_rms_total_mm"])
+
+
+def test_unresolved_scores_hit_and_false_against_the_true_filter():
+    from lfstudy.study.metrics import unresolved_scores
+
+    filt = {"x": np.array([0.0, 0.5, 3.0, 3.0, 1.5, 0.2]), "y": np.zeros(6)}
+    sig = {"x": np.ones(6), "y": np.ones(6)}
+    flag = np.array([True, False, True, False, True, False])
+    valid = np.ones(6, bool)
+    pct, hit, false = unresolved_scores(flag, filt, sig, valid)
+    # > 2σ: vectors 2, 3 (one flagged); flagged: 0, 2, 4, of which 0 is below σ (4 is between: either is fine)
+    assert pct == pytest.approx(50.0) and hit == pytest.approx(0.5) and false == pytest.approx(1 / 3)
+    assert math.isnan(unresolved_scores(np.zeros(6, bool), filt, sig, valid)[2])

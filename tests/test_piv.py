@@ -499,3 +499,73 @@ def test_correlation_uncertainty_counts_correlated_contributions():
     assert np.nanmedian(ratio_white) < 1.3
     assert np.nanmedian(ratio_smooth) > 2.0
     assert np.all(ratio_white[np.isfinite(ratio_white)] >= 1.0 - 1e-9)
+
+
+def test_moment_uncertainty_grows_with_the_mismatch_and_shrinks_with_the_window():
+    """'moment': peak width × sqrt((1 − ρ)/ρ) / sqrt(N_eff). Identical windows (ρ = 1) have no
+    uncertainty; more noise between the frames raises it; a window with 8x the voxels (the same
+    noise per voxel) lowers it by about sqrt(8); an empty window has none (NaN)."""
+    from scipy import ndimage
+
+    from lfstudy.piv.uncertainty import window_uncertainty
+
+    rng = np.random.default_rng(7)
+
+    def blobs(n: int, w: int) -> np.ndarray:
+        return np.stack([ndimage.gaussian_filter((rng.random((w, w, w)) < 0.02) * 1.0, 1.0) for _ in range(n)])
+
+    a = blobs(30, 16)
+    np.testing.assert_allclose(window_uncertainty(a, a.copy(), "moment"), 0.0, atol=1e-6)
+    noise = rng.standard_normal(a.shape) * a.std()
+    med = [np.nanmedian(window_uncertainty(a, a + k * noise, "moment"), axis=0) for k in (0.05, 0.2)]
+    assert np.all(med[1] > 2.0 * med[0])  # ~4x the noise-to-signal ratio's square root's growth
+    big = blobs(30, 32)
+    small_sig = np.nanmedian(window_uncertainty(a, a + 0.2 * noise, "moment"))
+    big_sig = np.nanmedian(window_uncertainty(big, big + 0.2 * rng.standard_normal(big.shape) * big.std(), "moment"))
+    assert 1.8 < small_sig / big_sig < 4.5  # sqrt(8) = 2.8
+    empty = np.zeros((1, 16, 16, 16))
+    assert np.isnan(window_uncertainty(empty, empty, "moment")).all()
+
+
+def test_one_three_point_estimator_for_the_peak_and_the_uncertainty():
+    """engine._subpixel and the uncertainty's offset are the one lfstudy.piv.subpixel.three_point:
+    exact for a sampled Gaussian, parabolic where a sample is not positive, 0 / NaN without a peak."""
+    from lfstudy.piv.engine import _subpixel
+    from lfstudy.piv.subpixel import three_point
+    from lfstudy.piv.uncertainty import _gauss_offset
+
+    d, s = 0.3, 1.1
+    g = [np.exp(-((k - d) ** 2) / (2 * s * s)) for k in (-1, 0, 1)]
+    assert float(three_point(*g)) == pytest.approx(d, abs=1e-12)
+    assert float(_subpixel(*g)) == pytest.approx(d, abs=1e-12)
+    assert float(_gauss_offset(g[1], g[2], g[0])) == pytest.approx(d, abs=1e-12)  # (C0, C+, C-): |offset|
+    # a non-positive neighbour: the parabola
+    assert float(three_point(-0.1, 1.0, 0.5)) == pytest.approx((-0.1 - 0.5) / (2 * -0.1 - 4 + 2 * 0.5))
+    # no maximum at lag 0
+    assert np.isnan(three_point(1.0, 0.5, 1.0)) and float(_subpixel(1.0, 0.5, 1.0)) == 0.0
+
+
+def test_unresolved_flags_curvature_beyond_sigma_and_not_a_uniform_field():
+    """The truth-free flag: |Σ_j (L_j/S_j)²/24 Δ²_j u| > σ. A quadratic field's second difference is exact;
+    widim stores the flag with σ and flags few vectors of a uniform shift (its overlapping windows' errors
+    are correlated, so their second differences are smaller than independent errors' would be)."""
+    from lfstudy.piv.resolution import filter_estimate, unresolved
+
+    i = np.arange(9.0)
+    quad = np.broadcast_to(0.1 * (i - 4.0) ** 2, (5, 6, 9))  # curvature 0.2 per vector² along x
+    field = np.stack([np.zeros_like(quad), np.zeros_like(quad), quad])
+    est = filter_estimate(field, (8, 16, 16), (4, 8, 8))
+    np.testing.assert_allclose(est[2], 4.0 / 24.0 * 0.2)  # (16/8)² / 24 × Δ²u
+    assert np.all(est[:2] == 0)
+    sig = np.full(field.shape, 0.02)
+    assert unresolved(field, sig, (8, 16, 16), (4, 8, 8)).all()  # 0.033 > 0.02
+    assert not unresolved(field, sig * 2, (8, 16, 16), (4, 8, 8)).any()  # 0.033 < 0.04
+    assert not unresolved(field, np.full(field.shape, np.nan), (8, 16, 16), (4, 8, 8)).any()  # no σ: no flag
+    with pytest.raises(ValueError, match="factor"):
+        unresolved(field, sig, (8, 16, 16), (4, 8, 8), factor=0.0)
+    a, b = particle_pair((24, 48, 48), (0.3, 0.5, -0.4), density=0.02, seed=3)
+    res = widim(a, b, window=16, spacing=8)
+    assert res["unresolved"].dtype == bool and res["unresolved"].dims == res["u"].dims
+    print("flagged", float(res["unresolved"].mean()))
+    assert float(res["unresolved"].mean()) < 0.2  # a uniform shift
+    assert "unresolved" not in widim(a, b, window=16, spacing=8, uncertainty=None)

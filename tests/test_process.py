@@ -154,7 +154,11 @@ def test_series_metrics_and_report(series, recording):
             )
             assert 0 < m[f"unc_median_{c}"].iloc[t] < 1.0  # voxel: a clear uniform shift
     assert metrics["unc_median_w_mm"].attrs["units"] == "mm"
+    # the truth-free flag of vectors whose window's filtering may exceed σ, for recordings too (issue 38)
+    assert piv["unresolved"].dtype == bool and piv["unresolved"].dims == piv["u"].dims
+    assert not piv["unresolved"].values[~piv["valid"].values].any()  # no σ, no flag
     html = (series / "report.html").read_text()
+    assert "Red crosses: vectors flagged unresolved" in html
     assert html.count("data:image/png;base64,") >= 10  # 4 of them the σ maps and histograms of the 2 pairs
     assert html.count("<figcaption>Standard uncertainty σ of each component per vector") == 2  # one per pair
     assert "<figcaption>Standard uncertainty σ per component over the valid vectors" in html and "unc_median_w" in html
@@ -968,3 +972,23 @@ def test_dot_grid_origin():
     assert sorted(np.unique(np.round(x, 9))) == pytest.approx([-1.3, -0.8, -0.3, 0.2, 0.7, 1.2])
     with pytest.raises(VolumetricCalibrationError, match="no dot of the grid"):
         dot_grid(5.0, 2.8, 2.0, origin=(2.5, 0.0))
+
+
+def test_uncertainty_maps_mark_the_unresolved_vectors():
+    """The recording report's σ maps cross out the vectors flagged unresolved on the slice shown."""
+    import xarray as xr
+
+    from lfstudy.study.figures import uncertainty_maps
+
+    shape = (3, 4, 5)
+    flag = np.zeros(shape, bool)
+    flag[1, 2, 3] = flag[1, 0, 0] = True  # the middle slice (z index 1): two flags
+    flag[0, 1, 1] = True  # another slice: not drawn
+    coords = {d: np.arange(n, dtype=float) for d, n in zip("zyx", shape)}
+    piv = xr.Dataset(
+        {"unc_u_mm": (("z", "y", "x"), np.full(shape, 0.01)), "unresolved": (("z", "y", "x"), flag)}, coords=coords
+    )
+    fig = uncertainty_maps(piv)
+    assert "red x: unresolved, 2 of 20 vectors" in fig._suptitle.get_text()
+    assert len(fig.axes[0].collections) == 2  # the σ map and the crosses
+    assert "red x" not in uncertainty_maps(piv.drop_vars("unresolved"))._suptitle.get_text()

@@ -45,7 +45,11 @@ def fake_piv(shift_vox: float, noise: float, seed: int, shape=(3, 4, 5), unc: bo
     data["corrector_rms"] = ("pass", [2.0, 0.3, 0.05, 0.02])
     data["valid_percent"] = ("pass", [88.0, 95.0, 98.0, 98.5])
     data["level"] = ("pass", [1, 1, 2, 2])
-    return xr.Dataset(data, coords={**coords, "pass": ("pass", [1, 2, 3, 4])}, attrs={"final_spacing": [8, 8, 8]})
+    return xr.Dataset(
+        data,
+        coords={**coords, "pass": ("pass", [1, 2, 3, 4])},
+        attrs={"final_spacing": [8, 8, 8], "final_window": [16, 16, 16]},
+    )
 
 
 def fake_images(d: Path, seed: int) -> None:
@@ -378,6 +382,17 @@ def test_the_recommendation_says_what_limits_the_error(tmp_path):
     assert "mostly" not in plain and budget_table(_study_with(base)).empty
     assert error_limit(0.01, 0.02) == "reconstruction" and error_limit(0.02, 0.01) == "windows"
     assert error_limit(float("nan"), 0.01) == ""
+    # three parts: the windows' filtering, the reconstruction, the rest (sqrt(oracle² − filter²))
+    assert error_limit(0.05, 0.02, 0.04) == "windows" and error_limit(0.05, 0.02, 0.01) == "random"
+    assert error_limit(0.02, 0.05, 0.015) == "reconstruction"
+    three = {**base, "oracle_rms_total_mm": [0.06, 0.08], "recon_added_rms_total_mm": [0.03, 0.04]}
+    filt = _study_with({**three, "filter_rms_total_mm": [0.055, 0.075], "rest_rms_total_mm": [0.024, 0.028]})
+    rand = _study_with({**three, "filter_rms_total_mm": [0.01, 0.01], "rest_rms_total_mm": [0.059, 0.079]})
+    assert list(budget_table(filt)["limited_by"]) == ["the PIV windows"] * 2
+    assert list(budget_table(rand)["limited_by"]) == ["the random error (and the estimator's bias)"] * 2
+    s_filt, s_rand = recommend(filt)[1]["uniform_x"], recommend(rand)[1]["uniform_x"]
+    assert "filtering of the flow" in s_filt and "0.055 mm" in s_filt and "smaller windows" in s_filt
+    assert "mostly random" in s_rand and "0.059 mm" in s_rand
     bt = budget_table(recon)
     assert list(bt["limited_by"]) == ["the reconstruction"] * 2
     assert {"oracle_rms_total_mm", "recon_added_rms_total_mm", "rms_total_mm"} <= set(bt.columns)

@@ -117,11 +117,20 @@ def test_study_runs_end_to_end(study_dir):
         case, oracle = float(sel["rms_total_mm"]), float(sel["oracle_rms_total_mm"])
         assert float(sel["recon_added_rms_total_mm"]) == pytest.approx(np.sqrt(max(case**2 - oracle**2, 0.0)))
         assert np.isfinite(float(sel["crosstalk_z"]))
+        # the budget's third term: a uniform shift has no filtering, the oracle's error is all rest
+        assert float(sel["filter_rms_total_mm"]) == pytest.approx(0.0, abs=1e-12)
+        assert float(sel["rest_rms_total_mm"]) == pytest.approx(oracle)
+        assert float(sel["unc_coverage_x"]) == float(sel["unc_coverage_point_x"])  # window truth = point truth
+        assert 0.0 <= float(sel["unresolved_percent"]) <= 100.0
     assert (out / "study.csv").read_text().count("\n") == 1 + len(expand_cases(cfg))
     header = (out / "study.csv").read_text().splitlines()[0].split(",")
     assert {"oracle_rms_total_mm", "oracle_rms_z_mm", "recon_added_rms_total_mm", "crosstalk_z"} <= set(header)
+    assert {"filter_rms_total_mm", "rest_rms_total_mm", "unc_ratio_point_z", "unresolved_hit"} <= set(header)
     err = io.open_zarr(out / expand_cases(cfg)[0].case_id / "errors.zarr")
     assert err["oracle_w_mm"].dims == err["w_err_mm"].dims and "oracle_mean_z_mm" in err
+    assert err["u_filter_mm"].dims == err["u_err_mm"].dims
+    piv = io.open_zarr(out / expand_cases(cfg)[0].case_id / "piv.zarr")
+    assert piv["unresolved"].dtype == bool
     # The report is self-contained: figures embedded, nothing fetched from the network.
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 5

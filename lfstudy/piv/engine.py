@@ -39,6 +39,8 @@ from scipy import ndimage
 from tqdm.auto import tqdm
 
 from lfstudy.piv.deform import deform, dense_predictor, spline_coefficients
+from lfstudy.piv.resolution import unresolved
+from lfstudy.piv.subpixel import three_point
 from lfstudy.piv.uncertainty import METHODS as _UNC_METHODS
 from lfstudy.piv.uncertainty import window_uncertainty
 
@@ -271,18 +273,9 @@ class WidimSettings:
 
 # --------------------------------------------------------------------------- correlation
 def _subpixel(rm: np.ndarray, r0: np.ndarray, rp: np.ndarray) -> np.ndarray:
-    """Three-point peak offset: Gaussian (eq. 6.2), parabolic where it cannot apply."""
-    rm, r0, rp = (np.asarray(v, dtype=np.float64) for v in (rm, r0, rp))
-    pos = (rm > 0) & (r0 > 0) & (rp > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lm, l0, lp = (np.log(np.where(pos, v, 1.0)) for v in (rm, r0, rp))
-        gden = 2 * lm - 4 * l0 + 2 * lp
-        gauss = (lm - lp) / gden  # eq. 6.2
-        # ln of a non-positive value is undefined: fall back to a parabola rather than
-        # shifting the plane by its minimum (which biases the Gaussian fit)
-        pden = 2 * rm - 4 * r0 + 2 * rp
-        parab = (rm - rp) / pden
-    eps = np.where(pos & (gden < 0), gauss, np.where(pden < 0, parab, 0.0))
+    """Three-point peak offset (:func:`lfstudy.piv.subpixel.three_point`: Gaussian, eq. 6.2, parabolic
+    where it cannot apply), 0 without a peak, clipped to one voxel."""
+    eps = three_point(rm, r0, rp)
     return np.clip(np.nan_to_num(eps, nan=0.0, posinf=0.0, neginf=0.0), -1.0, 1.0)
 
 
@@ -865,7 +858,9 @@ def widim(
     xarray.Dataset
         ``u, v[, w]`` (voxels), ``valid``, ``peak``, optional ``u_mm, v_mm[, w_mm]``,
         with ``uncertainty``: ``unc_u, unc_v[, unc_w]`` (voxels, NaN where the vector
-        is invalid or replaced) and, with physical coordinates, ``unc_u_mm`` etc.,
+        is invalid or replaced), ``unresolved`` (bool: the final window's filtering of
+        the measured field likely exceeds σ, :func:`lfstudy.piv.resolution.unresolved`)
+        and, with physical coordinates, ``unc_u_mm`` etc.,
         window-centre coordinates ``x, y[, z]`` (physical if available, else voxel
         index) and ``x_index, y_index[, z_index]``, and per-pass ``corrector_rms``,
         ``valid_percent`` and ``level`` over dimension ``pass``.
@@ -978,9 +973,12 @@ def widim(
     bar.total = bar.n  # converged early: the bar ends full, at the passes actually run
     bar.refresh()
     bar.close()
+    flag = None
     if sigma is not None:  # a replaced vector has no uncertainty of its own
         sigma = np.where(valid, sigma, np.nan)
-    ds = _to_dataset(field, valid, peak, centres, ia, shape, st, history, sigma)
+        # truth-free: where the final window's filtering of the measured field likely exceeds σ (issue 38)
+        flag = unresolved(field, sigma, st.sizes[-1][0], st.sizes[-1][1])
+    ds = _to_dataset(field, valid, peak, centres, ia, shape, st, history, sigma, flag)
     ds.attrs["uncertainty"] = uncertainty or "none"
     return ds
 
@@ -1009,6 +1007,7 @@ def _to_dataset(
     settings: WidimSettings,
     history: _History,
     sigma: np.ndarray | None = None,
+    flag: np.ndarray | None = None,
 ) -> xr.Dataset:
     nd = len(shape)
     dims = _DIMS3[-nd:]
@@ -1066,6 +1065,16 @@ def _to_dataset(
         valid.astype(bool),
         {"long_name": "passed the normalised median test at the final pass (not replaced)", "units": "1"},
     )
+    if flag is not None:
+        data_vars["unresolved"] = (
+            dims,
+            flag.astype(bool),
+            {
+                "long_name": "the final window's filtering likely exceeds the uncertainty (truth-free: the measured "
+                "field's curvature x L^2/24 above UNRESOLVED_FACTOR sigma in a component, lfstudy.piv.resolution)",
+                "units": "1",
+            },
+        )
     data_vars["peak"] = (
         dims,
         peak,

@@ -1,23 +1,30 @@
 """Per-vector displacement uncertainty of a WIDIM result.
 
-Two estimators of the standard uncertainty of each component, both from the final
-pass's deformed windows ``a`` (frame 1 moved back by -d/2) and ``b`` (frame 2 moved
-by +d/2), which match up to the residual displacement:
+Three estimators of the standard uncertainty of each component (:data:`METHODS`), all from the
+final pass's deformed windows ``a`` (frame 1 moved back by -d/2) and ``b`` (frame 2 moved by +d/2),
+which match up to the residual displacement. All three estimate the random error of what a window
+measures: the window's filtering of a flow that varies inside it (the top-hat response) is a
+separate term no estimator built from the window's own data can see (issue 38; the study's
+``filter_rms_*`` and the ``unresolved`` flag of :mod:`lfstudy.piv.resolution`).
 
-``"correlation"`` (the default): correlation statistics (Wieneke 2015, Meas. Sci.
-Technol. 26 074002), extended to 3-D. Along array axis k every voxel pair adds
-``c+_i = a(i) b(i + e_k)`` to the correlation at lag +1 and ``c-_i = a(i + e_k) b(i)``
-to the one at lag -1. At a converged (symmetric) peak the difference
-``ΔC = Σ (c+_i − c-_i)`` is zero in expectation; its standard deviation, from the
-spread of the individual contributions, is ``σ_ΔC = sqrt(Σ (ΔC_i − mean ΔC)²)``.
-The peak's neighbours are then taken as ``C± = C̄ ± σ_ΔC / 2`` about their mean
-``C̄ = (C+ + C-) / 2`` and the three-point Gaussian estimator (thesis eq. 6.2)
+``"independent"``: correlation statistics as published (Wieneke 2015, Meas. Sci. Technol. 26
+074002), extended to 3-D. Along array axis k every voxel pair adds ``c+_i = a(i) b(i + e_k)`` to the
+correlation at lag +1 and ``c-_i = a(i + e_k) b(i)`` to the one at lag -1. At a converged
+(symmetric) peak the difference ``ΔC = Σ (c+_i − c-_i)`` is zero in expectation; its standard
+deviation, from the spread of the individual contributions taken as independent, is
+``σ_ΔC = sqrt(Σ (ΔC_i − mean ΔC)²)``. The peak's neighbours are then taken as
+``C± = C̄ ± σ_ΔC / 2`` about their mean ``C̄ = (C+ + C-) / 2`` and the three-point estimator WIDIM
+uses (:func:`lfstudy.piv.subpixel.three_point`: the Gaussian of thesis eq. 6.2, parabolic where a
+logarithm is undefined) turns that asymmetry into a displacement:
+``σ_d = |d(C0, C̄ + σ_ΔC/2, C̄ − σ_ΔC/2)|``. The estimator is scale free, so the raw
+(un-normalised) sums serve.
 
-    d = (ln C- − ln C+) / (2 ln C- − 4 ln C0 + 2 ln C+)
-
-turns that asymmetry into a displacement: ``σ_d = |d(C0, C̄ + σ_ΔC/2, C̄ − σ_ΔC/2)|``
-(the parabolic estimator where a logarithm is undefined). The estimator is scale free,
-so the raw (un-normalised) sums serve.
+``"correlation"`` (the default): the same with neighbouring contributions counted as correlated.
+A particle image spans several voxels, so the ΔC_i of neighbouring voxels are not independent and
+the published sum reads σ_ΔC short. ``σ_ΔC²`` is multiplied by ``Var(Σ ΔC_i) / Σ (ΔC_i − mean)²``,
+estimated per window from the autocorrelation ρ_j(l) of the ΔC_i field along each axis j, separably:
+``Π_j (1 + 2 Σ_l ρ_j(l))``, each sum over the positive lags up to the first ρ <= 0 (at most
+``_MAX_LAG`` voxels).
 
 ``"moment"``: a simple moment estimate for comparison: the Gaussian width ``s_k`` of the
 correlation peak along k (from the same three points, ``1/s_k² = 2 ln C0 − ln C+ − ln C-``)
@@ -25,14 +32,16 @@ times the noise-to-signal ratio of the peak, ``sqrt((1 − ρ) / ρ)`` with ``ρ
 the correlation coefficient at the peak, over the square root of the number of independent
 matches, the window's voxels over the peak's volume ``Π (2 sqrt(π) s_j)``.
 
-Both sums run over the voxels of each window in one numba sweep (no correlation
-plane): cheap beside the deformation and FFT of a pass.
+The sums run over the voxels of each window in numba sweeps (no correlation plane): cheap beside
+the deformation and FFT of a pass.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from lfstudy.piv.subpixel import three_point
 
 __all__ = ["window_uncertainty", "METHODS"]
 
@@ -157,15 +166,9 @@ def _dc_factor(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:  # pra
 
 
 def _gauss_offset(c0: np.ndarray, cp: np.ndarray, cm: np.ndarray) -> np.ndarray:
-    """|offset| of the three-point Gaussian (eq. 6.2), parabolic where a log is undefined; NaN without a peak."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        pos = (cm > 0) & (c0 > 0) & (cp > 0)
-        lm, l0, lp = (np.log(np.where(pos, v, 1.0)) for v in (cm, c0, cp))
-        gden = 2 * lm - 4 * l0 + 2 * lp
-        gauss = np.abs((lm - lp) / gden)
-        pden = 2 * cm - 4 * c0 + 2 * cp
-        parab = np.abs((cm - cp) / pden)
-        return np.where(pos & (gden < 0), gauss, np.where(pden < 0, parab, np.nan))
+    """|offset| of the three-point estimator WIDIM uses (:func:`lfstudy.piv.subpixel.three_point`); NaN without a
+    peak."""
+    return np.abs(three_point(cm, c0, cp))
 
 
 def window_uncertainty(a: np.ndarray, b: np.ndarray, method: str = "correlation") -> np.ndarray:
@@ -176,7 +179,7 @@ def window_uncertainty(a: np.ndarray, b: np.ndarray, method: str = "correlation"
     a, b : ndarray, shape (n, *w)
         The final pass's deformed (or offset) windows of frame 1 and 2, 2-D or 3-D
         windows; they should match at lag 0 (a converged pass).
-    method : {"correlation", "moment"}
+    method : {"correlation", "moment", "independent"}
         Estimator (module docstring).
 
     Returns

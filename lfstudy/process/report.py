@@ -167,7 +167,10 @@ def _pair_blocks(
                 "pairs",
                 "uncertainty_maps",
                 "Standard uncertainty σ of each component per vector, middle x–y slice (colour scales over the "
-                f"whole field); blank: invalid or replaced vector. {calibration_note(piv.attrs)}",
+                "whole field); blank: invalid or replaced vector. Red crosses: vectors flagged unresolved, "
+                "where the measured field's curvature says the final window's averaging of the flow likely "
+                f"exceeds σ (σ covers the random error of what a window measures, not that averaging). "
+                f"{calibration_note(piv.attrs)}",
                 "uncertainty maps",
                 lambda one=one: rf.uncertainty_maps(one),
                 case=name,

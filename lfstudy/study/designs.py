@@ -13,9 +13,10 @@ seeding and processing settings); designs are compared flow by flow.
 - :func:`recommend`: per flow, the Pareto set over the metric table's ``pareto``
   metrics (total error, in-plane and depth resolution) and one sentence naming
   the recommended design, what it trades away and what limits its error.
-- :func:`error_limit`, :func:`budget_table`: per design, the oracle's error (the
-  case's PIV on the true particle volumes: what the grid and the PIV windows can
-  resolve) beside the error the reconstruction adds, and which of the two limits it.
+- :func:`error_limit`, :func:`budget_table`: per design, the error in three parts:
+  the PIV windows' filtering of the flow, what the reconstruction adds beyond the
+  oracle (the case's PIV on the true particle volumes) and the rest of the oracle's
+  error (random, plus the estimator's bias), and which of the three limits it.
 - :func:`design_names`: one readable name per design, with units ("M −1, f/2.0, 88.8 µm lenslets").
 - :func:`summary_table`, :func:`flow_verdict`: per flow, one compact row per design (error, oracle, the
   reconstruction's share, dominant component, limiting stage) and the verdict in words.
@@ -65,14 +66,21 @@ __all__ = [
 
 #: The total error designs are ranked by (mm).
 TOTAL = "rms_total_mm"
-#: The error budget's two parts (rows of the metric table): the oracle's total error, the reconstruction's share.
+#: The error budget (rows of the metric table): the oracle's total error, the reconstruction's share, the windows'
+#: filtering of the truth and the oracle's error beyond it (case² = filter² + recon_added² + rest²).
 ORACLE_TOTAL = "oracle_rms_total_mm"
 ADDED_TOTAL = "recon_added_rms_total_mm"
+FILTER_TOTAL = "filter_rms_total_mm"
+REST_TOTAL = "rest_rms_total_mm"
 #: The budget's signed metrics (no better end: the crosstalk): whether they differ from 0 is the finding
 #: (issue 27), so with replicates they are shown with their standard error.
 SIGNED = tuple(m.name for m in mt.shown_in("budget") if m.lower_is_better is None)
 #: Labels of what limits a design's error (:func:`error_limit`).
-LIMITS = {"reconstruction": "the reconstruction", "windows": "the PIV windows"}
+LIMITS = {
+    "reconstruction": "the reconstruction",
+    "windows": "the PIV windows",
+    "random": "the random error (and the estimator's bias)",
+}
 
 
 def design_label(row: Mapping[str, object], dims: Sequence[str]) -> str:
@@ -321,14 +329,24 @@ def pareto_front(df: pd.DataFrame, objectives: Sequence[tuple[str, str]] | None 
     return front
 
 
-def error_limit(oracle_mm: float, added_mm: float) -> str:
-    """What limits a design's error: ``"reconstruction"`` where the error the reconstruction adds
-    exceeds the oracle's (the PIV windows on the true volumes), ``"windows"`` where it does not, ``""``
-    where either is unknown (a study without the oracle)."""
-    o, a = float(oracle_mm), float(added_mm)
+def error_limit(oracle_mm: float, added_mm: float, filter_mm: float = math.nan) -> str:
+    """What limits a design's error: the largest of the budget's three parts.
+
+    The case's error splits in quadrature into the windows' filtering of the flow (``filter_mm``),
+    what the reconstruction adds (``added_mm``) and the rest of the oracle's error, sqrt(oracle² −
+    filter²): the random error and the estimator's own bias. ``"windows"``, ``"reconstruction"`` or
+    ``"random"`` names the largest. Without the filter term (NaN: a study from before it) the oracle's
+    whole error counts as the windows'. ``""`` where the oracle or the added share is unknown (a study
+    without the oracle)."""
+    from lfstudy.study.metrics import quadrature_excess
+
+    o, a, f = float(oracle_mm), float(added_mm), float(filter_mm)
     if not (math.isfinite(o) and math.isfinite(a)):
         return ""
-    return "reconstruction" if a > o else "windows"
+    if not math.isfinite(f):
+        return "reconstruction" if a > o else "windows"
+    parts = {"windows": f, "reconstruction": a, "random": quadrature_excess(o, f)}
+    return max(parts, key=parts.__getitem__)
 
 
 #: A particle method's scores (rows of the metric table): true particles found, and found within the depth of
@@ -380,7 +398,8 @@ def density_limited(table: pd.DataFrame) -> list[str]:
 
 def budget_table(study: xr.Dataset) -> pd.DataFrame:
     """Per computed case: the design, its flow, the metric table's ``budget`` metrics (the case's error
-    beside the oracle's and the reconstruction's share) and ``limited_by`` (:func:`error_limit`).
+    beside the oracle's, the windows' filtering, the rest of the oracle's error and the reconstruction's
+    share) and ``limited_by`` (:func:`error_limit`, the largest of the three parts).
     Empty when the study holds no oracle.
 
     With replicates: the means, each followed by its standard deviation ``<metric>_sd``, but the
@@ -392,7 +411,10 @@ def budget_table(study: xr.Dataset) -> pd.DataFrame:
     names = [c for c in mt.names("budget") if c in df]
     cols = [c for c in ("design", "flow") if c in df] + spread_columns(df, names, se=SIGNED)
     out = df[cols].copy()
-    out["limited_by"] = [LIMITS.get(error_limit(o, a), "") for o, a in zip(df[ORACLE_TOTAL], df[ADDED_TOTAL])]
+    filt = df[FILTER_TOTAL] if FILTER_TOTAL in df else pd.Series(math.nan, index=df.index)
+    out["limited_by"] = [
+        LIMITS.get(error_limit(o, a, f), "") for o, a, f in zip(df[ORACLE_TOTAL], df[ADDED_TOTAL], filt)
+    ]
     return out
 
 
@@ -580,18 +602,37 @@ def _sentence(
 def _budget_sentence(pick: pd.Series) -> str:
     """Which part of the recommended design's error budget dominates (nothing without the oracle)."""
     oracle, added = pick.get(ORACLE_TOTAL, math.nan), pick.get(ADDED_TOTAL, math.nan)
-    limit = error_limit(oracle, added)
+    filt, rest = pick.get(FILTER_TOTAL, math.nan), pick.get(REST_TOTAL, math.nan)
+    limit = error_limit(oracle, added, filt)
+    three = np.isfinite(filt)
+    parts = (
+        f" (in quadrature: the windows' filtering of the flow {_fmt(filt, 'mm')}, the reconstruction "
+        f"{_fmt(added, 'mm')}, the random error and the estimator's bias {_fmt(rest, 'mm')})"
+    )
     if limit == "reconstruction":
         return (
             f" Its error is mostly the reconstruction's: on the true particle volumes the same grid and PIV windows "
-            f"give {_fmt(oracle, 'mm')}, the reconstruction adds {_fmt(added, 'mm')} (in quadrature), so a better "
-            "reconstruction would lower it."
+            f"give {_fmt(oracle, 'mm')}, the reconstruction adds {_fmt(added, 'mm')}"
+            + (parts if three else " (in quadrature)")
+            + ", so a better reconstruction would lower it."
+        )
+    if limit == "windows" and three:
+        return (
+            f" Its error is mostly the PIV windows' filtering of the flow: averaged over the final windows the true "
+            f"displacement differs from its value at the vectors by {_fmt(filt, 'mm')}{parts}, so smaller windows "
+            "(or a denser seeding that allows them) would lower it, a better reconstruction would not."
         )
     if limit == "windows":
         return (
             f" Its error is mostly the PIV windows': on the true particle volumes the same grid and windows give "
             f"{_fmt(oracle, 'mm')}, the reconstruction adds only {_fmt(added, 'mm')} (in quadrature), so "
             + _reconstruction_gain(pick.get(TOTAL, math.nan), added)
+        )
+    if limit == "random":
+        return (
+            f" Its error is mostly random (with the estimator's own bias){parts}: neither the windows' filtering nor "
+            "the reconstruction sets it, more particles per window (or larger windows, at the cost of resolution) "
+            "would lower it."
         )
     return ""
 

@@ -759,8 +759,9 @@ def _sigma_of(piv: xr.Dataset, c: str) -> tuple[xr.DataArray | None, str]:
 def uncertainty_maps(piv: xr.Dataset) -> Figure:
     """Maps of the per-vector standard uncertainty σ of u, v, w on the middle x–y slice, one colour
     scale per component (over the whole field, so the slice reads against every depth); blank: no σ
-    (invalid or replaced vector). A measurement without a known flow sees where it can trust its
-    vectors.
+    (invalid or replaced vector). Vectors the PIV flags ``unresolved`` (the final window's filtering
+    of the flow likely exceeds σ, :mod:`lfstudy.piv.resolution`) carry a red cross. A measurement
+    without a known flow sees where it can trust its vectors.
 
     Raises
     ------
@@ -774,6 +775,9 @@ def uncertainty_maps(piv: xr.Dataset) -> Figure:
     axes = fig.subplots(1, len(comps), squeeze=False)[0]
     sel = {"z": piv.sizes["z"] // 2} if "z" in piv.dims else {}
     where = "".join(f" at {d} = {float(piv[d][i]):+.2f} mm" for d, i in sel.items())
+    flagged = None
+    if "unresolved" in piv:
+        flagged = np.asarray(piv["unresolved"].isel(sel).transpose("y", "x").values, bool)
     for a, (axn, c) in zip(axes, comps):
         sigma, unit = _sigma_of(piv, c)
         assert sigma is not None
@@ -785,11 +789,15 @@ def uncertainty_maps(piv: xr.Dataset) -> Figure:
             piv["x"].values, piv["y"].values, sl.values, shading="nearest", cmap="viridis", vmin=lim[0], vmax=lim[1]
         )
         fig.colorbar(im, ax=a).set_label(f"σ_{c} [{unit}]", fontsize=8)
+        if flagged is not None and flagged.any():  # the truth-free flag: the window's filtering may exceed σ
+            yy, xx = np.nonzero(flagged)
+            a.scatter(piv["x"].values[xx], piv["y"].values[yy], marker="x", s=14, c="red", linewidths=0.8)
         a.set_title(f"σ of {c} ({axn})", fontsize=9)
         a.set_xlabel("x [mm]")
         a.set_aspect("equal")
     axes[0].set_ylabel("y [mm]")
-    fig.suptitle(f"Per-vector standard uncertainty{where} (blank: invalid or replaced vector)")
+    flags = f"; red x: unresolved, {int(flagged.sum())} of {flagged.size} vectors" if flagged is not None else ""
+    fig.suptitle(f"Per-vector standard uncertainty{where} (blank: invalid or replaced vector{flags})")
     return fig
 
 

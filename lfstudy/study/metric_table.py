@@ -12,11 +12,12 @@ design comparison it appears in. Everything else reads this table at call time:
   Pareto-front, resolution and error-budget tables (``front``, ``resolution``, ``budget``);
 - the report's uncertainty table (``uncertainty``).
 
-Two name prefixes carry a meaning of their own: ``oracle_<stat>`` is the statistic ``<stat>`` of
+Three name prefixes carry a meaning of their own: ``oracle_<stat>`` is the statistic ``<stat>`` of
 :func:`~lfstudy.study.metrics.case_errors` on the *oracle* (the case's PIV run on the true particle
-volumes, :func:`lfstudy.study.case.oracle_piv`), and ``recon_added_<stat>`` is the share of the
-case's ``<stat>`` the oracle does not explain, sqrt(max(case² − oracle², 0))
-(:func:`lfstudy.study.metrics.error_budget`). A row with either prefix needs no code of its own.
+volumes, :func:`lfstudy.study.case.oracle_piv`), ``recon_added_<stat>`` is the share of the
+case's ``<stat>`` the oracle does not explain, sqrt(max(case² − oracle², 0)), and ``rest_<stat>`` the
+oracle's beyond the windows' filtering ``filter_<stat>``, sqrt(max(oracle² − filter², 0))
+(:func:`lfstudy.study.metrics.error_budget`). A row with any of them needs no code of its own.
 
 Adding a metric is one :class:`Metric` row plus the code that computes its value
 (``docs/howto/add-metric.md``). Like xclim's indicators, units and long names are declared once
@@ -162,6 +163,17 @@ _ADDED = (
     "sqrt(max({case}² − {oracle}², 0)), assuming the two add in quadrature (independent errors); 0 where the "
     "case does as well as the oracle"
 )
+_FILTER = (
+    "RMS over the valid vectors of the windows' filtering of the truth in {ax}: the true displacement averaged "
+    "over each vector's final window (the top-hat WIDIM measures) minus the true displacement at its centre; 0 "
+    "for a uniform flow, (L²/24) ∂²u/∂x² per axis for a smooth one (L the window length). The part of the "
+    "oracle's error no estimator built from a window's own data can see"
+)
+_REST = (
+    "error of the oracle beyond the windows' filtering, sqrt(max({oracle}² − {filter}², 0)): the random error "
+    "plus the estimator's own bias. With the reconstruction's share the case's error splits in quadrature into "
+    "filter² + recon_added² + rest²"
+)
 _CROSSTALK = (
     "uniform flows: mean spurious z displacement per unit of imposed lateral displacement, "
     "(mean measured w − true w) / |(true u, true v)| over valid vectors (after the depth calibration where "
@@ -216,6 +228,15 @@ METRICS: tuple[Metric, ...] = (
     Metric(
         "recon_added_rms_total_mm", "mm", "total RMS error added by the reconstruction", True, {"budget"}, "error",
         description="total RMS " + _ADDED.format(case="rms_total_mm", oracle="oracle_rms_total_mm"),
+    ),
+    Metric(
+        "filter_rms_total_mm", "mm", "total RMS of the windows' filtering of the truth", True, {"budget"}, "error",
+        description="total " + _FILTER.format(ax="x, y, z"),
+    ),
+    Metric(
+        "rest_rms_total_mm", "mm", "total RMS error beyond the windows' filtering and the reconstruction", True,
+        {"budget"}, "error", description="total " + _REST.format(oracle="oracle_rms_total_mm",
+                                                               filter="filter_rms_total_mm"),
     ),
     Metric("crosstalk_z", "1", "spurious w per unit lateral shift", None, {"headline", "budget"}, "error",
            description=_CROSSTALK),
@@ -313,13 +334,41 @@ METRICS: tuple[Metric, ...] = (
                description="mean measured displacement " + _ORACLE),
     *_per_axis("recon_added_rms_{ax}_mm", "mm", "RMS error {ax} added by the reconstruction", lower_is_better=True,
                group="error", description="RMS " + _ADDED.format(case="rms_{ax}_mm", oracle="oracle_rms_{ax}_mm")),
+    *_per_axis("filter_rms_{ax}_mm", "mm", "RMS of the windows' filtering of the true {ax} displacement",
+               lower_is_better=True, group="error", description=_FILTER),
+    *_per_axis("rest_rms_{ax}_mm", "mm", "RMS error {ax} beyond the windows' filtering and the reconstruction",
+               lower_is_better=True, group="error",
+               description=_REST.format(oracle="oracle_rms_{ax}_mm", filter="filter_rms_{ax}_mm")),
     *_per_axis("unc_coverage_{ax}", "1", "uncertainty coverage {ax}", shown=_UNC_SHOWN, group="error",
-               description="fraction of the valid vectors whose |error| in {ax} is within their standard uncertainty "
-               "(unc_* of the PIV; 0.68 where the uncertainty is right)"),
+               description="fraction of the valid vectors whose |error| in {ax} against the truth averaged over the "
+               "vector's final window (what the window measures) is within their standard uncertainty (unc_* of the "
+               "PIV; 0.68 where the uncertainty is right)"),
     *_per_axis("unc_ratio_{ax}", "1", "RMS error / RMS uncertainty {ax}", shown=_UNC_SHOWN,
                group="error",
-               description="RMS of the {ax} error over RMS of the PIV's standard uncertainty, over the valid vectors "
-               "(1 where the uncertainty is right)"),
+               description="RMS of the {ax} error against the truth averaged over the vector's final window over RMS "
+               "of the PIV's standard uncertainty, over the valid vectors (1 where the uncertainty is right)"),
+    *_per_axis("unc_coverage_point_{ax}", "1", "uncertainty coverage {ax} against the point truth", group="error",
+               description="unc_coverage_{ax} with the error against the truth at the window centre (the window's "
+               "filtering counted as error)"),
+    *_per_axis("unc_ratio_point_{ax}", "1", "RMS error / RMS uncertainty {ax} against the point truth",
+               group="error",
+               description="unc_ratio_{ax} with the error against the truth at the window centre (the window's "
+               "filtering counted as error)"),
+    Metric(
+        "unresolved_percent", "percent", "valid vectors flagged unresolved", None, (), "quality",
+        description="valid vectors the PIV flags 'unresolved' (piv.zarr: the window's filtering of the measured "
+        "field likely exceeds σ; truth-free, lfstudy.piv.resolution)",
+    ),
+    Metric(
+        "unresolved_hit", "1", "share of the true filter errors > 2σ flagged", False, (), "quality",
+        description="of the valid vectors whose true filtering (window-averaged − point truth) exceeds 2σ in any "
+        "component, the share flagged unresolved (1: the flag misses none); NaN where there are none",
+    ),
+    Metric(
+        "unresolved_false", "1", "share of the flags on true filter errors < σ", True, (), "quality",
+        description="of the valid vectors flagged unresolved, the share whose true filtering is below σ in every "
+        "component (0: no false flag); NaN where none is flagged",
+    ),
     Metric("true_mag_mm", "mm", "mean magnitude of the true displacement", None, (), "displacement"),
     Metric("n_vectors", "1", "number of PIV vectors", None, (), "count"),
     Metric("n_valid", "1", "number of valid vectors", None, (), "count"),

@@ -856,7 +856,8 @@ def _tolerance_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None)
 
 
 def _budget_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None) -> Iterator[Block]:
-    """Per design: the oracle's error beside the error the reconstruction adds, and which dominates."""
+    """Per design: the error in three parts (the windows' filtering, the reconstruction, the rest) and which
+    dominates."""
     from lfstudy.study.designs import budget_table, named
 
     bt = named(budget_table(study), names)
@@ -866,12 +867,16 @@ def _budget_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None) ->
     yield Block(
         "answer",
         "budget",
-        html="<h4>Error budget: the PIV windows against the reconstruction</h4><p>The <i>oracle</i> is the "
+        html="<h4>Error budget: the PIV windows, the reconstruction and the rest</h4><p>The <i>oracle</i> is the "
         "case's PIV (same grid, windows and passes) run on the true particle volumes of both frames: the best any "
-        "reconstruction could hand to the PIV, so its error is what the design's grid and PIV windows can "
-        "resolve. The error the reconstruction adds is the case's beyond it, in quadrature "
-        "(sqrt(case² − oracle²)). <i>limited_by</i> names the larger of the two. The crosstalk columns give, for "
-        "a uniform flow, the spurious w per unit of lateral shift."
+        "reconstruction could hand to the PIV. The error the reconstruction adds is the case's beyond it, in "
+        "quadrature (<i>recon_added</i> = sqrt(case² − oracle²)). The oracle's own error splits in two: "
+        "<i>filter_rms_total_mm</i> is the windows' filtering of the flow, the true displacement averaged over "
+        "each final window (the top-hat WIDIM measures) minus its value at the vector, which no estimator built "
+        "from a window's own data can see (0 for a uniform flow); <i>rest_rms_total_mm</i> = sqrt(oracle² − "
+        "filter²) is what is left, the random error plus the estimator's own bias. So case² = filter² + "
+        "recon_added² + rest², and <i>limited_by</i> names the largest of the three. The crosstalk columns give, "
+        "for a uniform flow, the spurious w per unit of lateral shift."
         + (
             " For a method that fits particles, <i>found_percent</i> and <i>ghost_percent</i> score its particle "
             "lists against the true particles (within half a voxel), and <i>particle_crosstalk_z</i> is the "
