@@ -71,18 +71,23 @@ import numpy as np
 WIDTH, HEIGHT = 4872, 3248  # Table 4.3
 
 
-def _scene(width: int, height: int, ppp: float, rays: int, photons: int, seed: int):
+def _scene(width: int, height: int, ppp: float, rays: int, photons: int, seed: int, imperfections=None):
     from lfstudy.lightfield import find_lenslet_centers, register, synthetic_pinhole
     from lfstudy.optics import PlenopticCamera
     from lfstudy.reconstruct import ReconstructionInputs, make_grid
     from lfstudy.simulate import render, seed_particles
+    from lfstudy.simulate.raytrace import render_pinhole
     from lfstudy.simulate.sensor import apply_sensor
 
     cam = PlenopticCamera(width, height, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_offset_x=0.013)
     cam = cam.with_(lenslet_offset_y=-0.021)
     field = seed_particles(cam, ppp=ppp, z_span=7.0, seed=seed)
-    cen = find_lenslet_centers(synthetic_pinhole(cam, amplitude=3000, seed=seed + 1), cam)
-    img = render(cam, field, rays, seed + 2, method="montecarlo")
+    if imperfections is None:
+        pin = synthetic_pinhole(cam, amplitude=3000, seed=seed + 1)
+    else:  # the calibration sees the imperfect camera too (the exact pinhole image, with shot noise)
+        pin = render_pinhole(cam, seed=seed + 1, imperfections=imperfections, shot_noise=True)
+    cen = find_lenslet_centers(pin, cam)
+    img = render(cam, field, rays, seed + 2, method="montecarlo", imperfections=imperfections)
     lf = register(apply_sensor(img, photons_per_particle=photons, seed=seed + 3), cen, cam)
     grid = make_grid(cam, cam.focal_planes())
     return field, ReconstructionInputs(lightfield=lf, centers=cen, camera=cam, grid=grid)
@@ -148,6 +153,12 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=None, help="default: the method's")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--compare", nargs="*", default=[], metavar="K=V", help="ipr_particles settings to compare")
+    ap.add_argument(
+        "--imperfections",
+        default=None,
+        metavar="K=V,...",
+        help="camera.imperfections the images (particles and pinhole) have and the fit does not know",
+    )
     ap.add_argument("--memory", action="store_true", help="peak memory of IPR on the full frame (see the docstring)")
     ap.add_argument("--memory-particles", type=int, default=100, help="--memory: particles seeded")
     args = ap.parse_args()
@@ -168,9 +179,10 @@ def main() -> None:
         ipr_particles(inputs, **(setting | {"iterations": 1}))
     for ppp in args.ppp:
         t0 = time.perf_counter()
-        field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed)
+        imp = None if args.imperfections is None else _setting(args.imperfections)
+        field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed, imp)
         t_sim = time.perf_counter() - t0
-        print(f"ppp {ppp}: {len(field.x)} true particles (simulation {t_sim:.1f} s)")
+        print(f"ppp {ppp}: {len(field.x)} true particles (simulation {t_sim:.1f} s; imperfections {imp})")
         t_ref = None
         for name, setting in runs:
             kw = ({} if args.iterations is None else {"iterations": args.iterations}) | setting
