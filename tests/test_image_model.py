@@ -85,20 +85,35 @@ def _recording(gap: float, noise: float, seed: int):
     return img, inten, render
 
 
+def _residual(data, render, inten, model=None):
+    """data − Σ inten·U of the images of ``model`` (default nominal: the residual a first IPR pass leaves)."""
+    res = data.copy()
+    buf, offs, r0, c0, shp = render(PTS, model=model)
+    for i in range(len(PTS)):
+        h, w = shp[i]
+        res[r0[i] : r0[i] + h, c0[i] : c0[i] + w] -= inten[i] * buf[offs[i] : offs[i] + h * w].reshape(h, w)
+    return res
+
+
 def test_calibration_finds_the_gap_the_nominal_model_lacks():
     """Particles at their true positions, intensities a fifth off: the calibration recovers a 4 % gap error
     (within 0.002), keeps the blur near 1, lowers the residual below a tenth of the nominal one, and says
     what it changed per depth (most where the aperture images are largest)."""
     data, inten, render = _recording(0.04, 1e-3, 0)
     mask = np.ones(data.shape, np.uint8)
-    model, res, amp, info = calibrate_image_model(render, data, mask, PTS, inten * 0.8, CAM, (-3.5, 3.5))
+    res0 = _residual(data, render, inten * 0.95)
+    model, res, amp, info = calibrate_image_model(render, data, res0, mask, PTS, inten * 0.95, CAM, (-3.5, 3.5))
     assert info["image_calibration_accepted"]
     assert model.gap_error == pytest.approx(0.04, abs=0.002)
     assert model.blur_scale == pytest.approx(1.0, abs=0.15)
     f0, f1 = info["image_calibration_cost"]
+    assert f0 <= np.sum(res0 * res0) / np.sum(data * data) * (1 + 1e-12)  # at the best common intensity factor
     assert f1 < 0.1 * f0
-    assert np.sum(res * res) / np.sum(data * data) == pytest.approx(f1, rel=1e-9)
+    # the intensities refitted under the model, and its exact residual
     np.testing.assert_allclose(amp, inten, rtol=0.05)
+    exact = _residual(data, render, amp, model)
+    assert np.abs(res - exact).max() <= 1e-9 * np.abs(data).max()
+    assert np.sum(res * res) <= f1 * np.sum(data * data)
     ch = model_change(CAM, model, np.array([-3.0, 0.0, 3.0]), render)
     assert ch["image_change_z"] == [-3.0, 0.0, 3.0]
     assert all(v > 0.01 for v in ch["image_change_max"])
@@ -107,8 +122,10 @@ def test_calibration_finds_the_gap_the_nominal_model_lacks():
 def test_calibration_keeps_the_nominal_images_of_a_nominal_camera():
     data, inten, render = _recording(0.0, 1e-3, 1)
     mask = np.ones(data.shape, np.uint8)
-    model, _, _, info = calibrate_image_model(render, data, mask, PTS, inten, CAM, (-3.5, 3.5))
+    res0 = _residual(data, render, inten)
+    model, res, amp, info = calibrate_image_model(render, data, res0, mask, PTS, inten, CAM, (-3.5, 3.5))
     assert model.ideal and not info["image_calibration_accepted"]
+    assert res is res0 and amp is inten  # nothing changed
 
 
 def test_calibration_bytes_do_not_depend_on_the_threads():
@@ -119,7 +136,8 @@ def test_calibration_bytes_do_not_depend_on_the_threads():
     try:
         for n in sorted({1, numba.config.NUMBA_NUM_THREADS}):
             numba.set_num_threads(n)
-            out.append(calibrate_image_model(render, data, mask, PTS, inten, CAM, (-3.5, 3.5)))
+            res0 = _residual(data, render, inten)
+            out.append(calibrate_image_model(render, data, res0, mask, PTS, inten, CAM, (-3.5, 3.5)))
     finally:
         numba.set_num_threads(before)
     for a in out[1:]:

@@ -16,12 +16,15 @@ nominal ones without moving the calibrated lenslet centres:
     The diffraction blurs σm (lenslet plane) and σl (sensor plane) times this: a stand-in for aberrations that
     widen every edge of the images.
 
-Calibration (:func:`calibrate_image_model`): with the particles of a first IPR pass held at their positions, the
-cost of a model θ is the residual's ‖data − Σ I_p·U_p(θ)‖² after one Gauss–Seidel pass refitting every intensity
-(the IPR fit's own intensity step); θ is found by coordinate descent, a parabola through three costs per parameter
-and round, the steps halved each round. It is kept only where the cost falls by more than ``_ACCEPT`` times the
-residual variance per pixel σ² (two parameters fitted to the noise lower ‖R‖² by ~2σ²). The positions are then
-shaken again with the calibrated images (IPR alternates: a calibration after some iterations, the rest with it).
+Calibration (:func:`calibrate_image_model`): with the particles of a first IPR pass held at their positions and
+intensities, the cost of a model θ is the residual's ‖data − k·Σ I_p·U_p(θ)‖² at the best common factor k of the
+intensities (without it a blur scale would stand in for intensities that are all a little off; the images of at most
+``_PARTICLES`` particles moved to θ, the others held); θ is found by coordinate descent, a parabola through three
+costs per parameter and round, the steps halved each round; the intensities are then refitted under θ (one
+Gauss–Seidel pass, the IPR fit's own intensity step). It is kept only where the cost falls by more than ``_ACCEPT``
+times the residual variance per pixel σ² (two parameters fitted to the noise lower ‖R‖² by ~2σ²). The positions are
+then shaken again with the calibrated images (IPR alternates: a calibration after some iterations, the rest with
+it).
 
 What it changed is reported per depth (:func:`model_change`): the calibrated image of a particle on the axis
 against the nominal one at depths over the grid (largest difference as a fraction of the nominal peak, and the
@@ -63,6 +66,8 @@ _STEPS = (0.01, 0.2)
 _ROUNDS = 6
 #: A calibrated model is kept only where ‖R‖² falls by more than this many σ² (residual variance per pixel)
 _ACCEPT = 25.0
+#: The search moves at most this many particles' images (a full frame holds ~100,000; a crop a few hundred)
+_PARTICLES = 2000
 #: The aperture image must stay this many pixels wide at every depth of the grid (β = 0: the lenslets image the
 #: aperture onto a point, which the exact renderer refuses)
 _MIN_DISC_PX = 1.0
@@ -149,6 +154,7 @@ def _cost(
 def calibrate_image_model(
     render: Callable[..., Any],
     data: np.ndarray,
+    res: np.ndarray,
     mask: np.ndarray,
     xyz: np.ndarray,
     inten: np.ndarray,
@@ -165,10 +171,11 @@ def calibrate_image_model(
     render : callable
         ``render(pos, model=...)`` -> the unit images of the particles at ``pos`` in their patches
         (:func:`lfstudy.reconstruct.ipr.particle_patches`' tuple).
-    data, mask : ndarray (rows, cols)
-        The recording on the sensor (background subtracted) and the pixels the light field holds.
+    data, res, mask : ndarray (rows, cols)
+        The recording on the sensor (background subtracted), its residual under ``start``
+        (``data − Σ inten·U(start)``) and the pixels the light field holds.
     xyz, inten : ndarray
-        The particles of a first fit (positions [mm], intensities), held fixed (the intensities refitted).
+        The particles of a first fit (positions [mm], intensities), held fixed.
     camera : PlenopticCamera
         The model camera (:func:`lfstudy.reconstruct.ipr.calibrated_camera`).
     z_range : (float, float)
@@ -183,31 +190,46 @@ def calibrate_image_model(
     model : ImageModel
         The calibrated model (``start`` where no model lowers ‖R‖² by more than ``_ACCEPT``·σ²).
     residual, intensities : ndarray
-        The residual and the refitted intensities under ``model``.
+        Under ``model``: the exact residual with every intensity refitted (one Gauss–Seidel pass); ``res`` and
+        ``inten`` themselves where ``start`` is kept.
     info : dict
-        ``image_calibration_cost`` (‖R‖² of the start and of the model, relative to ‖data‖²),
-        ``image_calibration_evaluations`` and ``image_calibration_accepted``.
+        ``image_calibration_cost`` (‖R‖² under ``start`` and under the model, the intensities held up to a common
+        factor, relative to ‖data‖²), ``image_calibration_evaluations``, ``image_calibration_particles`` (those
+        the search used) and ``image_calibration_accepted``.
+
+    The search moves the images of at most ``_PARTICLES`` particles (evenly spread over the list; the others
+    stay in ``res`` with their ``start`` images): each trial model costs one image per particle used.
     """
+    from lfstudy.reconstruct.ipr import _accumulate_masked
+
     start = start or ImageModel()
     xyz = np.asarray(xyz, dtype=np.float64)
     inten = np.asarray(inten, dtype=np.float64)
     norm = float(np.sum(data * data)) or 1.0
-    cache: dict[tuple[float, float], tuple[float, np.ndarray, np.ndarray]] = {}
+    use = np.unique(np.linspace(0, len(xyz) - 1, min(len(xyz), _PARTICLES)).round().astype(np.int64))
+    if not len(xyz):
+        use = use[:0]
+    pos, amp = xyz[use], inten[use]
+    base = res.copy()  # the residual with the particles used taken out (their start images added back)
+    for s in range(0, len(use), batch):
+        buf, offs, r0, c0, shp = render(pos[s : s + batch], model=start)
+        _accumulate_masked(base, mask, buf, offs, r0, c0, shp, amp[s : s + batch] * 1.0, 1.0)
+    cache: dict[tuple[float, float], float] = {}
 
     def cost(p: np.ndarray) -> float:
         key = (round(float(p[0]), 12), round(float(p[1]), 12))
         if key not in cache:
             m = ImageModel(gap_error=key[0], blur_scale=math.exp(key[1]))
-            cache[key] = (
-                _cost(render, data, mask, xyz, inten, m, batch)
-                if m.renders(camera, z_range)
-                else (
-                    math.inf,
-                    data,
-                    inten,
-                )
-            )
-        return cache[key][0]
+            if not m.renders(camera, z_range):
+                cache[key] = math.inf
+            else:  # ‖base − k·M‖² at the best common factor k of the intensities (M = Σ I·U(m))
+                mod = np.zeros_like(base)
+                for s in range(0, len(use), batch):
+                    buf, offs, r0, c0, shp = render(pos[s : s + batch], model=m)
+                    _accumulate_masked(mod, mask, buf, offs, r0, c0, shp, amp[s : s + batch] * 1.0, 1.0)
+                bm, mm = float(np.sum(base * mod)), float(np.sum(mod * mod))
+                cache[key] = float(np.sum(base * base)) - (bm * bm / mm if mm > 0.0 else 0.0)
+        return cache[key]
 
     lo = np.array([_GAP_RANGE[0], math.log(_BLUR_RANGE[0])])
     hi = np.array([_GAP_RANGE[1], math.log(_BLUR_RANGE[1])])
@@ -232,19 +254,19 @@ def calibrate_image_model(
             p = min(trial, key=lambda t: t[0])[1]
         step /= 2.0
     f_start, f_best = cost(p0), cost(p)
-    npx = max(float(np.count_nonzero(mask)), 1.0)
-    s2 = f_start / npx
+    s2 = f_start / max(float(np.count_nonzero(mask)), 1.0)
     accepted = bool(f_best < f_start - _ACCEPT * s2)
-    best = p if accepted else p0
-    key = (round(float(best[0]), 12), round(float(best[1]), 12))
-    _, res, amp = cache[key]
-    model = ImageModel(gap_error=key[0], blur_scale=math.exp(key[1])) if accepted else start
     info = {
-        "image_calibration_cost": [f_start / norm, cache[key][0] / norm],
+        "image_calibration_cost": [f_start / norm, f_best / norm],
         "image_calibration_evaluations": len(cache),
+        "image_calibration_particles": len(use),
         "image_calibration_accepted": accepted,
     }
-    return model, res, amp, info
+    if not accepted:
+        return start, res, inten, info
+    model = ImageModel(gap_error=round(float(p[0]), 12), blur_scale=math.exp(round(float(p[1]), 12)))
+    _, res_new, amp_new = _cost(render, data, mask, xyz, inten, model, batch)
+    return model, res_new, amp_new, info
 
 
 def model_change(

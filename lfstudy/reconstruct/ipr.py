@@ -1299,7 +1299,7 @@ def ipr_particles(
         if it in calibrate_after and len(xyz):  # the camera's own particle images (issue 39 §2)
             zr = (float(grid.z[0]), float(grid.z[-1]))
             model, res, inten, info = calibrate_image_model(
-                patches, data, mask, xyz, inten, cam, zr, image["model"], batch=batch
+                patches, data, res, mask, xyz, inten, cam, zr, image["model"], batch=batch
             )
             image["model"] = model
             cal_info.append(info)
