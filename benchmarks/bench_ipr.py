@@ -212,6 +212,16 @@ def main() -> None:
                 f"    residual candidates: new particles per round {a['candidates_added']}, "
                 f"{a['skipped_candidate_rounds']} rounds skipped; shakes sat out per iteration {a['shake_sat_out']}"
             )
+            if a.get("image_calibration"):  # the camera's own particle images (issue 39 §2)
+                change = ", ".join(
+                    f"{z:+.1f} mm {m:.2f}" for z, m in zip(a.get("image_change_z", []), a.get("image_change_max", []))
+                )
+                print(
+                    f"    image model: gap error {a['image_gap_error']:+.4f}, blur x{a['image_blur_scale']:.3f} "
+                    f"(accepted per round {a.get('image_calibration_accepted')}, "
+                    f"cost {a.get('image_calibration_cost')}); "
+                    f"largest change of an image on the axis, of its nominal peak, per depth: {change or 'none'}"
+                )
 
 
 def _vm(key: str) -> float:
