@@ -145,7 +145,7 @@ def test_calibration_bytes_do_not_depend_on_the_threads():
         assert np.array_equal(a[1], out[0][1]) and np.array_equal(a[2], out[0][2])
 
 
-@pytest.mark.slow  # two IPR fits of a 300 x 300 px recording (~25 s each measured on a loaded machine)
+@pytest.mark.slow  # two IPR fits of a 300 x 300 px recording: 5 s on a quiet machine, 110 s on a loaded one
 def test_ipr_with_the_calibrated_images_fits_an_imperfect_camera_better():
     """A recording through a camera whose lenslet array sits 5 % off its focal length (Monte-Carlo rays, shot
     noise; the pinhole calibration through the same camera) is fitted by IPR with the nominal images and with
