@@ -244,6 +244,7 @@ from lfstudy.simulate._render_common import (
 from lfstudy.simulate.exact import _K, _QUAD_EXACT, _ST_BIG, _ST_SIZE, _ST_SPILL, _render_particle, _scratch
 
 if TYPE_CHECKING:
+    from lfstudy.reconstruct.image_model import ImageModel
     from lfstudy.reconstruct.mart import MartPlan
 
 __all__ = [
@@ -418,17 +419,32 @@ def _patch_kernel(px, py, pz, wt, geos, gidx, buf, boff, psz, nlmax, stats, quad
                 stats[t, q] += cnt[q]
 
 
-def _patch_boxes(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray, sm: float, sl: float, pad: int):
+def _patch_boxes(
+    camera: PlenopticCamera,
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    sm: float,
+    sl: float,
+    pad: int,
+    gap: float | None = None,
+):
     """Sensor bounding boxes (row0, col0, rows, cols) of the particles' images; the bound of
-    :func:`lfstudy.simulate.exact._layout` plus ``pad`` pixels; ``psz`` and ``nlmax`` for the scratch."""
+    :func:`lfstudy.simulate.exact._layout` plus ``pad`` pixels; ``psz`` and ``nlmax`` for the scratch.
+    ``gap``: the lenslet-to-sensor distance (default the lenslet focal length), as the renderer's."""
     so, si, fm, fl = camera.so, camera.si, camera.main_focal_length, camera.lenslet_focal_length
     rad, pl, pp = camera.aperture_diameter / 2.0, camera.lenslet_pitch, camera.pixel_pitch
     d = so + z
     c1 = 1.0 / d - 1.0 / fm
-    xc, yc = -(si + fl) * x / d, -(si + fl) * y / d
-    rho = rad * fl * np.abs(c1)
     reach = rad * np.abs(1.0 + si * c1) + _K * sm
-    half = reach + pl * math.sqrt(0.5) + rho + _K * sl + 2.0 * pp
+    if gap is None or gap == fl:
+        xc, yc = -(si + fl) * x / d, -(si + fl) * y / d
+        rho = rad * fl * np.abs(c1)
+        half = reach + pl * math.sqrt(0.5) + rho + _K * sl + 2.0 * pp
+    else:  # the gap's disc (radius R·|β|) and its lenslet centres scaled by g/fl (exact._layout, no tilt)
+        xc, yc = -(si + gap) * x / d, -(si + gap) * y / d
+        rho = rad * np.abs(gap * c1 + (1.0 - gap / fl) * (1.0 + si * c1))
+        half = (gap / fl) * (reach + pl * math.sqrt(0.5)) + rho + _K * sl + 2.0 * pp
     hw, hh = camera.sensor_width / 2.0, camera.sensor_height / 2.0
     nr, nc = camera.n_pixels_y, camera.n_pixels_x
     r0 = np.clip(np.floor((hh - (yc + half)) / pp).astype(np.int64) - pad, 0, nr - 1)
@@ -465,6 +481,7 @@ def particle_patches(
     diffraction: bool = True,
     pad: int = _MARGIN_PX,
     accuracy: str = "exact",
+    model: ImageModel | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Exact images of unit-intensity particles, each in its own sensor patch.
 
@@ -485,6 +502,11 @@ def particle_patches(
         The quadrature: ``exact`` is :func:`~lfstudy.simulate.exact.render_exact`'s (1e-10 of a blur
         width); ``fast`` (``_QUAD``: fewer arc nodes, Gaussian tails cut at 4 σ) is within 1e-4 of each
         image's peak and 1e-5 of its sum (tested), ~1.5x cheaper. Same patches either way.
+    model : ImageModel, optional
+        The departures from the nominal camera the images take (:class:`ImageModel`: a lenslet-to-sensor gap
+        other than the lenslet focal length, the diffraction blurs scaled), as calibrated from a recording's
+        own particles (:func:`calibrate_image_model`); default (None or ideal): the nominal camera's images,
+        bit for bit.
 
     Returns
     -------
@@ -506,11 +528,15 @@ def particle_patches(
     tr = np.zeros((1, 3)) if trials is None else np.vstack([np.zeros((1, 3)), np.asarray(trials, float)])
     k = tr.shape[0]
     sm, sl = _blurs(camera, diffraction, None)
-    r0, c0, h, w, psz, nlmax = _patch_boxes(camera, x, y, z, sm, sl, pad)
+    gap = None
+    if model is not None and not model.ideal:
+        sm, sl = sm * model.blur_scale, sl * model.blur_scale
+        gap = model.gap(camera)
+    r0, c0, h, w, psz, nlmax = _patch_boxes(camera, x, y, z, sm, sl, pad, gap)
     # the trial offsets may widen the scratch needed: size it on every position
     ax_, ay_, az_ = (np.concatenate([v + d for d in tr[:, i]]) for i, v in enumerate((x, y, z)))
-    *_, psz, nlmax = _patch_boxes(camera, ax_, ay_, az_, sm, sl, pad)
-    geo = _geometry(camera, sm, sl)
+    *_, psz, nlmax = _patch_boxes(camera, ax_, ay_, az_, sm, sl, pad, gap)
+    geo = _geometry(camera, sm, sl, gap=gap)
     pp = camera.pixel_pitch
     geos = np.repeat(geo[None], n, axis=0)
     geos[:, _G_HW] = geo[_G_HW] - c0 * pp  # the crop's left edge is sensor x = −HW + c0·pp
@@ -947,6 +973,7 @@ def ipr_particles(
     split: int = 0,
     split_penalty: float = 16.0,
     split_ratio: float = 1.3,
+    image_calibration: int = 0,
     batch: int = _BATCH,
     progress: bool = False,
 ) -> xr.Dataset:
@@ -1015,6 +1042,11 @@ def ipr_particles(
         The split's threshold on the drop of ‖R‖², in units of the pair fit's residual variance σ² on its pixels.
     split_ratio : float
         The split tries the particles brighter than this times the median intensity (0: every particle).
+    image_calibration : int
+        Rounds of the image model's calibration from the recording's own particles
+        (:mod:`lfstudy.reconstruct.image_model`: the lenslet-to-sensor gap and a blur scale, fitted to the residual
+        with the particles held), spread over the iterations (after iterations k·n/(rounds + 1)); the later
+        iterations, the polish and the split fit with the calibrated images. 0: the nominal camera's images.
     batch : int
         Particles rendered at once (bounds the patch memory: their images' boxes, ~40,000 pixels each on average
         over the thesis' 7 mm depth, the shake's 7 per particle: 0.59 GB at 256, 4.7 GB at the former 2048).
@@ -1068,6 +1100,10 @@ def ipr_particles(
         raise ReconstructionError(f"reconstruct.ipr.image_accuracy = {image_accuracy!r}: allowed values are {allowed}")
     if not isinstance(batch, (int, np.integer)) or batch < 1:
         raise ReconstructionError(f"reconstruct.ipr.batch = {batch!r}: allowed range is integers >= 1")
+    bad = isinstance(image_calibration, (bool, np.bool_)) or not isinstance(image_calibration, (int, np.integer))
+    if bad or not 0 <= image_calibration <= 5:
+        raise ReconstructionError(f"reconstruct.ipr.image_calibration = {image_calibration!r}: allowed range is [0, 5]")
+    from lfstudy.reconstruct.image_model import ImageModel, calibrate_image_model, model_change
     from lfstudy.reconstruct.mart import mart, mart_plan
 
     lf, grid = inputs.lightfield, inputs.grid
@@ -1122,9 +1158,15 @@ def ipr_particles(
     sat_out: list[int] = []  # particles not shaken, per iteration
     late = False  # residual_late_gain: a round added fewer than that of the list
 
-    def patches(pos: np.ndarray, trials: np.ndarray | None = None):
+    # the image model: the nominal camera's until a calibration from the recording's particles replaces it
+    image = {"model": ImageModel()}
+    calibrate_after = {round((k + 1) * iterations / (image_calibration + 1)) - 1 for k in range(image_calibration)}
+    cal_info: list[dict[str, Any]] = []
+
+    def patches(pos: np.ndarray, trials: np.ndarray | None = None, model: ImageModel | None = None):
         t0 = time.perf_counter()
-        out = particle_patches(cam, *pos.T, trials=trials, accuracy=image_accuracy)
+        m = image["model"] if model is None else model
+        out = particle_patches(cam, *pos.T, trials=trials, accuracy=image_accuracy, model=m)
         clock["patches"] += time.perf_counter() - t0
         clock["images"] += len(pos) * (1 if trials is None else 1 + len(trials))
         return out
@@ -1260,6 +1302,13 @@ def ipr_particles(
             if gain[-1] < residual_candidates_min_gain * len(xyz):  # the next volumes would repeat this one
                 stop_after = it + 1
             late |= gain[-1] < residual_late_gain * len(xyz)  # the later volumes take fewer MART iterations
+        if it in calibrate_after and len(xyz):  # the camera's own particle images (issue 39 §2)
+            zr = (float(grid.z[0]), float(grid.z[-1]))
+            model, res, inten, info = calibrate_image_model(
+                patches, data, res, mask, xyz, inten, cam, zr, image["model"], batch=batch
+            )
+            image["model"] = model
+            cal_info.append(info)
         if settle > 0:  # a change near a settled particle wakes it
             still = _unwoken(still, xyz, np.vstack(events), vox)
         bar.update(1)
@@ -1296,6 +1345,12 @@ def ipr_particles(
         xyz, inten, sig, rel = xyz[keep], inten[keep], sig[keep], rel[keep]
     if len(xyz):
         res_hist.append(norm(res))
+    image_attrs: dict[str, Any] = {"image_calibration": int(image_calibration), **image["model"].to_attrs()}
+    if cal_info:  # what the calibration changed, per depth (and its costs per round)
+        image_attrs["image_calibration_cost"] = [v for c in cal_info for v in c["image_calibration_cost"]]
+        image_attrs["image_calibration_accepted"] = [int(c["image_calibration_accepted"]) for c in cal_info]
+        zs = np.linspace(float(grid.z[0]), float(grid.z[-1]), 7)
+        image_attrs |= model_change(cam, image["model"], zs, patches)
     if vcal is not None:
         xyz = volumetric_frame(xyz, lf, inputs.camera, vcal, to="calibrated")
     P = "particle"
@@ -1351,6 +1406,7 @@ def ipr_particles(
             "weight_table_bytes": int(plan.proj.table_bytes),
             "coverage_bytes": int(sum(d.nbytes for d in plan.dens)),
             "frame": "nominal camera" if vcal is None else "volumetric calibration (Hall et al. 2018)",
+            **image_attrs,
             **ginfo,
         },
     )
@@ -1575,6 +1631,7 @@ def ipr(
     split: int = 0,
     split_penalty: float = 16.0,
     split_ratio: float = 1.3,
+    image_calibration: int = 0,
     blob_sigma: float = 0.0,
     batch: int = _BATCH,
     progress: bool = False,
@@ -1607,6 +1664,7 @@ def ipr(
         split=split,
         split_penalty=split_penalty,
         split_ratio=split_ratio,
+        image_calibration=image_calibration,
         batch=batch,
         progress=progress,
     )
@@ -1742,6 +1800,13 @@ class IPR(ReconstructionMethod):
             "maximum": 100,
             "description": "the split tries the particles brighter than this times the median intensity",
         },
+        "image_calibration": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 5,
+            "description": "rounds calibrating the particle images (lenslet gap, blur) from the recording's own "
+            "particles (0: the nominal camera's images)",
+        },
         "blob_sigma": {
             "type": "number",
             "minimum": 0,
@@ -1788,6 +1853,7 @@ class IPR(ReconstructionMethod):
         split: int = 0,
         split_penalty: float = 16.0,
         split_ratio: float = 1.3,
+        image_calibration: int = 0,
         blob_sigma: float = 0.0,
         progress: bool = False,
     ) -> xr.DataArray:
@@ -1813,6 +1879,7 @@ class IPR(ReconstructionMethod):
             split=split,
             split_penalty=split_penalty,
             split_ratio=split_ratio,
+            image_calibration=image_calibration,
             blob_sigma=blob_sigma,
             progress=progress,
         )
