@@ -1,5 +1,8 @@
 """What makes up an oracle's error beyond the windows' top-hat filtering (issue 38).
 
+Reproduces: docs/architecture.md § "Benchmarks" (the demo Hill oracle beyond the top-hat: the
+deformation's predictor filter).
+
 On the demo's Hill case (M -1, pitch 0.0888) the top-hat filter of the final window
 (``filter_rms_total_mm``, :func:`lfstudy.study.metrics.window_average`) is about a third of the
 oracle's RMS error. This benchmark runs the oracle (the case's PIV on the true particle volumes,

@@ -1,5 +1,8 @@
 """Can a tabulated particle image (an OTF, as Shake-the-Box's) replace IPR's exact images? (issue 39 §1)
 
+Reproduces: lfstudy/reconstruct/image_model.py (why IPR has no tabulated particle image, its module
+docstring) and docs/cli.md.
+
     python benchmarks/bench_particle_table.py [--camera thesis|demo] [--particles 60] [--seed 5]
 
 The issue's proposal: on the ideal plenoptic camera a particle's image depends only on its depth and on its

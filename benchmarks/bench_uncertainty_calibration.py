@@ -1,5 +1,8 @@
 """σ calibrated by a study (issue 38, Beyond): fit on some cases, check on others.
 
+Reproduces: docs/config.md § "σ calibrated by a study (`uncertainty.calibration`)" (the held-out
+bands, raw against calibrated).
+
 Reads the cases a study run wrote (``benchmarks/bench_uncertainty.py --out DIR`` or a Snakemake
 results directory: each case's ``errors.zarr``), builds the study table from their scalars
 (:func:`lfstudy.study.table.combine_cases`, as the workflow's ``study`` rule does), fits the factor per

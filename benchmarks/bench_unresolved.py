@@ -1,5 +1,8 @@
 """The error budget's filter term and the truth-free ``unresolved`` flag, on study oracles (issue 38).
 
+Reproduces: lfstudy/piv/resolution.py (the flag's hit and false rates on the thesis-camera oracles, in
+its module docstring).
+
 Runs the *oracle* of study cases (the case's PIV on the true particle volumes,
 :func:`lfstudy.study.case.oracle_piv`: no imaging or reconstruction) and prints per case:
 
