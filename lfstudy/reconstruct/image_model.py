@@ -137,7 +137,7 @@ def _cost(
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """‖R‖² of ``model`` after one Gauss–Seidel pass over the intensities (starting from ``inten``), with that
     residual R and the refitted intensities."""
-    from lfstudy.reconstruct.ipr import _accumulate_masked, _choose
+    from lfstudy.reconstruct._shake_kernels import _accumulate_masked, _choose
 
     res = data.copy()
     for s in range(0, len(xyz), batch):  # subtract every particle first: the pass then sees its neighbours
@@ -200,7 +200,7 @@ def calibrate_image_model(
     The search moves the images of at most ``_PARTICLES`` particles (evenly spread over the list; the others
     stay in ``res`` with their ``start`` images): each trial model costs one image per particle used.
     """
-    from lfstudy.reconstruct.ipr import _accumulate_masked
+    from lfstudy.reconstruct._shake_kernels import _accumulate_masked
 
     start = start or ImageModel()
     xyz = np.asarray(xyz, dtype=np.float64)

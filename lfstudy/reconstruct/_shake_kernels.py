@@ -1,0 +1,246 @@
+"""The Gauss–Seidel kernels of IPR's fit (numba): add images into a residual, the linearised shake sweep,
+the choice of a move on the exact residual, and the polish stencil.
+
+Pure array kernels over the patch layout of :func:`lfstudy.reconstruct.ipr.particle_patches` (images in
+one flat buffer, ``offs`` into it, each patch's top-left pixel ``r0, c0`` and shape ``shp``), shared by
+:mod:`lfstudy.reconstruct.ipr` and :mod:`lfstudy.reconstruct.image_model`. See ipr.py's module docstring
+for the fit they carry out (Wieneke 2013's shaking).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _accumulate_masked(img, mask, buf, offs, r0, c0, shp, inten, sign):  # pragma: no cover - jitted
+    """img[patch] += sign·inten[i]·U_i on the pixels where ``mask`` is set, particle after particle."""
+    for i in range(r0.size):
+        h, w = shp[i, 0], shp[i, 1]
+        o = offs[i]
+        a = sign * inten[i]
+        if a == 0.0:
+            continue
+        for r in range(h):
+            for c in range(w):
+                if mask[r0[i] + r, c0[i] + c] != 0:
+                    img[r0[i] + r, c0[i] + c] += a * buf[o + r * w + c]
+
+
+@njit(cache=True)
+def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, move, central, out):  # pragma: no cover
+    """One Gauss–Seidel pass of the linearised fit over the particles (module docstring).
+
+    ``buf`` holds per particle 7 images: U, then +x, −x, +y, −y, +z, −z (steps ``delta``; central
+    differences), or with ``central`` False 4: U, +x, +y, +z (forward differences).
+    ``res`` is the residual image (data − model), updated in place. ``out[i]`` receives
+    (dx, dy, dz, I', var_x, var_y, var_z, relative residual, pixels).
+    """
+    n = r0.size
+    for i in range(n):
+        h, w = shp[i, 0], shp[i, 1]
+        sz = h * w
+        o = offs[i]
+        ii = inten[i]
+        g = np.zeros((4, 4))
+        v = np.zeros(4)
+        npx = 0.0
+        # add the particle back, then the normal equations of [U, D_x, D_y, D_z]
+        for r in range(h):
+            for c in range(w):
+                rr, cc = r0[i] + r, c0[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                q = o + r * w + c
+                u = buf[q]
+                res[rr, cc] += ii * u
+                f0 = u
+                if central:
+                    f1 = (buf[q + sz] - buf[q + 2 * sz]) / (2.0 * delta[0])
+                    f2 = (buf[q + 3 * sz] - buf[q + 4 * sz]) / (2.0 * delta[1])
+                    f3 = (buf[q + 5 * sz] - buf[q + 6 * sz]) / (2.0 * delta[2])
+                else:
+                    f1 = (buf[q + sz] - u) / delta[0]
+                    f2 = (buf[q + 2 * sz] - u) / delta[1]
+                    f3 = (buf[q + 3 * sz] - u) / delta[2]
+                fv = (f0, f1, f2, f3)
+                rv = res[rr, cc]
+                npx += 1.0
+                for a in range(4):
+                    v[a] += fv[a] * rv
+                    for b in range(a, 4):
+                        g[a, b] += fv[a] * fv[b]
+        for a in range(4):
+            for b in range(a):
+                g[a, b] = g[b, a]
+        step = np.zeros(3)
+        inew = 0.0
+        var = np.zeros(3)
+        if g[0, 0] > 0.0:
+            if move:
+                ga = g.copy()
+                for a in range(1, 4):
+                    ga[a, a] *= 1.0 + damping
+                theta = np.linalg.solve(ga, v)
+                inew = theta[0]
+                if inew > 0.0:
+                    for a in range(3):
+                        step[a] = min(max(theta[a + 1] / inew, -max_step[a]), max_step[a])
+            else:
+                inew = v[0] / g[0, 0]
+            inew = max(inew, 0.0)
+        # subtract the (linearised) image of the moved particle; its residual and covariance
+        rr2 = 0.0
+        mm2 = 0.0
+        for r in range(h):
+            for c in range(w):
+                rr, cc = r0[i] + r, c0[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                q = o + r * w + c
+                m = buf[q]
+                for a in range(3):
+                    if central:
+                        m += step[a] * (buf[q + (2 * a + 1) * sz] - buf[q + (2 * a + 2) * sz]) / (2.0 * delta[a])
+                    else:
+                        m += step[a] * (buf[q + (a + 1) * sz] - buf[q]) / delta[a]
+                m *= inew
+                res[rr, cc] -= m
+                rr2 += res[rr, cc] * res[rr, cc]
+                mm2 += m * m
+        if move and inew > 0.0 and npx > 4.0:
+            s2 = rr2 / (npx - 4.0)
+            jt = g.copy()  # J = [U, I'·D]: scale the derivative rows and columns by I'
+            for a in range(1, 4):
+                for b in range(4):
+                    jt[a, b] *= inew
+                    jt[b, a] *= inew
+            det_ok = True
+            for a in range(4):
+                if jt[a, a] <= 0.0:
+                    det_ok = False
+            if det_ok:
+                cov = np.linalg.inv(jt) * s2
+                for a in range(3):
+                    var[a] = max(cov[a + 1, a + 1], 0.0)
+        out[i, 0] = step[0]
+        out[i, 1] = step[1]
+        out[i, 2] = step[2]
+        out[i, 3] = inew
+        out[i, 4] = var[0]
+        out[i, 5] = var[1]
+        out[i, 6] = var[2]
+        out[i, 7] = math.sqrt(rr2 / mm2) if mm2 > 0.0 else np.inf
+        out[i, 8] = npx
+
+
+@njit(cache=True)
+def _choose(res, mask, buf, offs, r0, c0, shp, nimg, inten, bufn, offn, r0n, c0n, shpn, out):  # pragma: no cover
+    """Gauss–Seidel choice of each particle's next position among exact images: its ``nimg`` images in
+    ``buf`` (the current one, then the ±δ trials) and the Gauss–Newton step's in ``bufn``.
+
+    The particle (intensity ``inten[i]``, image 0) is added back to the residual ``res``; for every
+    candidate image U the best intensity a/uu (a = ⟨R, U⟩, uu = ⟨U, U⟩) lowers ‖R‖² by a²/uu, so the
+    candidate with the largest drop is taken (the current one unless another is strictly better: a move
+    never raises the residual) and its image subtracted. ``out[i]`` = (choice, intensity): choice k < nimg
+    is buf's image k, ``nimg`` the step.
+    """
+    for i in range(r0.size):
+        h, w = shp[i, 0], shp[i, 1]
+        sz = h * w
+        o = offs[i]
+        a = np.zeros(nimg + 1)
+        uu = np.zeros(nimg + 1)
+        for r in range(h):
+            for c in range(w):
+                rr, cc = r0[i] + r, c0[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                q = o + r * w + c
+                res[rr, cc] += inten[i] * buf[q]
+                rv = res[rr, cc]
+                for k in range(nimg):
+                    u = buf[q + k * sz]
+                    a[k] += rv * u
+                    uu[k] += u * u
+        hn, wn = shpn[i, 0], shpn[i, 1]
+        for r in range(hn):
+            for c in range(wn):
+                rr, cc = r0n[i] + r, c0n[i] + c
+                if mask[rr, cc] == 0:
+                    continue
+                u = bufn[offn[i] + r * wn + c]
+                a[nimg] += res[rr, cc] * u
+                uu[nimg] += u * u
+        best, gain = 0, -1.0
+        for k in range(nimg + 1):
+            g = a[k] * a[k] / uu[k] if (uu[k] > 0.0 and a[k] > 0.0) else 0.0
+            if g > gain * (1.0 + 1e-12):
+                best, gain = k, g
+        amp = a[best] / uu[best] if (uu[best] > 0.0 and a[best] > 0.0) else 0.0
+        if best < nimg:
+            for r in range(h):
+                for c in range(w):
+                    rr, cc = r0[i] + r, c0[i] + c
+                    if mask[rr, cc] != 0:
+                        res[rr, cc] -= amp * buf[o + best * sz + r * w + c]
+        else:
+            for r in range(hn):
+                for c in range(wn):
+                    rr, cc = r0n[i] + r, c0n[i] + c
+                    if mask[rr, cc] != 0:
+                        res[rr, cc] -= amp * bufn[offn[i] + r * wn + c]
+        out[i, 0] = best
+        out[i, 1] = amp
+
+
+@njit(cache=True)
+def _stencil(res, mask, buf, offs, r0, c0, shp, k, inten, out):  # pragma: no cover - jitted
+    """The exact residual's drop at each of ``k`` positions of every particle, the others held fixed.
+
+    ``buf`` holds k images per particle, each in its own patch (image j = i·k + c, ``offs[j]``, ``r0[j]``,
+    ``c0[j]``, ``shp[j]``), the first at the particle's current position (intensity ``inten[i]``). The
+    particle is added back to ``res``; for image c with a = ⟨R, U⟩ > 0, uu = ⟨U, U⟩ the best intensity
+    lowers ‖R‖² by a²/uu; then the particle is subtracted again (``res`` is left as it was).
+    ``out[i, c]`` = a²/uu (0 where a ≤ 0), ``out[i, k]`` the residual variance per pixel on the first
+    patch with the particle at its current position and best intensity.
+    """
+    for i in range(inten.size):
+        j0 = i * k
+        h, w = shp[j0, 0], shp[j0, 1]
+        o = offs[j0]
+        for r in range(h):
+            for c in range(w):
+                if mask[r0[j0] + r, c0[j0] + c] != 0:
+                    res[r0[j0] + r, c0[j0] + c] += inten[i] * buf[o + r * w + c]
+        for m in range(k):
+            j = j0 + m
+            h, w = shp[j, 0], shp[j, 1]
+            o = offs[j]
+            a = 0.0
+            uu = 0.0
+            rr2 = 0.0
+            npx = 0.0
+            for r in range(h):
+                for c in range(w):
+                    rr, cc = r0[j] + r, c0[j] + c
+                    if mask[rr, cc] == 0:
+                        continue
+                    u = buf[o + r * w + c]
+                    rv = res[rr, cc]
+                    a += rv * u
+                    uu += u * u
+                    rr2 += rv * rv
+                    npx += 1.0
+            out[i, m] = a * a / uu if (a > 0.0 and uu > 0.0) else 0.0
+            if m == 0:
+                out[i, k] = max(rr2 - out[i, 0], 0.0) / max(npx, 1.0)
+        h, w = shp[j0, 0], shp[j0, 1]
+        o = offs[j0]
+        for r in range(h):
+            for c in range(w):
+                if mask[r0[j0] + r, c0[j0] + c] != 0:
+                    res[r0[j0] + r, c0[j0] + c] -= inten[i] * buf[o + r * w + c]
