@@ -3,6 +3,7 @@
     python benchmarks/bench_render.py [--particles 300] [--crop W H] [--rays 1e3 1e4 1e5 1e6]
         [--ppp 0.01] [--mc-fraction 0.1] [--threads 1] [--skip-agreement] [--skip-speed]
         [--thesis [--thesis-crop W H] [--thesis-seeds S ...]] [--pinhole [--pinhole-seeds S ...]]
+        [--study config/demo.yaml [--study-designs N]]
 
 (a) Agreement. A few hundred particles of intensity 1 (the thesis' 7 mm deep volume) on
     the Table 4.3 camera (``--crop W H``: a central W x H pixel region with its own field of
@@ -32,6 +33,17 @@
     per point) on the full sensor, exact (the expected image of the uniform field) and Monte-Carlo:
     render time, and the rms error of the lenslet centres ``find_lenslet_centers`` finds against the
     geometric ones, with the shot noise of 100 photons per point (as a case records it) and without.
+
+(e) With ``--study CONFIG``: a study's own renders (``lfstudy.study.case.case_image`` and ``case_pinhole``, the
+    simulate rule's calls, at the config's rays and sensor) for the first ``--study-designs`` designs, exact and
+    Monte-Carlo, one process: wall seconds per image, after a warm-up render of each. This is what the choice of
+    ``raytrace.method`` costs the study's simulate stage (issue 39: the demo renders with a model IPR does not fit).
+    Measured (``--skip-agreement --skip-speed --study config/demo.yaml --study-designs 4``, 1 thread, 2 cores, load
+    < 1 at the start), 1536 particles a frame at 4000 rays: exact 2.04 / 1.74 / 1.34 / 1.14 s an image (M -1 pitch
+    0.0888 / M -1 0.1184 / M -0.8 0.0888 / M -0.8 0.1184), Monte-Carlo 0.90 / 0.90 / 0.87 / 0.90 s; the pinhole image
+    (60,000 points x 40 rays) exact 2.08 / 1.38 / 1.98 / 1.21 s, Monte-Carlo 3.64 / 3.57 / 3.40 / 3.69 s. The demo's
+    16 particle images (4 a design): 25.0 s exact, 14.3 s Monte-Carlo; its 4 pinholes 6.7 s and 14.3 s; in all 31.7
+    s against 28.6 s of render time. The simulate rule's ~25 s a job (issue 39) is mostly not the render.
 
 JIT compile time is excluded (both kernels are warmed up on a tiny case first).
 Targets (issue 16): exact >= 20x faster than the 25,000-ray tracer, <= 1.5 GB peak.
@@ -296,6 +308,45 @@ def pinhole(args: argparse.Namespace) -> None:
             )
 
 
+# ------------------------------------------------------------------ (e) a study's renders
+def study(args: argparse.Namespace) -> None:
+    """Time a study config's particle images and pinhole image, exact against Monte-Carlo."""
+    import copy
+
+    from lfstudy.study import case as sc
+    from lfstudy.study.config import case_config, expand_cases, load_config
+
+    cfg = load_config(args.study)
+    seen, designs = set(), []
+    for case in expand_cases(cfg):
+        ccfg = case_config(cfg, case)
+        if ccfg["calib_id"] not in seen:
+            seen.add(ccfg["calib_id"])
+            designs.append(ccfg)
+    designs = designs[: args.study_designs]
+    rays = designs[0]["raytrace"]["rays_per_particle"]
+    print(f"(e) {args.study}: {len(designs)} design(s), {rays} rays/particle, threads {args.threads}, wall s per image")
+    head = f"{'design (calibration group)':<52} {'particles':>9} {'exact':>7} {'MC':>7} {'pinhole exact':>14} {'MC':>7}"
+    print("    " + head)
+    for ccfg in designs:
+        field = sc.case_particles(ccfg)
+        row = {}
+        for method in ("exact", "montecarlo"):
+            c = copy.deepcopy(ccfg)
+            c["raytrace"]["method"] = method
+            sc.case_image(c, field.isel(particle=slice(0, 20)), "a")  # warm-up: compile, caches
+            t0 = time.perf_counter()
+            sc.case_image(c, field, "a")
+            row[method] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            sc.case_pinhole(c)
+            row[method + "_pinhole"] = time.perf_counter() - t0
+        print(
+            f"    {ccfg['calib_id']:<52} {field.sizes['particle']:>9} {row['exact']:>7.2f} {row['montecarlo']:>7.2f}"
+            f" {row['exact_pinhole']:>14.2f} {row['montecarlo_pinhole']:>7.2f}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--particles", type=int, default=300)
@@ -312,6 +363,8 @@ def main() -> None:
     ap.add_argument("--thesis-seeds", type=int, nargs="+", default=[2011, 2012])
     ap.add_argument("--pinhole", action="store_true", help="run (d), the calibration pinhole image")
     ap.add_argument("--pinhole-seeds", type=int, nargs="+", default=[3, 4])
+    ap.add_argument("--study", default=None, help="run (e), a study config's renders, exact and Monte-Carlo")
+    ap.add_argument("--study-designs", type=int, default=1)
     args = ap.parse_args()
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
     if not args.skip_agreement:
@@ -325,6 +378,8 @@ def main() -> None:
         print("(c) thesis uniform-x displacement statistics, exact + shot noise vs Monte-Carlo: not run (--thesis)")
     if args.pinhole:
         pinhole(args)
+    if args.study:
+        study(args)
 
 
 if __name__ == "__main__":
