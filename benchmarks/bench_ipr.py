@@ -3,8 +3,8 @@
 Reproduces: lfstudy/reconstruct/ipr.py (its module docstring: found, ghosts and time on crops, the full
 frame's 7.18 GB peak with ``--memory``); docs/architecture.md § "Benchmarks".
 
-    python benchmarks/bench_ipr.py [--crop 600 600] [--ppp 0.001 0.005] [--rays 2000]
-        [--photons 25000] [--threads 2] [--iterations N] [--seed 0] [--compare jacobian=forward ...]
+    python benchmarks/bench_ipr.py [--crop 600 600] [--ppp 0.001 0.005] [--rays 2000] [--camera table43|demo]
+        [--photons 25000] [--threads 2] [--iterations N] [--seed 0 [1 ...]] [--compare jacobian=forward ...]
         [--imperfections lenslet_gap_error=0.05]
     python benchmarks/bench_ipr.py --memory [--memory-particles 100] [--threads 1]
 
@@ -61,6 +61,34 @@ faint ones' images go back into the residual after each batch), peak RSS 1.43 GB
 ``bench_budget.py``'s docstring has the study at 0.01 ppp (Q, valid vectors, MART beside IPR) and why IPR's
 particles fall short there.
 
+The demo camera (``--camera demo``: config/demo.yaml's first design, M -1, 0.0888 mm lenslets at f/4, its 4 mm slab
+on 0.25 mm planes; issue 39). Where a full 640 x 480 frame's time goes (the demo's own Monte-Carlo images of case
+``mag~-1/.../flow~uniform_x``, frame a, through the reconstruct stage's function ``run_reconstruct``, 1 thread, load
+~2-3 on 2 cores): IPR 68.2 s of CPU (114.4 s wall beside a test run) for 1,467 particles: the 11 candidate MART volumes
+29 % of the wall time, 227,548 particle images 62 %, the fit kernels 9 %; MART's volume of the same frame 0.9-2.3 s
+(IPR / MART ~30x). With a cold numba cache (IPR's kernels compiled in the call, as in a fresh clone's first jobs) the
+same fit took 139.0 s of CPU: 15 % / 74 % / 10 %. ``residual_volume=stack`` on that frame: 58.9 s of CPU (x0.86),
+240,395 images, 1,495 particles (1,467 with ``mart``).
+On 320 x 240 crops (``--crop 320 240 --ppp 0.005 --rays 2000 --photons 4000 --threads 1``, 384 particles) the
+candidate volumes took 29-32 % of the wall time, the images 59-63 %.
+The residual rounds' candidate volume (``--compare residual_volume=case residual_volume=case,residual_mart_iterations=1
+residual_volume=stack residual_mart_iterations=0``; seeds 1, 2 looked at, 3, 4 held out; found / ghosts %, CPU s;
+load 2-20 on 2 cores, so CPU, not wall):
+
+==========  =================  =================  =====================  =================  =======================
+seed        ``mart`` (default)  ``case``          ``case``, 1 iteration  ``stack``          MLOS (0 MART iterations)
+==========  =================  =================  =====================  =================  =======================
+1           81.5 / 15.0, 16.5  78.1 / 18.1, 13.2  75.8 / 18.8, 11.9      81.2 / 17.3, 13.7  81.8 / 16.7, 14.2
+2           81.2 / 15.8, 15.6  75.8 / 19.3, 11.9  74.2 / 19.7, 11.0      80.5 / 16.4, 13.6  79.7 / 16.4, 13.0
+3 (held)    79.4 / 18.0, 17.5  73.7 / 22.3, 12.9  71.9 / 21.5, 12.4      77.3 / 20.1, 14.4  77.1 / 21.1, 13.1
+4 (held)    78.4 / 17.8, 14.5  75.8 / 17.9, 12.8  74.2 / 19.0, 11.6      77.9 / 18.9, 13.5  79.7 / 16.5, 14.5
+==========  =================  =================  =====================  =================  =======================
+
+None holds the default's accuracy: the case grid (one voxel per lenslet) loses 2.6-5.7 points of found; the focal stack
+(``stack``) 0.3-2.1 points and adds 0.6-2.3 points of ghosts, for 7-18 % less CPU; MLOS alone moves found by -2.3 to
++1.3 points, ghosts by -1.3 to +3.1. The default stays ``mart``. The residual volumes are not where the time is: the
+particle images are (issue 39's tabulated image).
+
 Memory (``--memory [--memory-particles 100]``; issue 27: a full frame at 0.005 ppp in <= 8 GB). One IPR fit on the
 full 4872 x 3248 px frame with a few particles: two candidate MART volumes on the refined grid (867 x 579 x 66,
 33.1 M voxels, 0.27 GB a float64 volume), one MART iteration each (a volume's buffers are made once, whatever its
@@ -94,7 +122,20 @@ import numpy as np
 WIDTH, HEIGHT = 4872, 3248  # Table 4.3
 
 
-def _scene(width: int, height: int, ppp: float, rays: int, photons: int, seed: int, imperfections=None):
+def _scene(
+    width: int,
+    height: int,
+    ppp: float,
+    rays: int,
+    photons: int,
+    seed: int,
+    camera: str = "table43",
+    imperfections=None,
+):
+    """The scene: ``table43`` the Table 4.3 camera over the thesis' 7 mm depth on the marching's grid; ``demo``
+    the demo's first design (``config/demo.yaml``: 7.4 um pixels, 0.0888 mm lenslets at f/4, M -1, its 4 mm slab
+    on a 0.25 mm z grid); ``imperfections`` (a mapping) renders the images and the pinhole by the imperfect
+    camera the fit does not know."""
     from lfstudy.lightfield import find_lenslet_centers, register, synthetic_pinhole
     from lfstudy.optics import PlenopticCamera
     from lfstudy.reconstruct import ReconstructionInputs, make_grid
@@ -102,9 +143,14 @@ def _scene(width: int, height: int, ppp: float, rays: int, photons: int, seed: i
     from lfstudy.simulate.raytrace import render_pinhole
     from lfstudy.simulate.sensor import apply_sensor
 
-    cam = PlenopticCamera(width, height, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_offset_x=0.013)
+    if camera == "demo":
+        cam = PlenopticCamera(width, height, 0.0074, 0.0888, 4 * 0.0888, 50.0, -1.0, lenslet_offset_x=0.009)
+        span, zr, vz = 4.0, (-2.0, 2.0), 0.25
+    else:
+        cam = PlenopticCamera(width, height, 0.0074, 0.125, 0.5, 50.0, -1.0, lenslet_offset_x=0.013)
+        span, zr, vz = 7.0, None, None
     cam = cam.with_(lenslet_offset_y=-0.021)
-    field = seed_particles(cam, ppp=ppp, z_span=7.0, seed=seed)
+    field = seed_particles(cam, ppp=ppp, z_span=span, seed=seed)
     if imperfections is None:
         pin = synthetic_pinhole(cam, amplitude=3000, seed=seed + 1)
     else:  # the calibration sees the imperfect camera too (the exact pinhole image, with shot noise)
@@ -112,7 +158,7 @@ def _scene(width: int, height: int, ppp: float, rays: int, photons: int, seed: i
     cen = find_lenslet_centers(pin, cam)
     img = render(cam, field, rays, seed + 2, method="montecarlo", imperfections=imperfections)
     lf = register(apply_sensor(img, photons_per_particle=photons, seed=seed + 3), cen, cam)
-    grid = make_grid(cam, cam.focal_planes())
+    grid = make_grid(cam, cam.focal_planes(), z_range=zr, voxel_z=vz)
     return field, ReconstructionInputs(lightfield=lf, centers=cen, camera=cam, grid=grid)
 
 
@@ -174,7 +220,8 @@ def main() -> None:
     ap.add_argument("--photons", type=int, default=25_000, help="photons per particle (shot noise)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--iterations", type=int, default=None, help="default: the method's")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, nargs="+", default=[0], help="scene seeds (each run in turn)")
+    ap.add_argument("--camera", choices=("table43", "demo"), default="table43", help="the scene (see _scene)")
     ap.add_argument("--compare", nargs="*", default=[], metavar="K=V", help="ipr_particles settings to compare")
     ap.add_argument(
         "--imperfections",
@@ -195,17 +242,20 @@ def main() -> None:
         _memory(args)
         return
     w, h = args.crop or (600, 600)
-    print(f"Table 4.3 camera cropped to {w} x {h} px (full: {WIDTH} x {HEIGHT}); {args.threads} threads")
+    if args.camera == "demo":
+        print(f"demo camera (config/demo.yaml's first design) {w} x {h} px; {args.threads} threads")
+    else:
+        print(f"Table 4.3 camera cropped to {w} x {h} px (full: {WIDTH} x {HEIGHT}); {args.threads} threads")
     runs = [("defaults", {})] + [(c, _setting(c)) for c in args.compare]
-    field, inputs = _scene(160, 160, 0.002, 200, args.photons, 99)  # warm-up: compile the kernels
+    field, inputs = _scene(160, 160, 0.002, 200, args.photons, 99, args.camera)  # warm-up: compile the kernels
     for _, setting in runs:  # of every setting (another one may compile other kernel specialisations)
         ipr_particles(inputs, **(setting | {"iterations": 1}))
-    for ppp in args.ppp:
+    for ppp, seed in ((p, s) for p in args.ppp for s in args.seed):
         t0 = time.perf_counter()
         imp = None if args.imperfections is None else _setting(args.imperfections)
-        field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed, imp)
+        field, inputs = _scene(w, h, ppp, args.rays, args.photons, seed, args.camera, imp)
         t_sim = time.perf_counter() - t0
-        print(f"ppp {ppp}: {len(field.x)} true particles (simulation {t_sim:.1f} s; imperfections {imp})")
+        print(f"ppp {ppp}, seed {seed}: {len(field.x)} true particles (simulation {t_sim:.1f} s; imperfections {imp})")
         t_ref = None
         for name, setting in runs:
             kw = ({} if args.iterations is None else {"iterations": args.iterations}) | setting
@@ -275,7 +325,7 @@ def _memory(args: argparse.Namespace) -> None:
     w, h = args.crop or (WIDTH, HEIGHT)
     ppp = args.memory_particles / (w * h)
     t0 = time.perf_counter()
-    field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed)
+    field, inputs = _scene(w, h, ppp, args.rays, args.photons, args.seed[0], args.camera)
     cg = _refined(inputs.grid, _REFINE_XY, _REFINE_Z)
     print(
         f"{w} x {h} px, {len(field.x)} particles; case grid {inputs.grid.shape}, candidate grid {cg.shape} "
@@ -305,7 +355,7 @@ def _memory(args: argparse.Namespace) -> None:
     from lfstudy.reconstruct.ipr import calibrated_camera
 
     cam, _ = calibrated_camera(inputs.camera, inputs.centers)
-    rng = np.random.default_rng(args.seed)
+    rng = np.random.default_rng(args.seed[0])
     g = inputs.grid
     n = inspect.signature(ipr_particles).parameters["batch"].default
     pos = np.column_stack([rng.uniform(c[0], c[-1], n) for c in (g.x, g.y, g.z)])

@@ -6,6 +6,7 @@ lfstudy/schema.yaml (raytrace.method).
     python benchmarks/bench_render.py [--particles 300] [--crop W H] [--rays 1e3 1e4 1e5 1e6]
         [--ppp 0.01] [--mc-fraction 0.1] [--threads 1] [--skip-agreement] [--skip-speed]
         [--thesis [--thesis-crop W H] [--thesis-seeds S ...]] [--pinhole [--pinhole-seeds S ...]]
+        [--study config/demo.yaml [--study-designs N] [--study-cold]]
 
 (a) Agreement. A few hundred particles of intensity 1 (the thesis' 7 mm deep volume) on
     the Table 4.3 camera (``--crop W H``: a central W x H pixel region with its own field of
@@ -35,6 +36,19 @@ lfstudy/schema.yaml (raytrace.method).
     per point) on the full sensor, exact (the expected image of the uniform field) and Monte-Carlo:
     render time, and the rms error of the lenslet centres ``find_lenslet_centers`` finds against the
     geometric ones, with the shot noise of 100 photons per point (as a case records it) and without.
+
+(e) With ``--study CONFIG``: a study's own renders (``lfstudy.study.case.case_image`` and ``case_pinhole``, the
+    simulate rule's calls, at the config's rays and sensor) for the first ``--study-designs`` designs, exact and
+    Monte-Carlo, one process: wall seconds per image, after a warm-up render of each. This is what the choice of
+    ``raytrace.method`` costs the study's simulate stage (issue 39: the demo renders with a model IPR does not fit).
+    Measured (``--skip-agreement --skip-speed --study config/demo.yaml --study-designs 4 --study-cold``, 1 thread,
+    load ~2 on 2 cores), 1536 particles a frame at 4000 rays: exact 0.55 / 0.38 / 0.32 / 0.35 s an image (M -1 pitch
+    0.0888 / M -1 0.1184 / M -0.8 0.0888 / M -0.8 0.1184), Monte-Carlo 0.24 / 0.32 / 0.23 / 0.25 s; the pinhole image
+    (60,000 points x 40 rays) exact 0.54 / 0.31 / 0.52 / 0.31 s, Monte-Carlo 0.85 / 0.80 / 0.95 / 0.97 s: the demo's 16
+    particle images and 4 pinholes take 8.1 s exact, 7.7 s Monte-Carlo (at load 6-10 earlier: 1.1-2.0 s and 0.9 s an
+    image). What costs is the compilation: with an empty numba cache (``--study-cold``: a fresh clone's first simulate
+    jobs, each compiling until one has written the cache) the first image takes 93.7 s exact, 14.8 s Monte-Carlo. That,
+    not the render, is the simulate rule's ~25 s a job in issue 39's fresh-clone timing.
 
 JIT compile time is excluded (both kernels are warmed up on a tiny case first).
 Targets (issue 16): exact >= 20x faster than the 25,000-ray tracer, <= 1.5 GB peak.
@@ -299,6 +313,86 @@ def pinhole(args: argparse.Namespace) -> None:
             )
 
 
+# ------------------------------------------------------------------ (e) a study's renders
+def study(args: argparse.Namespace) -> None:
+    """Time a study config's particle images and pinhole image, exact against Monte-Carlo."""
+    import copy
+
+    from lfstudy.study import case as sc
+    from lfstudy.study.config import case_config, expand_cases, load_config
+
+    cfg = load_config(args.study)
+    seen, designs = set(), []
+    for case in expand_cases(cfg):
+        ccfg = case_config(cfg, case)
+        if ccfg["calib_id"] not in seen:
+            seen.add(ccfg["calib_id"])
+            designs.append(ccfg)
+    designs = designs[: args.study_designs]
+    rays = designs[0]["raytrace"]["rays_per_particle"]
+    print(f"(e) {args.study}: {len(designs)} design(s), {rays} rays/particle, threads {args.threads}, wall s per image")
+    head = f"{'design (calibration group)':<52} {'particles':>9} {'exact':>7} {'MC':>7} {'pinhole exact':>14} {'MC':>7}"
+    print("    " + head)
+    for ccfg in designs:
+        field = sc.case_particles(ccfg)
+        row = {}
+        for method in ("exact", "montecarlo"):
+            c = copy.deepcopy(ccfg)
+            c["raytrace"]["method"] = method
+            sc.case_image(c, field.isel(particle=slice(0, 20)), "a")  # warm-up: compile, caches
+            t0 = time.perf_counter()
+            sc.case_image(c, field, "a")
+            row[method] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            sc.case_pinhole(c)
+            row[method + "_pinhole"] = time.perf_counter() - t0
+        print(
+            f"    {ccfg['calib_id']:<52} {field.sizes['particle']:>9} {row['exact']:>7.2f} {row['montecarlo']:>7.2f}"
+            f" {row['exact_pinhole']:>14.2f} {row['montecarlo_pinhole']:>7.2f}"
+        )
+
+
+def _cold_child(config: str, method: str, q: mp.Queue) -> None:
+    """One simulate job's render (the first design's frame a) in a process whose numba cache is empty."""
+    import copy
+
+    from lfstudy.study import case as sc
+    from lfstudy.study.config import case_config, expand_cases, load_config
+
+    cfg = load_config(config)
+    ccfg = copy.deepcopy(case_config(cfg, expand_cases(cfg)[0]))
+    ccfg["raytrace"]["method"] = method
+    field = sc.case_particles(ccfg)
+    t0 = time.perf_counter()
+    sc.case_image(ccfg, field, "a")
+    q.put(time.perf_counter() - t0)
+
+
+def study_cold(args: argparse.Namespace) -> None:
+    """A study's first render with an empty numba cache (a fresh clone's first simulate jobs), exact and
+    Monte-Carlo, each in a child process with its own empty ``NUMBA_CACHE_DIR``."""
+    import tempfile
+
+    print(f"(e) cold numba cache, {args.study}, first design, frame a (compilation + render, wall s):")
+    for method in ("exact", "montecarlo"):
+        with tempfile.TemporaryDirectory() as tmp:
+            old = os.environ.get("NUMBA_CACHE_DIR")
+            os.environ["NUMBA_CACHE_DIR"] = tmp
+            try:
+                ctx = mp.get_context("spawn")
+                q = ctx.Queue()
+                p = ctx.Process(target=_cold_child, args=(args.study, method, q))
+                p.start()
+                dt = q.get()
+                p.join()
+            finally:
+                if old is None:
+                    os.environ.pop("NUMBA_CACHE_DIR")
+                else:
+                    os.environ["NUMBA_CACHE_DIR"] = old
+        print(f"    {method:<11} {dt:7.1f} s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--particles", type=int, default=300)
@@ -315,6 +409,9 @@ def main() -> None:
     ap.add_argument("--thesis-seeds", type=int, nargs="+", default=[2011, 2012])
     ap.add_argument("--pinhole", action="store_true", help="run (d), the calibration pinhole image")
     ap.add_argument("--pinhole-seeds", type=int, nargs="+", default=[3, 4])
+    ap.add_argument("--study", default=None, help="run (e), a study config's renders, exact and Monte-Carlo")
+    ap.add_argument("--study-designs", type=int, default=1)
+    ap.add_argument("--study-cold", action="store_true", help="with --study: first render, empty numba cache")
     args = ap.parse_args()
     os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
     if not args.skip_agreement:
@@ -328,6 +425,10 @@ def main() -> None:
         print("(c) thesis uniform-x displacement statistics, exact + shot noise vs Monte-Carlo: not run (--thesis)")
     if args.pinhole:
         pinhole(args)
+    if args.study:
+        study(args)
+        if args.study_cold:
+            study_cold(args)
 
 
 if __name__ == "__main__":

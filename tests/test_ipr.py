@@ -415,3 +415,49 @@ def test_split_recovers_a_close_pair_and_keeps_a_single_particle():
             np.testing.assert_allclose(res, data - image(xyz, out), atol=1e-9)
         else:
             assert np.sum(res**2) == before and np.array_equal(out, inten)
+
+
+@pytest.mark.parametrize("kind", ["case", "stack"])
+def test_residual_volume_candidates_find_the_particles(scene, kind):
+    """The residual rounds' other candidate volumes (``residual_volume``: MART on the case grid, the residual's
+    focal stack) find the particles the first volume leaves out. A high ``peak_threshold`` makes the first MART
+    volume give only its brightest peaks, so most particles must come from the residual rounds."""
+    pts, inputs = scene
+    parts = ipr_particles(inputs, residual_volume=kind, peak_threshold=0.6, iterations=6, polish=0)
+    a = parts.attrs
+    assert a["residual_volume"] == kind and a["mart_volumes"] == 1 + len(a["candidates_added"])
+    vox = np.array(inputs.grid.voxel_size()[::-1])
+    fit = np.column_stack([parts[v].values for v in ("x", "y", "z")])
+    d = np.linalg.norm((fit[:, None, :] - pts[None]) / vox, axis=2)
+    found = d.min(axis=0) < 0.5
+    first = ipr_particles(inputs, residual_candidates=0, peak_threshold=0.6, iterations=1, polish=0)
+    assert found.sum() >= 7 and found.sum() >= first.sizes["particle"] + 3, (found.sum(), first.sizes["particle"])
+    assert sum(a["candidates_added"]) >= 3
+    assert (d.min(axis=1) >= 0.5).sum() <= 3  # ghosts
+
+
+def test_residual_volume_bad_value_names_the_setting(scene):
+    _, inputs = scene
+    with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr\.residual_volume = 'voxels': allowed values"):
+        ipr_particles(inputs, residual_volume="voxels")
+    schema = method_schemas()["ipr"]["properties"]["residual_volume"]
+    assert schema["enum"] == ["mart", "case", "stack"] and schema["default"] == "mart"
+
+
+@pytest.mark.parametrize("kind", ["case", "stack"])
+def test_residual_volume_same_bytes_whatever_the_threads(scene, kind):
+    import numba
+
+    _, inputs = scene
+    kw = {"residual_volume": kind, "iterations": 2, "residual_candidates": 2, "polish": 0}
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = ipr_particles(inputs, **kw)
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        two = ipr_particles(inputs, **kw)
+    finally:
+        numba.set_num_threads(old)
+    for v in ("x", "y", "z", "intensity"):
+        assert np.array_equal(one[v].values, two[v].values)
+    assert one.attrs["candidates_added"] == two.attrs["candidates_added"] and len(one.attrs["candidates_added"]) >= 1

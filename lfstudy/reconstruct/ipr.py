@@ -116,7 +116,14 @@ fewer new particles than ``residual_candidates_min_gain`` of the list, the later
 the residual then changes little from round to round, and its next volumes give the same peaks, which
 are rejected again (fitted intensity below the ghost floor, or within ``_MIN_SEPARATION`` of a
 particle). The attrs ``candidates_added`` (new particles per round run) and
-``skipped_candidate_rounds`` say what happened.
+``skipped_candidate_rounds`` say what happened. ``residual_volume`` chooses the residual rounds' volume:
+``mart`` (the default, above), ``case`` (MART on the case's own grid: the residual holds only the missed
+particles, few enough for one voxel per lenslet, on its own plan of 1/18 the voxels) or ``stack`` (the
+residual's focal stack on the refined grid, the additive back-projection :func:`_stack_volume`, no MART
+iteration). Neither holds the default's accuracy on the demo camera (``bench_ipr.py --camera demo``, figures
+in its docstring; seeds 3, 4 held out): ``case`` loses 2.6–5.7 points of the particles found, ``stack`` 0.3–2.1
+points and adds 0.6–2.3 points of ghosts, for 7–20 % less CPU; the candidate volumes take 15–30 % of the fit's
+time there, the particle images 60–75 %.
 
 Measured (``benchmarks/bench_ipr.py --crop 400 400``, Table 4.3 camera, seeds 0 and 1 used to
 set the defaults): 0.001 ppp 88.8 % found within half a voxel, 8–10 % ghosts; 0.005 ppp
@@ -268,6 +275,10 @@ _REFINE_XY = 3  # candidate MART grid: this many voxels per case voxel in x and 
 _REFINE_Z = 2  # and in z
 _GHOST_FROM = 0  # first iteration after which faint particles are removed
 _JACOBIANS = ("central", "forward")  # finite differences of the position Jacobian
+#: Where the residual rounds' candidates come from (``residual_volume``): ``mart`` MART on the refined candidate
+#: grid, ``case`` MART on the case's own grid (18x fewer voxels on the default refinement), ``stack`` the residual's
+#: focal stack on the refined grid (its additive back-projection, one pass over the tables, no iteration)
+_RESIDUAL_VOLUMES = ("mart", "case", "stack")
 #: Quadratures of the per-particle images (the order of :data:`lfstudy.simulate.exact._QUAD_EXACT`: arc nodes
 #: ceil(base + dens·L) per panel of L blur widths, at least min; longest panel; nodes of the numeric band
 #: integrals; Gaussian cut-off K; band half-width, in σ). "fast": max |fast − exact| <= 1e-4 of the patch's
@@ -608,6 +619,28 @@ def _peaks(vol: np.ndarray, grid: ReconstructionGrid, threshold: float) -> np.nd
     return out
 
 
+def _stack_volume(plan: MartPlan, light: xr.DataArray, smoothing: float = 0.5) -> np.ndarray:
+    """The focal stack of ``light`` on the plan's grid: each voxel the mean of the (non-negative) ray intensities
+    through it, weighted by their beam fractions (Σ_i F_ij·I_i / Σ_i F_ij over the plan's rays; the additive
+    back-projection, MLOS's arithmetic counterpart), the voxels too few views see left empty and smoothed as MART
+    smooths (``smoothing`` voxels, :func:`lfstudy.reconstruct.mart.mart`)."""
+    from lfstudy.reconstruct.mart import _coverage
+
+    proj = plan.proj
+    meas = np.where(proj.gain > 0, np.maximum(proj._lf_array(light), 0.0), 0.0)
+    num = np.zeros((1, *proj.grid.shape))
+    chan = np.zeros(1, np.int64)
+    for block in plan.blocks:
+        for pc, prs in block:
+            proj.column_accumulate_many(pc, prs, proj.column_values(meas, pc, prs)[None], chan, num)
+    cover = _coverage(plan.dens)
+    vol = np.divide(num[0], cover, out=np.zeros_like(cover), where=cover > 0)
+    vol[~plan.seen] = 0.0
+    if smoothing > 0:
+        ndimage.gaussian_filter(vol, smoothing, truncate=3.0, output=vol)
+    return vol
+
+
 def _raw_from_lightfield(lf: xr.DataArray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """The light field's samples put back on the sensor, and the mask of the pixels it holds."""
     vals = np.asarray(lf.values, dtype=np.float64)
@@ -737,6 +770,7 @@ def ipr_particles(
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
     residual_late_gain: float = 0.01,
+    residual_volume: str = "mart",
     shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
@@ -789,6 +823,12 @@ def ipr_particles(
         Once a residual-candidate round adds fewer new particles than this fraction of the list (but not fewer than
         ``residual_candidates_min_gain``'s), the later rounds' volumes take ``_LATE_MART_ITERATIONS`` (1) MART
         iterations instead of ``residual_mart_iterations``; 0: never.
+    residual_volume : {"mart", "case", "stack"}
+        The volume whose peaks are the residual rounds' candidates (module docstring, "Candidates"): ``mart`` MART
+        (``residual_mart_iterations``) on the refined candidate grid; ``case`` MART (as many iterations) on the case's
+        own grid, whose plan is made once besides the refined grid's; ``stack`` the residual's focal stack on the
+        refined grid (the coverage-weighted mean of the rays through each voxel, no MART iteration). The first
+        candidates (of the data) always come from MART on the refined grid.
     shake_settle : float
         The shake's active set [voxels]: a particle whose last shake moved it less than this, with no particle
         within ``_SETTLE_RADIUS`` voxels moved (as much), added or removed since, sits out the next shake (at most
@@ -863,6 +903,11 @@ def ipr_particles(
         raise ReconstructionError(f"reconstruct.ipr.split = {split!r}: allowed range is [0, 10]")
     _check("split_penalty", split_penalty, 0.0, 1e6)
     _check("split_ratio", split_ratio, 0.0, 100.0)
+    if residual_volume not in _RESIDUAL_VOLUMES:
+        allowed = ", ".join(_RESIDUAL_VOLUMES)
+        raise ReconstructionError(
+            f"reconstruct.ipr.residual_volume = {residual_volume!r}: allowed values are {allowed}"
+        )
     if jacobian not in _JACOBIANS:
         allowed = ", ".join(_JACOBIANS)
         raise ReconstructionError(f"reconstruct.ipr.jacobian = {jacobian!r}: allowed values are {allowed}")
@@ -900,11 +945,20 @@ def ipr_particles(
     # the residual's volumes: every residual_plane_step-th plane, on views into the same tables
     rplan = plan.planes(int(residual_plane_step)) if residual_plane_step > 1 else plan
     clock["mart"] += time.perf_counter() - t0
+    case_plan: list[MartPlan] = []  # residual_volume "case": the case grid's plan, made on first use
 
-    def candidates(light: xr.DataArray, iters: int, p: MartPlan = plan) -> np.ndarray:
+    def candidates(light: xr.DataArray, iters: int, p: MartPlan = plan, kind: str = "mart") -> np.ndarray:
         t0 = time.perf_counter()
+        if kind == "case":
+            if not case_plan:
+                cp = mart_plan(lf, inputs.camera, grid, calibration=vcal, coverage_dtype="float32")
+                case_plan.append(cp.planes(int(residual_plane_step)) if residual_plane_step > 1 else cp)
+            p = case_plan[0]
         g = p.proj.grid
-        vol = mart(light, inputs.camera, g, iterations=iters, plan=p, calibration=vcal).values
+        if kind == "stack":
+            vol = _stack_volume(p, light)
+        else:
+            vol = mart(light, inputs.camera, g, iterations=iters, plan=p, calibration=vcal).values
         clock["mart"] += time.perf_counter() - t0
         clock["volumes"] += 1
         peaks = _peaks(vol, g, peak_threshold)
@@ -1054,7 +1108,7 @@ def ipr_particles(
             skipped += 1
         elif it < residual_candidates:
             its = min(_LATE_MART_ITERATIONS, residual_mart_iterations) if late else residual_mart_iterations
-            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), its, rplan)
+            new = candidates(_lightfield_from_raw(np.maximum(res, 0.0), lf), its, rplan, residual_volume)
             if len(new) and len(xyz):
                 new = new[cKDTree(xyz / vox).query(new / vox)[0] > _MIN_SEPARATION]
             if len(new):
@@ -1158,6 +1212,7 @@ def ipr_particles(
             "residual_plane_step": int(residual_plane_step),
             "residual_candidates_min_gain": float(residual_candidates_min_gain),
             "residual_late_gain": float(residual_late_gain),
+            "residual_volume": residual_volume,
             "shake_settle": float(shake_settle),
             "shake_sat_out": sat_out,
             "candidates_added": gain,
@@ -1395,6 +1450,7 @@ def ipr(
     residual_plane_step: int = 1,
     residual_candidates_min_gain: float = 0.001,
     residual_late_gain: float = 0.01,
+    residual_volume: str = "mart",
     shake_settle: float = 0.0,
     jacobian: str = "central",
     image_accuracy: str = "fast",
@@ -1428,6 +1484,7 @@ def ipr(
         residual_plane_step=residual_plane_step,
         residual_candidates_min_gain=residual_candidates_min_gain,
         residual_late_gain=residual_late_gain,
+        residual_volume=residual_volume,
         shake_settle=shake_settle,
         jacobian=jacobian,
         image_accuracy=image_accuracy,
@@ -1530,6 +1587,12 @@ class IPR(ReconstructionMethod):
             "description": "after a residual-candidate round adding fewer than this fraction of the particles, the "
             "later rounds' volumes take one MART iteration (0: never)",
         },
+        "residual_volume": {
+            "type": "string",
+            "enum": list(_RESIDUAL_VOLUMES),
+            "description": "the residual rounds' candidates: peaks of MART on the refined grid (mart), of MART on the "
+            "case grid (case) or of the residual's focal stack on the refined grid (stack)",
+        },
         "shake_settle": {
             "type": "number",
             "minimum": 0,
@@ -1617,6 +1680,7 @@ class IPR(ReconstructionMethod):
         residual_plane_step: int = 1,
         residual_candidates_min_gain: float = 0.001,
         residual_late_gain: float = 0.01,
+        residual_volume: str = "mart",
         shake_settle: float = 0.0,
         jacobian: str = "central",
         image_accuracy: str = "fast",
@@ -1643,6 +1707,7 @@ class IPR(ReconstructionMethod):
             residual_plane_step=residual_plane_step,
             residual_candidates_min_gain=residual_candidates_min_gain,
             residual_late_gain=residual_late_gain,
+            residual_volume=residual_volume,
             shake_settle=shake_settle,
             jacobian=jacobian,
             image_accuracy=image_accuracy,
