@@ -222,6 +222,16 @@ def _voxel_steps(
 
 
 # --------------------------------------------------------------- case errors
+
+
+def _truth_at(flow: Any, pts: Mapping[str, np.ndarray], dt: float, n_steps: int) -> tuple[np.ndarray, ...]:
+    """The true displacement (x, y, z, mm) at points given per axis (an axis left out is at 0), integrated
+    about the midpoint of the frames' interval, as the PIV vectors are."""
+    zeros = np.zeros(np.shape(next(iter(pts.values()))))
+    xyz = (pts.get(ax, zeros) for ax in ("x", "y", "z"))
+    return true_displacement(flow, *xyz, dt=dt, n_steps=n_steps, reference="midpoint")
+
+
 def case_errors(
     piv: xr.Dataset,
     flow: Flow,
@@ -301,16 +311,8 @@ def case_errors(
     axes = [ax for ax in ("x", "y", "z") if ax in dims]
     grid = xr.broadcast(*(piv[d] for d in dims))
     pts = {d: g.transpose(*dims).values.astype(float) for d, g in zip(dims, grid)}
+    tx, ty, tz = _truth_at(flow, pts, dt, n_steps)
     zeros = np.zeros_like(pts[dims[0]])
-    tx, ty, tz = true_displacement(
-        flow,
-        pts.get("x", zeros),
-        pts.get("y", zeros),
-        pts.get("z", zeros),
-        dt=dt,
-        n_steps=n_steps,
-        reference="midpoint",
-    )
     true_mm = {"x": tx, "y": ty, "z": tz}
 
     valid = piv["valid"].transpose(*dims).values.astype(bool) if "valid" in piv else np.ones(zeros.shape, bool)
@@ -489,16 +491,7 @@ def window_average(
     for lo in range(0, n, per):  # blocks of windows, every sample of a window in one array call
         sl = slice(lo, min(n, lo + per))
         pts = {ax: (ctr[ax][sl, None] + half[ax][sl, None] * o[None, :]).ravel() for ax, o in zip(axes, offs)}
-        zeros = np.zeros(next(iter(pts.values())).shape)
-        d = true_displacement(
-            flow,
-            pts.get("x", zeros),
-            pts.get("y", zeros),
-            pts.get("z", zeros),
-            dt=dt,
-            n_steps=n_steps,
-            reference="midpoint",
-        )
+        d = _truth_at(flow, pts, dt, n_steps)
         for ax, comp in zip(("x", "y", "z"), d):
             out[ax][sl] = np.asarray(comp).reshape(-1, wts.size) @ wts
     return {ax: v.reshape(shape) for ax, v in out.items()}
