@@ -99,7 +99,7 @@ class UncertaintyCalibration:
     coverage: dict[str, float] = field(default_factory=dict)
 
     @property
-    def label(self) -> str:
+    def design_line(self) -> str:
         """The design as one line (``magnification=-1 lenslet_pitch=0.0888 ppp=0.005``)."""
         return " ".join(f"{k}={v}" for k, v in self.design.items()) or "(one design)"
 
@@ -107,7 +107,7 @@ class UncertaintyCalibration:
         """Flat provenance attrs (zarr/CSV friendly): the study, the design, the cases and the factors."""
         out: dict[str, Any] = {
             "uncertainty_calibration_study": self.study,
-            "uncertainty_calibration_design": self.label,
+            "uncertainty_calibration_design": self.design_line,
             "uncertainty_calibration_cases": ", ".join(self.cases),
         }
         for ax, f in self.factor.items():
@@ -122,7 +122,7 @@ class UncertaintyCalibration:
             for ax in self.factor
         )
         return (
-            f"σ calibrated by the study {self.study} on {self.label} ({len(self.cases)} cases; "
+            f"σ calibrated by the study {self.study} on {self.design_line} ({len(self.cases)} cases; "
             f"RMS error / RMS σ there): {parts}"
         )
 
@@ -473,7 +473,7 @@ def load_calibration(cfg: Mapping[str, Any]) -> UncertaintyCalibration | None:
     ]
     if wide:
         warnings.warn(
-            f"uncertainty.calibration: the {len(cal.cases)} cases of {cal.label} disagree on σ's scale "
+            f"uncertainty.calibration: the {len(cal.cases)} cases of {cal.design_line} disagree on σ's scale "
             f"(RMS error / RMS σ: {', '.join(wide)}), so one factor fits few of them: name the flow most like the "
             "recording's in the design (a window-filtered vortex and a uniform shift differ most) or fit on more seeds",
             UserWarning,
