@@ -16,6 +16,7 @@ file, before any processing and again at the swap.
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import re
@@ -88,7 +89,7 @@ def clear_stale(path: str | Path) -> list[Path]:
     host = _host()
     done = []
     pattern = re.compile(rf"\.{re.escape(path.name)}\.lfstudy-({'|'.join(_KINDS)})-(.+)-(\d+)-[0-9a-f]{{8}}")
-    for stale in sorted(path.parent.glob(f".{_glob_escape(path.name)}.lfstudy-*")):
+    for stale in sorted(path.parent.glob(f".{glob.escape(path.name)}.lfstudy-*")):
         m = pattern.fullmatch(stale.name)
         if m is None or m.group(2) != host or _pid_alive(int(m.group(3))):
             continue
@@ -102,12 +103,6 @@ def clear_stale(path: str | Path) -> list[Path]:
             continue  # a probe of a directory that was replaced since: not provably ours to delete
         done.append(stale)
     return done
-
-
-def _glob_escape(name: str) -> str:
-    import glob
-
-    return glob.escape(name)
 
 
 @contextmanager

@@ -44,12 +44,13 @@ class ProcessTarget:
     inputs: list[str]
 
 
-def _is_record(path: Path) -> bool:
+def _record(path: Path) -> dict | None:
+    """The process record at ``path`` (a marker of ``lfstudy process``), or None if it is something else."""
     try:
         marker = json.loads(path.read_text())
     except (OSError, ValueError):
-        return False
-    return isinstance(marker, dict) and marker.get("command") == "process"
+        return None
+    return marker if isinstance(marker, dict) and marker.get("command") == "process" else None
 
 
 def process_target(config_path: str | Path, name: str, inputs: list[str], workdir: str | Path = ".") -> ProcessTarget:
@@ -91,11 +92,11 @@ def process_target(config_path: str | Path, name: str, inputs: list[str], workdi
             )
     rec = wd / record
     if rec.is_symlink() or rec.exists():
-        if rec.is_dir() or not _is_record(rec):
+        written = None if rec.is_dir() else _record(rec)
+        if written is None:
             raise TargetError(
                 f"{record} exists and was not written by lfstudy process; Snakemake would remove it: move it away"
             )
-        marker = output_marker(out_abs)
-        if marker is None or json.loads(rec.read_text()) != marker:
+        if written != output_marker(out_abs):
             rec.unlink()  # stale: the results were removed or replaced since; rerun
     return ProcessTarget(out=out, record=record, inputs=all_inputs)
