@@ -42,10 +42,16 @@ def tiny_study(tmp_path_factory) -> Path:
 @pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
 def pytest_collection_modifyitems(config, items):
     """A test that uses the tiny study (directly or through a fixture) is `slow`: the first one runs
-    the whole Snakemake workflow (minutes on 2 cores)."""
+    the whole Snakemake workflow (minutes on 2 cores). Under pytest-xdist (`-n 2 --dist loadgroup`,
+    the README's command) the tests are grouped so that no fixture is built twice."""
     for item in items:
         if "tiny_study" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.slow)
+            # One worker of `pytest -n 2 --dist loadgroup` builds the session's tiny study for all its users.
+            item.add_marker(pytest.mark.xdist_group("tiny_study"))
+        else:
+            # A file's tests stay on one worker, so its module-scoped fixtures are built once.
+            item.add_marker(pytest.mark.xdist_group(item.path.name))
 
 
 @pytest.fixture
