@@ -69,3 +69,17 @@ def cli_error(capsys):
         return lines[0]
 
     return run
+
+
+class _TinyStudyFirst:
+    """The tiny study's group is the longest (the study, then the SLURM run and the sweeps on it): it goes
+    first, so that one xdist worker starts it at once and the other files fill the second worker."""
+
+    @pytest.hookimpl(trylast=True)  # after pytest's own reordering by fixture scope
+    def pytest_collection_modifyitems(self, items):
+        # A stable sort: the order within each part is kept.
+        items.sort(key=lambda item: "tiny_study" not in getattr(item, "fixturenames", ()))
+
+
+def pytest_configure(config):
+    config.pluginmanager.register(_TinyStudyFirst(), "lfstudy-tiny-study-first")
