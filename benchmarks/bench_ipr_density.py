@@ -125,6 +125,7 @@ def diagnose(sc: dict, lf, centers, true_ds, fit_ds, truth: bool = True, variant
     """The density figures, the candidates and the fit from the truth of one case's frame."""
     from lfstudy import reconstruct as rc
     from lfstudy.reconstruct import ipr as ipr_mod
+    from lfstudy.reconstruct.ipr import candidates as ipr_candidates
     from lfstudy.study import case as cl
 
     cam = cl.case_camera(sc)
@@ -180,19 +181,19 @@ def diagnose(sc: dict, lf, centers, true_ds, fit_ds, truth: bool = True, variant
         return out
     # the fit from the truth: the first candidate volume's peaks recorded, then replaced by the true positions
     seen: list[np.ndarray] = []
-    peaks = ipr_mod._peaks
+    peaks = ipr_candidates._peaks  # where the fit looks it up
 
     def truth_peaks(vol, g, threshold):
         seen.append(peaks(vol, g, threshold))
         return t.copy() if len(seen) == 1 else seen[-1]
 
-    ipr_mod._peaks = truth_peaks
+    ipr_candidates._peaks = truth_peaks
     try:
         t0 = time.process_time()
         start = ipr_mod.ipr_particles(inputs, **{**kw, "residual_candidates": 0})
         out["truth_cpu"] = time.process_time() - t0
     finally:
-        ipr_mod._peaks = peaks
+        ipr_candidates._peaks = peaks
     cand_ok, cand_ghost = _found(t, seen[0], vox)
     out["cand_found"], out["cand_ghosts"], out["n_cand"] = 100 * cand_ok.mean(), 100 * cand_ghost.mean(), len(seen[0])
     sfit = np.column_stack([start[k].values for k in "xyz"])

@@ -1,6 +1,6 @@
 """IPR's per-particle images, exact against fast quadrature: CPU ms per image and the error (issue 27).
 
-Reproduces: lfstudy/reconstruct/ipr.py (its module docstring: CPU ms per particle image, fast against exact
+Reproduces: lfstudy/reconstruct/ipr/__init__.py (its docstring: CPU ms per particle image, fast against exact
 quadrature); docs/architecture.md § "Benchmarks".
 
     python benchmarks/bench_particle_image.py [--crop 300 300] [--ppp 0.005] [--seed 7] [--reps 3]
@@ -10,6 +10,13 @@ by :func:`lfstudy.reconstruct.ipr.particle_patches` as IPR renders them in one i
 its position and the six ±0.1 voxel trials), with ``accuracy="exact"`` and ``"fast"``, alternately
 ``--reps`` times each on one thread; printed: the least CPU time per image of each, their ratio, and
 the largest |fast − exact| over every patch, as a fraction of the patch's peak and of its sum.
+
+Measured (``benchmarks/bench_particle_image.py``, 450 particles x 7 images of a 300 x 300 px crop at 0.005 ppp, one
+thread, load ~5 on 2 cores): 0.219 ms of CPU per exact image, 0.148 fast (x1.47). Where an image's time
+goes (same images, exact quadrature): ~20 % the particle's layout, the separable interior lenslets and the patch
+memory, ~25 % the straight cuts and carries of the lenslets on the spot's rim, ~30 % placing the arcs' panels and
+nodes (a crossing per pixel edge), ~25 % the nodes' blurred-edge sums; the quadrature shortens the last two only. A
+patch is mostly empty (5.5 % of its pixels lit, the lit bounding box 43 % of its area).
 """
 
 from __future__ import annotations

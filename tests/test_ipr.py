@@ -237,17 +237,39 @@ def test_ipr_parameters_and_bad_input(scene):
 
 
 def test_ipr_particles_states_the_methods_defaults():
-    """ipr_particles (the fit) takes every parameter of ipr (the volume) but blob_sigma, with the same defaults, so
-    the schema's defaults (read from IPR.run, checked against ipr by test_reconstruct_methods) reach the fit."""
+    """The fit's settings are stated once, in IPRSettings: the method's run signature (where the schema reads its
+    defaults) is its config fields and blob_sigma with their defaults; ipr_particles and ipr take an IPRSettings (or
+    its fields as keywords) and restate none of them; a keyword that is no setting is refused by name."""
+    import dataclasses
     import inspect
 
-    from lfstudy.reconstruct.ipr import ipr, ipr_particles
+    from lfstudy.reconstruct.ipr import IPRSettings, ipr, ipr_particles
 
-    def defaults(f):
-        return {p.name: p.default for p in inspect.signature(f).parameters.values() if p.default is not p.empty}
+    fields = {f.name: f.default for f in dataclasses.fields(IPRSettings) if f.metadata["config"]}
+    assert fields == IPRSettings.defaults() and "batch" not in fields
+    assert get_method("ipr").defaults() == {**fields, "blob_sigma": 0.0}
+    for f in (ipr, ipr_particles):
+        assert not set(fields) & set(inspect.signature(f).parameters), f"{f.__name__} restates a setting"
+    assert IPRSettings.of(IPRSettings(polish=1), split=2) == IPRSettings(polish=1, split=2)
+    with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr: unknown setting\(s\) polsh; the settings are"):
+        IPRSettings.of(polsh=1)
 
-    vol, fit = defaults(ipr), defaults(ipr_particles)
-    assert {k: v for k, v in vol.items() if k != "blob_sigma"} == fit
+
+def test_the_package_examples_run_as_doctests():
+    """The Examples of the package docstring and of IPRSettings run and print what they show (tests/test_doctests.py
+    collects the top-level stage packages' faces only, not lfstudy.reconstruct.ipr)."""
+    import doctest
+
+    import lfstudy.reconstruct.ipr as pkg
+
+    finder = doctest.DocTestFinder(recurse=False)
+    tests = finder.find(pkg, pkg.__name__, globs={}) + finder.find(pkg.IPRSettings, "IPRSettings", globs={})
+    assert sum(len(t.examples) for t in tests) >= 8
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    out: list[str] = []
+    for t in tests:
+        runner.run(t, out=out.append)
+    assert runner.summarize(verbose=False).failed == 0, "".join(out)
 
 
 def test_ipr_residual_is_kept_exact(scene, fitted):

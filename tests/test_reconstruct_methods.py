@@ -33,7 +33,7 @@ from lfstudy.reconstruct import (
     unregister_method,
 )
 from lfstudy.reconstruct.deconvolution import richardson_lucy
-from lfstudy.reconstruct.ipr import ipr
+from lfstudy.reconstruct.ipr import IPRSettings, ipr
 from lfstudy.reconstruct.mart import mart, mart_plan
 from lfstudy.reconstruct.projector import PlenopticProjector
 from lfstudy.reconstruct.registry import BUILTIN, ENTRY_POINT_GROUP, detect_parameters
@@ -259,7 +259,10 @@ ALGORITHMS = {
 
 
 def _keyword_defaults(func) -> dict:
-    return {p.name: p.default for p in inspect.signature(func).parameters.values() if p.default is not p.empty}
+    out = {p.name: p.default for p in inspect.signature(func).parameters.values() if p.default is not p.empty}
+    if func is ipr:  # ipr takes the fit's settings as one IPRSettings (or its fields), whose defaults are these
+        out |= IPRSettings.defaults()
+    return out
 
 
 @pytest.mark.parametrize("name", sorted(BUILTIN))

@@ -3,8 +3,8 @@ the choice of a move on the exact residual, and the polish stencil.
 
 Pure array kernels over the patch layout of :func:`lfstudy.reconstruct.ipr.particle_patches` (images in
 one flat buffer, ``offs`` into it, each patch's top-left pixel ``r0, c0`` and shape ``shp``), shared by
-:mod:`lfstudy.reconstruct.ipr` and :mod:`lfstudy.reconstruct.image_model`. See ipr.py's module docstring
-for the fit they carry out (Wieneke 2013's shaking).
+:mod:`lfstudy.reconstruct.ipr` and :mod:`lfstudy.reconstruct.image_model`. See the ``lfstudy.reconstruct.ipr``
+package docstring for the fit they carry out (Wieneke 2013's shaking).
 """
 
 from __future__ import annotations

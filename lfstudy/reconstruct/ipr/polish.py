@@ -1,0 +1,76 @@
+"""Step 4, the polish: near-focus particles moved to the likelihood-weighted mean of a stencil around them
+(package docstring, step 4).
+
+Near the focal plane a particle's defocus spot on the lenslet array is smaller than a lenslet: its image
+falls behind one to four lenslets and changes little as the particle moves within them, so the residual is
+flat there up to the noise and the shake stops anywhere on the flat. After the iterations, ``polish`` rounds
+move each particle whose spot radius is at most ``_POLISH_SPOT`` pitches to the likelihood-weighted mean of a
+stencil around it (weights exp(−ΔC/2σ²), ΔC the rise of the exact ‖R‖² over the stencil's lowest, σ² the
+residual variance per pixel on the particle's patch; :func:`lfstudy.reconstruct._shake_kernels._stencil`), the
+others held fixed, then refit the intensities there: where the residual is sharp that is the minimum, where it
+is flat the middle of the flat, the estimate of least expected error.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+# The fit's Gauss-Seidel kernels (numba), shared with image_model.py.
+from lfstudy.reconstruct._shake_kernels import _stencil
+from lfstudy.reconstruct.ipr.patches import _FitImages, _spot_pitches
+from lfstudy.reconstruct.ipr.shake import _Particles, _unmerged
+
+_POLISH_SPOT = 1.5  # the polish moves particles whose defocus spot (radius) is at most this many lenslet pitches
+_POLISH_XY = (-0.25, 0.0, 0.25)  # the polish stencil's offsets [voxels] in x and y
+_POLISH_Z = (-0.5, -0.25, 0.0, 0.25, 0.5)  # and in z
+_POLISH_T = 1.0  # the polish's weights exp(−ΔC/(2·T·σ²)): T = 1 the Gaussian likelihood of the residual
+
+
+def _polish_stencil(vox: np.ndarray) -> np.ndarray:
+    """The polish's stencil offsets (k, 3) [mm] for voxels ``vox`` (x, y, z) [mm], the current position first."""
+    stencil = np.array([(a, b, c) for a in _POLISH_XY for b in _POLISH_XY for c in _POLISH_Z]) * vox
+    return np.vstack([np.zeros((1, 3)), stencil[np.any(stencil != 0.0, axis=1)]])
+
+
+def _polish_step(
+    images: _FitImages, pos: np.ndarray, amp: np.ndarray, res: np.ndarray, stencil: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each particle moved to the likelihood-weighted mean of the stencil positions around it (the others
+    held fixed: weights exp(−ΔC/2σ²), ΔC the rise of the exact residual's ‖R‖² over the stencil's best,
+    σ² the residual variance per pixel on the particle's patch), then the intensities refitted there."""
+    k = len(stencil)
+    drop = np.zeros((len(pos), k + 1))
+    per = max(1, images.batch // k)  # particles per batch: each renders the whole stencil
+    for s in range(0, len(pos), per):
+        sl = slice(s, s + per)
+        cand = (pos[sl][:, None, :] + stencil[None]).reshape(-1, 3)
+        buf, offs, r0, c0, shp = images.patches(cand)
+        t0 = time.perf_counter()
+        _stencil(res, images.mask, buf, offs, r0, c0, shp, k, amp[sl] * 1.0, drop[sl])
+        images.clock["fit"] += time.perf_counter() - t0
+    s2 = np.maximum(drop[:, k], 1e-300)
+    logw = (drop[:, :k] - drop[:, :k].max(axis=1, keepdims=True)) / (2.0 * _POLISH_T * s2[:, None])
+    wgt = np.exp(logw)
+    moved = pos + (wgt @ stencil) / wgt.sum(axis=1)[:, None]
+    images.add_images(pos, amp, res, 1.0)
+    return moved, images.fit_intensity(moved, res, -1.0)
+
+
+def _polish(
+    images: _FitImages, p: _Particles, res: np.ndarray, vox: np.ndarray, rounds: int
+) -> tuple[_Particles, int, int]:
+    """``rounds`` polish rounds of the particles near focus (spot radius at most ``_POLISH_SPOT`` pitches), then
+    the pairs it brought within half a voxel merged (the fainter's image added back to ``res``). ``sig`` and
+    ``rel`` stay the last shake's. Returns the list, how many particles were polished and how many merged away."""
+    xyz, inten = p.xyz, p.inten
+    near = np.nonzero(_spot_pitches(images.cam, xyz[:, 2]) <= _POLISH_SPOT)[0] if len(xyz) else np.zeros(0, int)
+    if not (rounds and len(near)):
+        return p, len(near), 0
+    stencil = _polish_stencil(vox)
+    for _ in range(rounds):
+        xyz[near], inten[near] = _polish_step(images, xyz[near], inten[near], res, stencil)
+    keep = _unmerged(xyz, inten, vox)  # pairs the polish brought within half a voxel are merged
+    images.add_images(xyz[~keep], inten[~keep], res, 1.0)
+    return p.take(keep), len(near), int((~keep).sum())

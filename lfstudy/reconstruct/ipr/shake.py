@@ -1,0 +1,178 @@
+"""Step 3, the shake: each outer iteration's Gauss–Newton steps and the exact choice of the move, then the
+removal of ghosts and merged pairs (package docstring, step 3).
+
+For every particle the images at its position and at ±δ in x, y and z are rendered (central differences;
+δ = ``shake`` voxels); particle after particle (Gauss–Seidel, as Wieneke's shaking) the linear least-squares
+problem ``min ‖R_p − I'·U − Σ_k a_k·D_k‖²`` over (I', a) is solved on a linearised copy of the residual
+(:func:`lfstudy.reconstruct._shake_kernels._sweep`), and the move is chosen on the exact residual among the
+current position, the trial positions and the Gauss–Newton step (:func:`~lfstudy.reconstruct._shake_kernels._choose`),
+so no move raises the residual. With ``shake_settle`` the particles that settled sit the shake out
+(:func:`_unwoken` wakes them).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+# The fit's Gauss-Seidel kernels (numba), shared with image_model.py.
+from lfstudy.reconstruct._shake_kernels import _choose, _sweep
+from lfstudy.reconstruct.ipr.patches import _FitImages
+
+_GHOST_FROM = 0  # first iteration after which faint particles are removed
+_SETTLE_RADIUS = 2.0  # shake_settle: a particle moved, added or removed within this many voxels wakes the settled
+_SETTLE_SKIPS = 2  # and a settled particle sits out at most this many shakes in a row
+
+
+@dataclass
+class _Particles:
+    """The fit's particle list: positions ``xyz`` (n, 3) [mm], intensities, the position uncertainties ``sig``
+    (n, 3) [mm] and relative residuals ``rel`` of the last shake (inf until shaken), and the active set's state:
+    ``still`` (settled) and ``sat`` (shakes sat out in a row)."""
+
+    xyz: np.ndarray
+    inten: np.ndarray
+    sig: np.ndarray
+    rel: np.ndarray
+    still: np.ndarray
+    sat: np.ndarray
+
+    @classmethod
+    def unshaken(cls, xyz: np.ndarray, inten: np.ndarray) -> _Particles:
+        """New particles at ``xyz`` of intensities ``inten``: no uncertainty yet, none settled."""
+        n = len(xyz)
+        return cls(xyz, inten, np.full((n, 3), np.inf), np.full(n, np.inf), np.zeros(n, bool), np.zeros(n, np.int64))
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def take(self, keep: np.ndarray) -> _Particles:
+        """The particles where ``keep``."""
+        return _Particles(*(getattr(self, k)[keep] for k in ("xyz", "inten", "sig", "rel", "still", "sat")))
+
+    def append(self, new: _Particles) -> _Particles:
+        """These particles, then ``new``'s."""
+        return _Particles(
+            np.vstack([self.xyz, new.xyz]),
+            np.concatenate([self.inten, new.inten]),
+            np.vstack([self.sig, new.sig]),
+            np.concatenate([self.rel, new.rel]),
+            np.concatenate([self.still, new.still]),
+            np.concatenate([self.sat, new.sat]),
+        )
+
+
+def _shake_step(
+    images: _FitImages,
+    pos: np.ndarray,
+    amp: np.ndarray,
+    res: np.ndarray,
+    tr: np.ndarray,
+    delta: np.ndarray,
+    mstep: np.ndarray,
+    damping: float,
+    central: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss–Newton steps on a linearised copy of the residual, then the exact choice (``_choose``), which
+    leaves ``res`` the exact residual of the moved particles.
+
+    ``tr`` (k, 3) [mm] are the trial offsets (±δ or +δ along each axis), ``delta`` and ``mstep`` (3,) [mm] the
+    finite-difference step and the largest move. Returns the moved positions, their intensities and the sweep's
+    output per particle (step, intensity, variances of x, y, z, relative residual, ...).
+    """
+    lin = res.copy()
+    out = np.zeros((len(pos), 9))
+    pick = np.zeros((len(pos), 2))
+    moved = pos.copy()
+    offsets = np.vstack([np.zeros((1, 3)), tr])
+    mask, batch, clock = images.mask, images.batch, images.clock
+    for s in range(0, len(pos), batch):
+        sl = slice(s, s + batch)
+        buf, offs, r0, c0, shp = images.patches(pos[sl], tr)
+        t0 = time.perf_counter()
+        lm = float(damping)
+        _sweep(lin, mask, buf, offs, r0, c0, shp, amp[sl].copy(), delta, mstep, lm, True, central, out[sl])
+        clock["fit"] += time.perf_counter() - t0
+        step = pos[sl] + out[sl, :3]
+        bn, on, r0n, c0n, shpn = images.patches(step)
+        t0 = time.perf_counter()
+        _choose(res, mask, buf, offs, r0, c0, shp, 1 + len(tr), amp[sl], bn, on, r0n, c0n, shpn, pick[sl])
+        clock["fit"] += time.perf_counter() - t0
+        k = pick[sl, 0].astype(int)
+        moved[sl] = np.where((k == len(tr) + 1)[:, None], step, pos[sl] + offsets[np.minimum(k, len(tr))])
+    return moved, pick[:, 1], out
+
+
+def _shake(
+    images: _FitImages,
+    p: _Particles,
+    res: np.ndarray,
+    vox: np.ndarray,
+    settle: float,
+    tr: np.ndarray,
+    delta: np.ndarray,
+    mstep: np.ndarray,
+    damping: float,
+    central: bool,
+) -> tuple[_Particles, int, list[np.ndarray]]:
+    """One iteration's shake of the active set (:func:`_shake_step` with ``tr``, ``delta``, ``mstep``, ``damping``,
+    ``central``). Returns the shaken list, how many sat out, and the events: the old and new positions of the
+    particles that moved (by at least ``settle`` voxels; with ``settle`` 0 every shaken one)."""
+    # the active set: particles settled (their last shake moved them less than shake_settle voxels, and no
+    # particle within _SETTLE_RADIUS voxels moved, was added or removed since) sit out up to _SETTLE_SKIPS shakes
+    act = ~(p.still & (p.sat < _SETTLE_SKIPS))
+    sat = np.where(act, 0, p.sat + 1)
+    old = p.xyz
+    xyz, inten, sig, rel = p.xyz.copy(), p.inten.copy(), p.sig.copy(), p.rel.copy()
+    xyz[act], inten[act], out = _shake_step(images, old[act], inten[act], res, tr, delta, mstep, damping, central)
+    sig[act] = np.sqrt(out[:, 4:7])
+    rel[act] = out[:, 7]
+    moved = np.max(np.abs(xyz - old) / vox, axis=1) >= settle if settle > 0 else act
+    still = np.where(act, ~moved, p.still)
+    return _Particles(xyz, inten, sig, rel, still, sat), int((~act).sum()), [old[moved], xyz[moved]]
+
+
+def _unwoken(still: np.ndarray, xyz: np.ndarray, events: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """``still`` (the settled particles at ``xyz``) less those within ``_SETTLE_RADIUS`` voxels (per-axis scaled)
+    of an event: a particle's old or new position where it moved, was added or removed."""
+    out = np.asarray(still, bool).copy()
+    if len(events) and out.any():
+        d = cKDTree(np.asarray(events) / vox).query(xyz[out] / vox, distance_upper_bound=_SETTLE_RADIUS)[0]
+        out[out] = d > _SETTLE_RADIUS
+    return out
+
+
+def _unmerged(xyz: np.ndarray, inten: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """False for the fainter of each pair closer than half a voxel (per axis, scaled)."""
+    keep = np.ones(len(xyz), bool)
+    if len(xyz) < 2:
+        return keep
+    pairs = cKDTree(xyz / vox).query_pairs(0.5, output_type="ndarray")
+    for a, b in pairs[np.argsort(-np.maximum(inten[pairs[:, 0]], inten[pairs[:, 1]]))] if len(pairs) else ():
+        if keep[a] and keep[b]:
+            keep[b if inten[a] >= inten[b] else a] = False
+    return keep
+
+
+def _remove_ghosts(
+    images: _FitImages,
+    p: _Particles,
+    res: np.ndarray,
+    vox: np.ndarray,
+    inside: tuple[tuple[float, float], ...],
+    floor: float,
+) -> tuple[_Particles, np.ndarray]:
+    """The ghosts removed: particles not brighter than ``floor``, those more than a voxel outside the grid's
+    extent ``inside`` ((lo, hi) [mm] per axis) and the fainter of each pair closer than half a voxel; their images
+    are added back to ``res``. Returns the list kept and the removed particles' positions."""
+    keep = p.inten > floor
+    for a in range(3):
+        keep &= (p.xyz[:, a] >= inside[a][0] - vox[a]) & (p.xyz[:, a] <= inside[a][1] + vox[a])
+    keep &= _unmerged(p.xyz, p.inten, vox)
+    gone = ~keep & (p.inten > 0)
+    if gone.any():
+        images.add_images(p.xyz[gone], p.inten[gone], res, 1.0)
+    return p.take(keep), p.xyz[~keep]
