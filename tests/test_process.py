@@ -856,6 +856,49 @@ def test_median_uncertainty_and_summary_without_sigma():
     assert float(pair_metrics(ds)["unc_median_w"]) == pytest.approx(0.25)
 
 
+def test_empty_windows_are_counted_apart():
+    """A volume that holds particles in its lower half only (a grid deeper than the seeded slab, as IPR
+    leaves it: exactly 0 where no particle is): WIDIM's windows in the blank half have peak 0 and are
+    invalid, and empty_percent says how many of the invalid vectors are such windows, not outliers."""
+    from types import SimpleNamespace
+
+    from lfstudy.piv import widim
+    from lfstudy.process.metrics import pair_metrics
+    from lfstudy.process.pipeline import _pair_line
+
+    rng = np.random.default_rng(3)
+    a = np.zeros((32, 24, 24))
+    pos = rng.integers(2, 22, size=(120, 3))
+    pos[:, 0] = rng.integers(2, 14, 120)  # z < 16: the upper half stays blank
+    a[tuple(pos.T)] = rng.uniform(0.5, 1.0, 120)
+    b = np.roll(a, 1, axis=2)  # one voxel in x
+    res = widim(a, b, window=(8, 8, 8), spacing=(4, 4, 4), levels=1)
+    m = pair_metrics(res)
+    # the windows with nothing in a or in b, from the volumes themselves
+    starts = [np.rint(res[f"{d}_index"].values - 3.5).astype(int) for d in ("z", "y", "x")]
+    blank = np.array(
+        [
+            [
+                [
+                    not (a[z : z + 8, y : y + 8, x : x + 8].any() and b[z : z + 8, y : y + 8, x : x + 8].any())
+                    for x in starts[2]
+                ]
+                for y in starts[1]
+            ]
+            for z in starts[0]
+        ]
+    )
+    assert blank[starts[0] >= 16].all() and blank.mean() < 0.6  # the blank half, and few others
+    empty = float(m["empty_percent"])
+    assert empty == pytest.approx(100.0 * blank.mean())  # exactly those windows
+    assert not res["valid"].values[blank].any()
+    assert float(m["valid_percent"]) <= 100.0 - empty + 1e-9  # every empty window is invalid
+    assert m["empty_percent"].attrs["units"] == "percent"
+
+    rec = SimpleNamespace(pairs=[(0, 1)])  # what the pair's line reads of a Recording
+    assert "% of the windows empty in a frame" in _pair_line(0, rec, m)
+
+
 # ------------------------------------------------------------------ recording.volumetric_calibration (issue 29 §2)
 VOLCAL_DEPTHS = [-2.0, -1.1, -0.25, 0.6, 1.45, 2.3]  # over the tiny grid's z = -1.78..2.13 mm
 VOLCAL_SPACING = 0.5  # mm: 5.6 lenslets, 5 x 5 dots over the field

@@ -419,6 +419,11 @@ def _pair_line(p: int, rec: Recording, m: xr.Dataset) -> str:
         f"pair {p + 1}/{len(rec.pairs)} (frames {i + 1}-{j + 1}): {int(m['n_vectors'])} vectors, "
         f"{float(m['valid_percent']):.1f} % valid, mean [voxel] {mean}"
     )
+    if float(m["empty_percent"]) > 0:  # invalid for want of particles, not outliers: say so
+        line += (
+            f" ({float(m['empty_percent']):.1f} % of the windows empty in a frame: no particles there; "
+            "grid.z_range the seeded depth?)"
+        )
     if "peak_ratio_median" in m:
         line += f", peak ratio {float(m['peak_ratio_median']):.3g}"
     if "divergence_rms" in m:
