@@ -828,7 +828,41 @@ def test_ipr_writes_each_frames_particle_list(tmp_path):
         fit = np.array([float(parts[v][best]) for v in "xyz"])
         vox = np.array(grid.voxel_size()[::-1])
         assert np.linalg.norm((fit - true) / vox, axis=1).min() < 1.0
-    assert io.open_zarr(out / "piv.zarr").sizes["pair"] == 1
+    piv = io.open_zarr(out / "piv.zarr")
+    assert piv.sizes["pair"] == 1
+    # piv.particles unset, no traverse: WIDIM again on the paired particles, as a study does
+    assert piv.attrs["particles"] == "paired" and "piv_u_mm" in piv and piv.attrs["paired_particles_a"] > 0
+
+
+def test_piv_particles_refusals(recording, cli_error, tmp_path):
+    """piv.particles in a recording config: ptv (no correlation peaks for the metrics) and paired without a
+    particle method or with a recorded traverse are refused before any work, naming the key."""
+    frames = {"frames": {"series": "frame_*.tif"}}
+    cases = [
+        ({"method": "ipr"}, {"particles": "ptv"}, frames, "piv.particles' = 'ptv'"),
+        ({"method": "mart"}, {"particles": "paired"}, frames, "reconstruct.method = 'mart' fits none"),
+        (
+            {"method": "ipr"},
+            {"particles": "paired"},
+            {**frames, "depth_calibration": {"images": ["frame_1.tif", "frame_2.tif"], "shifts": [1.0]}},
+            "not with recording.depth_calibration",
+        ),
+    ]
+    for k, (rc, piv, rec, msg) in enumerate(cases):
+        cfg = _config(recording, f"particles_{k}", rec, reconstruct=rc, piv={**recording["base"]["piv"], **piv})
+        line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
+        assert msg in line, line
+    _no_output(tmp_path / "o")
+    # unset: paired with ipr and no traverse, none otherwise (the config as validated)
+    from lfstudy.process.config import load_process_config
+
+    for rc, rec, want in (
+        ({"method": "ipr"}, frames, "paired"),
+        ({"method": "mart"}, frames, None),
+        ({"method": "ipr"}, cases[2][2], None),
+    ):
+        cfg = load_process_config(_config(recording, "particles_unset", rec, reconstruct=rc))
+        assert cfg["piv"].get("particles") == want
 
 
 def test_median_uncertainty_and_summary_without_sigma():
