@@ -1,0 +1,361 @@
+"""A recording the fit's model did not make, through ``lfstudy process``: MART, IPR, IPR calibrated (issue 39).
+
+Reproduces: docs/cli.md (the valid vectors of IPR and the grid's depth; process pairs IPR's particles);
+lfstudy/process/metrics.py (``empty_percent``); lfstudy/process/config.py (``piv.particles`` in a recording config).
+Issue 39's target for a recording from "a renderer other than ours": x and y within 0.01 mm, z within 5 %, >= 90 %
+valid vectors, IPR, no depth traverse; its finding: IPR 70 % valid where MART gave 93.6 %.
+
+    python benchmarks/bench_recording.py [--crop 592 400] [--ppp 0.002] [--rays 25000] [--photons 25000]
+        [--imperfections lenslet_gap_error=0.03] [--shift 0.1 0.05 0.2] [--seed 0] [--threads 1]
+        [--methods mart ipr ipr_cal] [--keep DIR]
+
+The recording (written as a user has one: 16-bit TIFFs and a recording YAML, nothing of the simulator inside what
+``process`` reads): the thesis optics (Table 4.3: 7.4 um pixels, 0.125 mm lenslets of 0.5 mm focal length, 50 mm main
+lens at the matched f-number, M -1) on a sensor crop, particles seeded over a 7 mm slab (and beyond the field of
+view by the shift, so particles enter as others leave), imaged by the Monte-Carlo ray tracer (``--rays`` rays per
+particle; the fit's model is the exact renderer) through a camera the description does not know: a lenslet grid
+offset by (0.013, -0.021) mm and ``--imperfections`` (default a lenslet array 3 % off its focal length), photon shot
+noise at ``--photons`` photons per particle, counts of a 16-bit ADC (1 e-/count). The pinhole calibration image is
+imaged through the same camera (Monte-Carlo, f/16, shot noise). Frame b is frame a's particles moved by ``--shift``
+(mm, x y z). ``lfstudy process`` (the CLI, a subprocess with ``NUMBA_NUM_THREADS=--threads``) then runs with
+``reconstruct.method`` mart, ipr and ipr with ``image_calibration: 2``; no depth traverse.
+
+Printed per method: % valid vectors; median and RMS error of u, v, w [mm] over the valid vectors, w also in % of the
+true w; wall and CPU time of the process run. Then the diagnosis of the invalid vectors: why (an empty window, peak 0,
+or the normalised median test), where (edge windows of the vector grid or inside; per depth), the true and the fitted
+particles per final window, and IPR's particles against the seeded ones (found within half a voxel, ghosts).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SLAB = 7.0  # mm, the thesis' seeded depth (Fig. 4.24)
+GRID_OFFSET = (0.013, -0.021)  # mm: the real lenslet grid's offset, which the camera description does not say
+METHODS = {
+    "mart": {"method": "mart"},
+    "ipr": {"method": "ipr"},
+    "ipr_cal": {"method": "ipr", "ipr": {"image_calibration": 2}},
+}
+
+
+def camera_section(width: int, height: int) -> dict:
+    """The camera description a user writes (thesis optics, Table 4.3, on a crop): nominal, no offset."""
+    return {
+        "sensor": {"n_pixels_x": width, "n_pixels_y": height, "pixel_pitch": 0.0074},
+        "lenslet": {"pitch": 0.125, "focal_length": 0.5},
+        "main_lens": {"focal_length": 50.0, "fnumber": "matched"},
+        "magnification": -1.0,
+    }
+
+
+def make_recording(
+    folder: Path,
+    *,
+    width: int,
+    height: int,
+    ppp: float,
+    rays: int,
+    photons: float,
+    imperfections: dict,
+    shift: tuple[float, float, float],
+    seed: int,
+) -> dict:
+    """Write ``pinhole.tif``, ``frame_1.tif``, ``frame_2.tif`` (uint16) into ``folder``; return the truth (kept
+    apart from what ``process`` reads): the particle fields of both frames and the real camera."""
+    import tifffile
+
+    from lfstudy.optics import PlenopticCamera
+    from lfstudy.simulate import displace, flow_from_config, render, render_pinhole, seed_particles
+    from lfstudy.simulate.sensor import apply_sensor
+
+    sec = camera_section(width, height)
+    real = {**sec, "lenslet": {**sec["lenslet"], "offset_x": GRID_OFFSET[0], "offset_y": GRID_OFFSET[1]}}
+    cam = PlenopticCamera.from_config({"camera": real})
+    # seeded beyond the field of view and the slab by the shift, so frame b's volume is as full as frame a's
+    sx, sy, sz = (abs(s) for s in shift)
+    fov_x, fov_y = cam.sensor_width / abs(cam.magnification), cam.sensor_height / abs(cam.magnification)
+    spans = (fov_x + 2 * sx, fov_y + 2 * sy, SLAB + 2 * sz)
+    count = round(ppp * width * height * spans[0] * spans[1] * spans[2] / (fov_x * fov_y * SLAB))
+    field = seed_particles(cam, count=count, x_span=spans[0], y_span=spans[1], z_span=spans[2], seed=seed)
+    moved = displace(field, flow_from_config({"kind": "uniform", "displacement": list(shift)}), 1.0, 1)
+    rng = np.random.default_rng(seed + 1)
+    n_points = 40 * cam.n_lenslets_x * cam.n_lenslets_y  # ~40 points per lenslet, as the tests' pinhole images
+    pin = render_pinhole(
+        cam,
+        fnumber=16,
+        count=n_points,
+        rays_per_point=30,
+        seed=seed + 2,
+        method="montecarlo",
+        imperfections=imperfections,
+    ).values
+    pin16 = rng.poisson(pin * 20000.0 / pin.max())
+    tifffile.imwrite(folder / "pinhole.tif", pin16.astype(np.uint16))
+    top = 0.0
+    for k, f in enumerate((field, moved)):
+        img = render(cam, f, rays, seed + 3 + k, method="montecarlo", imperfections=imperfections)
+        counts = apply_sensor(img, photons_per_particle=photons, bit_depth=16, gain=1.0, seed=seed + 5 + k).values
+        top = max(top, float(counts.max()))
+        tifffile.imwrite(folder / f"frame_{k + 1}.tif", np.asarray(counts).astype(np.uint16))
+    return {"a": field, "b": moved, "camera": cam, "n_points": n_points, "max_count": top, "count": count}
+
+
+def write_config(folder: Path, method: str, piv: dict, slab_grid: bool = True) -> Path:
+    """The recording YAML of one method: the nominal camera, the slab as the grid's depth (``slab_grid``; else
+    the default, the depth of the refocus marching), no depth traverse."""
+    import yaml
+
+    width, height = _size(folder)
+    cfg = {
+        "name": f"recording_{method}",
+        "camera": camera_section(width, height),
+        "refocus": {"depth_scale": 1.0, "resize": True},
+        "grid": {"z_range": [-SLAB / 2, SLAB / 2]} if slab_grid else {},
+        "reconstruct": METHODS[method],
+        "piv": piv,
+        "recording": {"calibration": {"image": "pinhole.tif"}, "frames": {"pairs": [["frame_1.tif", "frame_2.tif"]]}},
+    }
+    path = folder / f"recording_{method}.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+def _size(folder: Path) -> tuple[int, int]:
+    import tifffile
+
+    rows, cols = tifffile.imread(folder / "frame_1.tif").shape
+    return cols, rows
+
+
+def run_process(config: Path, out: Path, threads: int) -> tuple[float, float]:
+    """``lfstudy process CONFIG --out OUT`` in a subprocess; its wall and CPU time [s]."""
+    env = {**os.environ, "NUMBA_NUM_THREADS": str(threads)}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "lfstudy.cli", "process", str(config), "--out", str(out), "--quiet"]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if done.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def score(out: Path, shift: tuple[float, float, float], first: bool = False) -> dict | None:
+    """Errors of the valid vectors against the known uniform displacement [mm]; % valid. ``first``: of the
+    first WIDIM of a paired result (``piv_*_mm``, ``piv_valid``: on the reconstructed volumes, before the
+    pairing), None when the result is not paired."""
+    from lfstudy import io
+
+    piv = io.open_zarr(out / "piv.zarr").isel(pair=0).load()
+    pre = "piv_" if first else ""
+    if first and f"{pre}valid" not in piv:
+        return None
+    valid = piv[f"{pre}valid"].values.astype(bool)
+    s: dict = {"n": int(valid.size), "valid_percent": 100.0 * float(valid.mean())}
+    for c, true in zip("uvw", shift):
+        err = piv[f"{pre}{c}_mm"].values[valid] - true
+        s[f"median_{c}"] = float(np.median(err)) if err.size else float("nan")
+        s[f"rms_{c}"] = float(np.sqrt(np.mean(err**2))) if err.size else float("nan")
+    s["median_w_percent"] = 100.0 * s["median_w"] / shift[2] if shift[2] else float("nan")
+    s["rms_w_percent"] = 100.0 * s["rms_w"] / abs(shift[2]) if shift[2] else float("nan")
+    return s
+
+
+def _per_window(piv, vol, pos: np.ndarray) -> np.ndarray:
+    """How many of the positions ``pos`` (n, 3: x, y, z mm) lie in each final window of ``piv`` (z, y, x)."""
+    w = np.asarray(piv.attrs["final_window"], dtype=float)
+    vox = np.array([float(np.median(np.abs(np.diff(vol[d].values)))) for d in ("z", "y", "x")])
+    half = w * vox / 2
+    cz, cy, cx = (piv[d].values for d in ("z", "y", "x"))
+    inz = np.abs(pos[:, 2][None, :] - cz[:, None]) <= half[0]
+    iny = np.abs(pos[:, 1][None, :] - cy[:, None]) <= half[1]
+    inx = np.abs(pos[:, 0][None, :] - cx[:, None]) <= half[2]
+    return np.einsum("ip,jp,kp->ijk", inz.astype(float), iny.astype(float), inx.astype(float))
+
+
+def _errors(res, shift, valid=None) -> str:
+    valid = res["valid"].values.astype(bool) if valid is None else valid
+    parts = []
+    for c, true in zip("uvw", shift):
+        e = res[f"{c}_mm"].values[valid] - true
+        parts.append(f"{c} {np.median(e):+.4f} / {np.sqrt(np.mean(e**2)):.4f}" if e.size else f"{c} -")
+    return f"{100 * valid.mean():.1f} % valid; median / RMS error [mm] " + ", ".join(parts)
+
+
+def diagnose(out: Path, config: Path, truth: dict, shift: tuple[float, float, float]) -> None:
+    """Print why and where the vectors of ``out`` are invalid, and (for a method that fits particles) what the
+    particle lists hold against the truth and what PIV makes of them paired, and of the true particles."""
+    from lfstudy import io
+    from lfstudy.process.config import load_process_config
+    from lfstudy.study import case as cl
+    from lfstudy.study.metrics import render_truth
+
+    cfg = load_process_config(config)
+    piv = io.open_zarr(out / "piv.zarr").isel(pair=0).load()
+    vols = [io.open_array(out / f"frames/{k:03d}/volume.zarr").load() for k in (0, 1)]
+    valid = piv["valid"].values.astype(bool)
+    empty = piv["peak"].values <= 0
+    shape = valid.shape
+    idx = np.indices(shape)
+    edge = np.zeros(shape, bool)
+    for ax, n in enumerate(shape):
+        edge |= (idx[ax] == 0) | (idx[ax] == n - 1)
+    bad = ~valid
+    print(
+        f"    invalid {int(bad.sum())} of {valid.size}: empty window (peak 0) {int((bad & empty).sum())}, median test "
+        f"{int((bad & ~empty).sum())}; on the vector grid's edge {int((bad & edge).sum())} (edge vectors "
+        f"{int(edge.sum())}, {100 * valid[edge].mean():.0f} % valid; inner {int((~edge).sum())}, "
+        f"{100 * valid[~edge].mean() if (~edge).any() else float('nan'):.0f} % valid)"
+    )
+    depth = ", ".join(f"{z:+.2f} {100 * valid[k].mean():.0f}" for k, z in enumerate(piv["z"].values))
+    print(f"    valid % per depth of the vectors (z mm, %): {depth}")
+    true_a = np.column_stack([truth["a"][v].values for v in "xyz"])
+    n_true = _per_window(piv, vols[0], true_a)
+    line = f"    true particles per final window: valid vectors median {np.median(n_true[valid]):.0f}"
+    if bad.any():
+        line += f", invalid {np.median(n_true[bad]):.0f}"
+    parts_path = [out / f"frames/{k:03d}/particles.zarr" for k in (0, 1)]
+    if not parts_path[0].is_dir():
+        print(line)
+        return
+    parts = [io.open_zarr(p).load() for p in parts_path]
+    fit_a = np.column_stack([parts[0][v].values for v in "xyz"])
+    n_fit = _per_window(piv, vols[0], fit_a)
+    line += f"; fitted: valid {np.median(n_fit[valid]):.0f}" + (
+        f", invalid {np.median(n_fit[bad]):.0f}" if bad.any() else ""
+    )
+    print(line)
+    from bench_ipr import _score  # the same found / ghost count as the IPR benchmark
+
+    cam = cl.case_camera(cfg)
+    grid = cl.case_grid(cfg, cam)
+    for k, name in ((0, "a"), (1, "b")):
+        s = _score(truth[name], parts[k], grid, cam)
+        print(
+            f"    frame {name}: {s['n_fit']} fitted of {s['n_true']} seeded ({s['n_true'] - s['n_outside']} inside the "
+            f"grid); found {s['found']:.1f} % within half a voxel ({s['found_whole']:.1f} % of the {s['n_whole']} "
+            f"whose whole image is on the sensor), ghosts {s['ghosts']:.1f} % of the fitted; rms x,y "
+            f"{s['rms_xy_mm']:.4f} mm, z {s['rms_z_mm']:.4f} mm"
+        )
+    if piv.attrs.get("particles") == "paired":  # process' default for IPR without a traverse
+        a = piv.attrs
+        print(
+            f"    paired: {a['paired_tracks']} tracks of {a['paired_particles_a']} and {a['paired_particles_b']} "
+            f"particles ({a['paired_rejected']} dropped by the median test)"
+        )
+    else:  # an output written before process paired them (or with piv.particles: none): pair them here
+        voxel = tuple(float(np.median(np.abs(np.diff(vols[0][d].values)))) for d in ("x", "y", "z"))
+        paired = cl.case_paired_piv(cfg, piv, vols[0], vols[1], parts[0], parts[1], voxel=voxel)
+        print(f"    piv.particles paired: {paired.attrs['paired_tracks']} tracks; {_errors(paired, shift)}")
+    coords = {d: vols[0][d].values for d in ("z", "y", "x")}
+    sig = [float(v) for v in vols[0].attrs["blob_sigma_mm"]]
+    oracle = [vols[0].copy(data=render_truth(coords, truth[n], sigma_mm=sig).astype(np.float32)) for n in "ab"]
+    res = cl.case_piv(cfg, *oracle)
+    print(f"    the true particles as the same blobs (oracle): {_errors(res, shift)}")
+
+
+def _setting(text: str | None) -> dict:
+    """``k=v,k2=v2`` as a mapping of floats (camera.imperfections)."""
+    if not text:
+        return {}
+    return {k: float(v) for k, _, v in (item.partition("=") for item in text.split(","))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--crop", type=int, nargs=2, default=(592, 400), metavar=("W", "H"), help="sensor [px]")
+    ap.add_argument("--ppp", type=float, default=0.002)
+    ap.add_argument("--rays", type=int, default=25_000, help="Monte-Carlo rays per particle")
+    ap.add_argument("--photons", type=float, default=25_000, help="photons per particle (shot noise)")
+    ap.add_argument("--imperfections", default="lenslet_gap_error=0.03", help="camera.imperfections, k=v,...")
+    ap.add_argument("--shift", type=float, nargs=3, default=(0.1, 0.05, 0.2), help="true displacement [mm]")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    ap.add_argument("--window", type=int, nargs=3, default=(8, 16, 16), help="piv.window (z, y, x)")
+    ap.add_argument("--spacing", type=int, nargs=3, default=(4, 8, 8), help="piv.spacing (z, y, x)")
+    ap.add_argument("--levels", type=int, default=2, help="piv.levels")
+    ap.add_argument(
+        "--grid",
+        choices=("slab", "marching"),
+        default="slab",
+        help="grid.z_range: the seeded slab, or unset (the refocus marching's depth, beyond the slab)",
+    )
+    ap.add_argument("--keep", type=Path, default=None, help="write the recording and the outputs here (kept)")
+    args = ap.parse_args()
+
+    import numba
+
+    numba.set_num_threads(args.threads)
+    imp = _setting(args.imperfections)
+    shift = tuple(args.shift)
+    piv = {"window": list(args.window), "spacing": list(args.spacing), "levels": args.levels}
+    with tempfile.TemporaryDirectory() as tmp:
+        root = args.keep or Path(tmp)
+        folder = root / "recording"
+        folder.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        truth = make_recording(
+            folder,
+            width=args.crop[0],
+            height=args.crop[1],
+            ppp=args.ppp,
+            rays=args.rays,
+            photons=args.photons,
+            imperfections=imp,
+            shift=shift,
+            seed=args.seed,
+        )
+        print(
+            f"recording {args.crop[0]} x {args.crop[1]} px (thesis optics), {args.ppp} ppp: {truth['count']} particles "
+            f"seeded (beyond the view by the shift), {args.rays} rays and {args.photons:.0f} photons each, max "
+            f"{truth['max_count']:.0f} counts (16-bit); imperfections {imp}, grid offset {GRID_OFFSET} mm; shift "
+            f"{shift} mm; seed {args.seed}; grid {args.grid}; PIV {piv}; made in {time.perf_counter() - t0:.0f} s; "
+            f"{args.threads} thread(s)",
+            flush=True,
+        )
+        rows = []
+        for method in args.methods:
+            cfg = write_config(folder, method, piv, args.grid == "slab")
+            out = root / f"out_{method}"
+            wall, cpu = run_process(cfg, out, args.threads)
+            s = score(out, shift)
+            rows.append((method, s, wall, cpu))
+            first = score(out, shift, first=True)
+            if first is not None:  # the same run's WIDIM on the reconstructed volumes, before the pairing
+                rows.append((f"{method} -", first, wall, cpu))
+            print(
+                f"  {method}: {s['valid_percent']:.1f} % valid of {s['n']}; wall {wall:.0f} s, CPU {cpu:.0f} s",
+                flush=True,
+            )
+            diagnose(out, cfg, truth, shift)
+        _table(rows)
+
+
+def _table(rows: list) -> None:
+    head = (
+        f"{'method':10s} {'valid %':>7s} {'med u':>8s} {'rms u':>7s} {'med v':>8s} {'rms v':>7s} {'med w':>8s} "
+        f"{'rms w':>7s} {'med w %':>8s} {'rms w %':>8s} {'wall s':>7s} {'CPU s':>6s}"
+    )
+    print(head)  # "<method> -": its WIDIM before the pairing (piv.particles none), the same run
+    for method, s, wall, cpu in rows:
+        print(
+            f"{method:10s} {s['valid_percent']:7.1f} {s['median_u']:+8.4f} {s['rms_u']:7.4f} {s['median_v']:+8.4f} "
+            f"{s['rms_v']:7.4f} {s['median_w']:+8.4f} {s['rms_w']:7.4f} {s['median_w_percent']:+8.2f} "
+            f"{s['rms_w_percent']:8.2f} {wall:7.0f} {cpu:6.0f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
