@@ -193,9 +193,40 @@ def _errors(res, shift, valid=None) -> str:
     return f"{100 * valid.mean():.1f} % valid; median / RMS error [mm] " + ", ".join(parts)
 
 
+def _where(label: str, valid: np.ndarray, piv, empty: np.ndarray | None, counts: dict[str, np.ndarray]) -> None:
+    """Print how many vectors of ``valid`` are invalid, why (``empty``: peak 0, else the median test), where (the
+    vector grid's edge, per depth) and the median of each ``counts`` (per final window) over valid and invalid."""
+    shape = valid.shape
+    idx = np.indices(shape)
+    edge = np.zeros(shape, bool)
+    for ax, n in enumerate(shape):
+        edge |= (idx[ax] == 0) | (idx[ax] == n - 1)
+    bad = ~valid
+    why = (
+        f"empty window (peak 0) {int((bad & empty).sum())}, median test {int((bad & ~empty).sum())}"
+        if empty is not None
+        else "all by the median test (the first WIDIM's peaks are not kept)"
+    )
+    inner = f"{100 * valid[~edge].mean():.0f}" if (~edge).any() else "-"
+    depth = ", ".join(f"{z:+.2f} {100 * valid[k].mean():.0f}" for k, z in enumerate(piv["z"].values))
+    per = "; ".join(
+        f"{name} per window: valid {np.median(n[valid]) if valid.any() else float('nan'):.1f}"
+        + (f", invalid {np.median(n[bad]):.1f}" if bad.any() else "")
+        for name, n in counts.items()
+    )
+    print(
+        f"    {label}: invalid {int(bad.sum())} of {valid.size}, {why}; edge vectors {int(edge.sum())} "
+        f"{100 * valid[edge].mean():.0f} % valid, inner {int((~edge).sum())} {inner} % valid\n"
+        f"      valid % per depth (z mm, %): {depth}\n      {per}"
+    )
+
+
 def diagnose(out: Path, config: Path, truth: dict, shift: tuple[float, float, float]) -> None:
-    """Print why and where the vectors of ``out`` are invalid, and (for a method that fits particles) what the
-    particle lists hold against the truth and what PIV makes of them paired, and of the true particles."""
+    """Print why and where the vectors of ``out`` are invalid (and those of its first WIDIM, before the pairing,
+    where process paired IPR's particles), and for a method that fits particles what the particle lists hold
+    against the truth (found, ghosts, and per window), and what PIV makes of the true particles."""
+    from scipy.spatial import cKDTree
+
     from lfstudy import io
     from lfstudy.process.config import load_process_config
     from lfstudy.study import case as cl
@@ -204,38 +235,23 @@ def diagnose(out: Path, config: Path, truth: dict, shift: tuple[float, float, fl
     cfg = load_process_config(config)
     piv = io.open_zarr(out / "piv.zarr").isel(pair=0).load()
     vols = [io.open_array(out / f"frames/{k:03d}/volume.zarr").load() for k in (0, 1)]
-    valid = piv["valid"].values.astype(bool)
-    empty = piv["peak"].values <= 0
-    shape = valid.shape
-    idx = np.indices(shape)
-    edge = np.zeros(shape, bool)
-    for ax, n in enumerate(shape):
-        edge |= (idx[ax] == 0) | (idx[ax] == n - 1)
-    bad = ~valid
-    print(
-        f"    invalid {int(bad.sum())} of {valid.size}: empty window (peak 0) {int((bad & empty).sum())}, median test "
-        f"{int((bad & ~empty).sum())}; on the vector grid's edge {int((bad & edge).sum())} (edge vectors "
-        f"{int(edge.sum())}, {100 * valid[edge].mean():.0f} % valid; inner {int((~edge).sum())}, "
-        f"{100 * valid[~edge].mean() if (~edge).any() else float('nan'):.0f} % valid)"
-    )
-    depth = ", ".join(f"{z:+.2f} {100 * valid[k].mean():.0f}" for k, z in enumerate(piv["z"].values))
-    print(f"    valid % per depth of the vectors (z mm, %): {depth}")
     true_a = np.column_stack([truth["a"][v].values for v in "xyz"])
-    n_true = _per_window(piv, vols[0], true_a)
-    line = f"    true particles per final window: valid vectors median {np.median(n_true[valid]):.0f}"
-    if bad.any():
-        line += f", invalid {np.median(n_true[bad]):.0f}"
+    counts = {"true particles": _per_window(piv, vols[0], true_a)}
     parts_path = [out / f"frames/{k:03d}/particles.zarr" for k in (0, 1)]
-    if not parts_path[0].is_dir():
-        print(line)
+    parts = [io.open_zarr(p).load() for p in parts_path] if parts_path[0].is_dir() else None
+    if parts is not None:
+        fit_a = np.column_stack([parts[0][v].values for v in "xyz"])
+        vox = np.array([float(np.median(np.abs(np.diff(vols[0][d].values)))) for d in ("x", "y", "z")])
+        d_fit, _ = cKDTree(true_a / vox).query(fit_a / vox)
+        counts["fitted"] = _per_window(piv, vols[0], fit_a)
+        counts["ghosts (no true one within half a voxel)"] = _per_window(piv, vols[0], fit_a[d_fit >= 0.5])
+    paired = piv.attrs.get("particles") == "paired"
+    final = "after the pairing" if paired else "the vectors"
+    _where(final, piv["valid"].values.astype(bool), piv, piv["peak"].values <= 0, counts)
+    if paired:
+        _where("the first WIDIM (before the pairing)", piv["piv_valid"].values.astype(bool), piv, None, counts)
+    if parts is None:
         return
-    parts = [io.open_zarr(p).load() for p in parts_path]
-    fit_a = np.column_stack([parts[0][v].values for v in "xyz"])
-    n_fit = _per_window(piv, vols[0], fit_a)
-    line += f"; fitted: valid {np.median(n_fit[valid]):.0f}" + (
-        f", invalid {np.median(n_fit[bad]):.0f}" if bad.any() else ""
-    )
-    print(line)
     from bench_ipr import _score  # the same found / ghost count as the IPR benchmark
 
     cam = cl.case_camera(cfg)
@@ -248,16 +264,16 @@ def diagnose(out: Path, config: Path, truth: dict, shift: tuple[float, float, fl
             f"whose whole image is on the sensor), ghosts {s['ghosts']:.1f} % of the fitted; rms x,y "
             f"{s['rms_xy_mm']:.4f} mm, z {s['rms_z_mm']:.4f} mm"
         )
-    if piv.attrs.get("particles") == "paired":  # process' default for IPR without a traverse
+    if paired:  # process' default for IPR without a traverse
         a = piv.attrs
         print(
             f"    paired: {a['paired_tracks']} tracks of {a['paired_particles_a']} and {a['paired_particles_b']} "
             f"particles ({a['paired_rejected']} dropped by the median test)"
         )
-    else:  # an output written before process paired them (or with piv.particles: none): pair them here
+    else:  # an output with piv.particles none (or written before process paired them): pair them here
         voxel = tuple(float(np.median(np.abs(np.diff(vols[0][d].values)))) for d in ("x", "y", "z"))
-        paired = cl.case_paired_piv(cfg, piv, vols[0], vols[1], parts[0], parts[1], voxel=voxel)
-        print(f"    piv.particles paired: {paired.attrs['paired_tracks']} tracks; {_errors(paired, shift)}")
+        res = cl.case_paired_piv(cfg, piv, vols[0], vols[1], parts[0], parts[1], voxel=voxel)
+        print(f"    piv.particles paired: {res.attrs['paired_tracks']} tracks; {_errors(res, shift)}")
     coords = {d: vols[0][d].values for d in ("z", "y", "x")}
     sig = [float(v) for v in vols[0].attrs["blob_sigma_mm"]]
     oracle = [vols[0].copy(data=render_truth(coords, truth[n], sigma_mm=sig).astype(np.float32)) for n in "ab"]
