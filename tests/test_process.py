@@ -828,7 +828,41 @@ def test_ipr_writes_each_frames_particle_list(tmp_path):
         fit = np.array([float(parts[v][best]) for v in "xyz"])
         vox = np.array(grid.voxel_size()[::-1])
         assert np.linalg.norm((fit - true) / vox, axis=1).min() < 1.0
-    assert io.open_zarr(out / "piv.zarr").sizes["pair"] == 1
+    piv = io.open_zarr(out / "piv.zarr")
+    assert piv.sizes["pair"] == 1
+    # piv.particles unset, no traverse: WIDIM again on the paired particles, as a study does
+    assert piv.attrs["particles"] == "paired" and "piv_u_mm" in piv and piv.attrs["paired_particles_a"] > 0
+
+
+def test_piv_particles_refusals(recording, cli_error, tmp_path):
+    """piv.particles in a recording config: ptv (no correlation peaks for the metrics) and paired without a
+    particle method or with a recorded traverse are refused before any work, naming the key."""
+    frames = {"frames": {"series": "frame_*.tif"}}
+    cases = [
+        ({"method": "ipr"}, {"particles": "ptv"}, frames, "piv.particles' = 'ptv'"),
+        ({"method": "mart"}, {"particles": "paired"}, frames, "reconstruct.method = 'mart' fits none"),
+        (
+            {"method": "ipr"},
+            {"particles": "paired"},
+            {**frames, "depth_calibration": {"images": ["frame_1.tif", "frame_2.tif"], "shifts": [1.0]}},
+            "not with recording.depth_calibration",
+        ),
+    ]
+    for k, (rc, piv, rec, msg) in enumerate(cases):
+        cfg = _config(recording, f"particles_{k}", rec, reconstruct=rc, piv={**recording["base"]["piv"], **piv})
+        line = cli_error("process", str(cfg), "--out", str(tmp_path / "o"))
+        assert msg in line, line
+    _no_output(tmp_path / "o")
+    # unset: paired with ipr and no traverse, none otherwise (the config as validated)
+    from lfstudy.process.config import load_process_config
+
+    for rc, rec, want in (
+        ({"method": "ipr"}, frames, "paired"),
+        ({"method": "mart"}, frames, None),
+        ({"method": "ipr"}, cases[2][2], None),
+    ):
+        cfg = load_process_config(_config(recording, "particles_unset", rec, reconstruct=rc))
+        assert cfg["piv"].get("particles") == want
 
 
 def test_median_uncertainty_and_summary_without_sigma():
@@ -854,6 +888,49 @@ def test_median_uncertainty_and_summary_without_sigma():
     ds["unc_w"] = (("z", "y", "x"), sigma[None])
     assert uncertainty_summary(ds) == "uncertainty: median σ of the 5 valid vectors of all pairs: w 0.25 voxel"
     assert float(pair_metrics(ds)["unc_median_w"]) == pytest.approx(0.25)
+
+
+def test_empty_windows_are_counted_apart():
+    """A volume that holds particles in its lower half only (a grid deeper than the seeded slab, as IPR
+    leaves it: exactly 0 where no particle is): WIDIM's windows in the blank half have peak 0 and are
+    invalid, and empty_percent says how many of the invalid vectors are such windows, not outliers."""
+    from types import SimpleNamespace
+
+    from lfstudy.piv import widim
+    from lfstudy.process.metrics import pair_metrics
+    from lfstudy.process.pipeline import _pair_line
+
+    rng = np.random.default_rng(3)
+    a = np.zeros((32, 24, 24))
+    pos = rng.integers(2, 22, size=(120, 3))
+    pos[:, 0] = rng.integers(2, 14, 120)  # z < 16: the upper half stays blank
+    a[tuple(pos.T)] = rng.uniform(0.5, 1.0, 120)
+    b = np.roll(a, 1, axis=2)  # one voxel in x
+    res = widim(a, b, window=(8, 8, 8), spacing=(4, 4, 4), levels=1)
+    m = pair_metrics(res)
+    # the windows with nothing in a or in b, from the volumes themselves
+    starts = [np.rint(res[f"{d}_index"].values - 3.5).astype(int) for d in ("z", "y", "x")]
+    blank = np.array(
+        [
+            [
+                [
+                    not (a[z : z + 8, y : y + 8, x : x + 8].any() and b[z : z + 8, y : y + 8, x : x + 8].any())
+                    for x in starts[2]
+                ]
+                for y in starts[1]
+            ]
+            for z in starts[0]
+        ]
+    )
+    assert blank[starts[0] >= 16].all() and blank.mean() < 0.6  # the blank half, and few others
+    empty = float(m["empty_percent"])
+    assert empty == pytest.approx(100.0 * blank.mean())  # exactly those windows
+    assert not res["valid"].values[blank].any()
+    assert float(m["valid_percent"]) <= 100.0 - empty + 1e-9  # every empty window is invalid
+    assert m["empty_percent"].attrs["units"] == "percent"
+
+    rec = SimpleNamespace(pairs=[(0, 1)])  # what the pair's line reads of a Recording
+    assert "% of the windows empty in a frame" in _pair_line(0, rec, m)
 
 
 # ------------------------------------------------------------------ recording.volumetric_calibration (issue 29 §2)

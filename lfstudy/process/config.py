@@ -110,6 +110,7 @@ def validate_process_config(cfg: Mapping[str, Any], base: str | Path | None = No
             "config key 'refocus.model' = 'volumetric' needs the dot-target images: give "
             "recording.volumetric_calibration (images, depths, spacing), or use refocus.model: thin_lens"
         )
+    _particle_mode(out)
     _check_calibration(out, resolve)
     # a recording has no simulated particles: the memory estimate's simulate stage gets a placeholder
     check_memory({**out, "particles": {"count": 1, "ppp": 1e-9}})
@@ -134,6 +135,40 @@ def _check_volcal(vc: dict[str, Any]) -> None:
         raise ConfigError(
             f"config key 'recording.volumetric_calibration.depths': {len(depths)} depths for a polynomial of order "
             f"{order} in z; give at least order + 1 = {order + 1} (order + 2 for the held-out error)"
+        )
+
+
+def _particle_mode(cfg: dict[str, Any]) -> None:
+    """``piv.particles`` as a study has it: unset means ``paired`` where the method fits particles and no
+    traverse is recorded (the study's default, :func:`lfstudy.study.sweep._default_particle_mode`), so the
+    ghosts and the particles fitted in one frame only do not bias WIDIM (issue 39: on a Monte-Carlo
+    recording with a lenslet gap 3 % off, RMS error of u 0.0057 -> 0.0037 mm, w 0.025 -> 0.020 mm,
+    ``benchmarks/bench_recording.py``). ``paired`` needs such a method and no traverse; ``ptv`` (a binned
+    track field, without correlation peaks for the metrics) is refused here rather than ignored."""
+    from lfstudy.reconstruct import gives_particles
+
+    piv = cfg["piv"]
+    method = cfg["reconstruct"].get("method", "threshold")
+    traverse = bool(cfg["recording"].get("depth_calibration"))
+    mode = piv.get("particles")
+    if mode is None:
+        if gives_particles(method) and not traverse:
+            piv["particles"] = "paired"
+        return
+    if mode == "ptv":
+        raise ConfigError(
+            "config key 'piv.particles' = 'ptv': lfstudy process correlates volumes (its metrics read the "
+            "correlation peaks); use paired (the fitted particles paired between the frames) or none"
+        )
+    if mode == "paired" and not gives_particles(method):
+        raise ConfigError(
+            f"config key 'piv.particles' = 'paired': reads the particles a reconstruction fits, and "
+            f"reconstruct.method = {method!r} fits none; use a method that does (ipr) or piv.particles: none"
+        )
+    if mode == "paired" and traverse:
+        raise ConfigError(
+            "config key 'piv.particles' = 'paired': not with recording.depth_calibration (the traverse measures "
+            "WIDIM's depth gain on the reconstructed volumes, not on the paired ones); use piv.particles: none"
         )
 
 

@@ -198,7 +198,9 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
     Returns
     -------
     xarray.Dataset
-        ``n_vectors``, ``valid_percent``, ``peak_median`` (correlation peak
+        ``n_vectors``, ``valid_percent``, ``empty_percent`` (windows without signal in
+        a frame, correlation peak 0: nothing was there to measure, e.g. beyond the
+        seeded depth, and these count as invalid), ``peak_median`` (correlation peak
         height), ``peak_ratio_median`` and ``peak_ratio_p10`` (valid vectors),
         ``mean_<c>``/``std_<c>`` [voxel] and ``mean_<c>_mm`` [mm] per component of valid
         vectors, ``unc_median_<c>`` [voxel] and ``unc_median_<c>_mm`` [mm] (median standard
@@ -213,6 +215,12 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
     out: dict[str, Any] = {
         "n_vectors": ((), int(valid.size), {"units": "1", "long_name": "vectors"}),
         "valid_percent": _scalar(100.0 * valid.mean(), "percent", "valid vectors (normalised median test)"),
+        # WIDIM gives a window that is blank in either frame peak 0 and marks it invalid: a particle
+        # reconstruction (IPR) leaves the grid exactly 0 where no particle is, so on a grid deeper than
+        # the seeded volume these are most of its invalid vectors (benchmarks/bench_recording.py)
+        "empty_percent": _scalar(
+            100.0 * float(np.mean(piv["peak"].values <= 0)), "percent", "empty windows (no signal in a frame)"
+        ),
         "peak_median": _scalar(
             np.median(piv["peak"].values[ok]) if ok.any() else np.nan, "1", "median correlation peak (valid vectors)"
         ),

@@ -16,7 +16,9 @@ recorded frames instead of ray-traced ones:
    response of this camera and processing is measured (:mod:`lfstudy.piv.depth`);
 6. every pair (1–2, 2–3, … for a series) is correlated by WIDIM (ch. 6), its w
    mapped back through the depth response, and measured without a known flow
-   (:mod:`lfstudy.process.metrics`).
+   (:mod:`lfstudy.process.metrics`); with a method that fits particles (ipr) and no
+   traverse, WIDIM runs again on the particles paired between the frames
+   (``piv.particles: paired``, the default there, as in a study).
 
 Everything is written into a temporary sibling of the output directory, renamed
 into place at the end: a recording that stops with an error leaves nothing
@@ -391,7 +393,9 @@ def _measure(
     sigma_cal: UncertaintyCalibration | None = None,
 ) -> tuple[xr.Dataset, xr.Dataset]:
     """PIV of frames ``i``, ``j`` (their stored volumes), its w mapped through the depth response
-    when there is one, its σ scaled by the study's calibration when there is one, and the pair's metrics."""
+    when there is one, or run again on the paired particles (``piv.particles: paired``,
+    :func:`lfstudy.study.case.case_paired_piv`), its σ scaled by the study's calibration when
+    there is one, and the pair's metrics."""
     from lfstudy.piv.depth import correct_depth
 
     a = io.open_array(root / frame_dir(i) / "volume.zarr").load()
@@ -399,6 +403,10 @@ def _measure(
     res = cl.case_piv(cfg, a, b, progress=progress)
     if depth is not None:
         res = correct_depth(res, depth)
+    if cfg["piv"].get("particles") == "paired":  # a particle method without a traverse (process.config)
+        parts = [io.open_zarr(root / frame_dir(k) / "particles.zarr").load() for k in (i, j)]
+        voxel = tuple(float(np.median(np.abs(np.diff(a[d].values)))) for d in ("x", "y", "z"))
+        res = cl.case_paired_piv(cfg, res, a, b, *parts, voxel=voxel)
     if sigma_cal is not None:  # after the depth correction: the study's σ of w is the corrected one
         res = apply_calibration(res, sigma_cal)
     ratio = peak_ratio(a, b, res)
@@ -419,6 +427,11 @@ def _pair_line(p: int, rec: Recording, m: xr.Dataset) -> str:
         f"pair {p + 1}/{len(rec.pairs)} (frames {i + 1}-{j + 1}): {int(m['n_vectors'])} vectors, "
         f"{float(m['valid_percent']):.1f} % valid, mean [voxel] {mean}"
     )
+    if float(m["empty_percent"]) > 0:  # invalid for want of particles, not outliers: say so
+        line += (
+            f" ({float(m['empty_percent']):.1f} % of the windows empty in a frame: no particles there; "
+            "grid.z_range the seeded depth?)"
+        )
     if "peak_ratio_median" in m:
         line += f", peak ratio {float(m['peak_ratio_median']):.3g}"
     if "divergence_rms" in m:

@@ -38,6 +38,7 @@ SECTIONS: dict[str, str] = {
 #: The metrics of the table and of the time-series figure, in order.
 METRICS = (
     "valid_percent",
+    "empty_percent",
     "peak_ratio_median",
     "peak_median",
     "mean_u",
