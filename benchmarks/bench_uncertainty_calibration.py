@@ -15,6 +15,12 @@ correlation peak height (does the factor depend on it?).
 
     python benchmarks/bench_uncertainty.py --config CFG --sweep "seed=[7,8]" --out DIR   # the cases
     python benchmarks/bench_uncertainty_calibration.py --config CFG --out DIR --fit-seeds 7 [--flows F] [--bins]
+        [--set ...] [--sweep KEY=[V1,V2] ...] [--where KEY=VALUE ...] [--truth window|point]
+
+``--set`` and ``--sweep`` repeat the run's (bench_uncertainty.py's meaning); ``--where`` keeps the cases of one
+design of a run that swept several (``--where reconstruct.method=mart ppp=0.005``). ``--truth`` is the truth the
+printed coverage and ratio are against: ``window`` (default) the truth averaged over each final window, as the
+study's ``unc_ratio_<ax>`` the factor is fitted on (issue 38), ``point`` the truth at the window centre.
 
 Measured (2 loaded cores; CFG = benchmarks/uncertainty_calibration_tiny.yaml: tiny camera, MART, 0.004 ppp,
 8 x 16 x 16 windows at 2 x 4 x 4 spacing, 75 vectors a case; fit on seed 3, checked on seeds 4 and 5; errors
@@ -38,6 +44,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -48,6 +55,27 @@ AXES = {"x": "u", "y": "v", "z": "w"}
 def _inside(cov: float, ratio: float) -> str:
     ok = TARGET_COV[0] <= cov <= TARGET_COV[1] and TARGET_RATIO[0] <= ratio <= TARGET_RATIO[1]
     return "in" if ok else "out"
+
+
+def _error(e, comp: str, truth: str) -> np.ndarray:
+    """A case's per-vector error [mm] against the point truth or the window-averaged truth."""
+    err = e[f"{comp}_err_mm"].values
+    if truth == "point":
+        return err
+    if f"{comp}_filter_mm" not in e:
+        raise SystemExit(f"--truth window: the case has no {comp}_filter_mm (errors written without window_truth)")
+    # measured − window-averaged truth = (measured − point truth) − (window-averaged − point truth)
+    return err - e[f"{comp}_filter_mm"].values
+
+
+def _matches(case, where: list[str]) -> bool:
+    """Whether a case has every ``KEY=VALUE`` of ``--where`` (values read as YAML, else as text)."""
+    for item in where:
+        key, _, val = item.partition("=")
+        want = yaml.safe_load(val)
+        if case[key] != want and str(case[key]) != val:
+            return False
+    return True
 
 
 def main() -> None:
@@ -63,17 +91,27 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", type=Path, required=True, help="the config the cases ran with (its sweep)")
     ap.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="the same overrides as the run")
+    ap.add_argument("--sweep", nargs="*", default=[], metavar="KEY=[V1,V2]", help="the same sweeps as the run")
+    ap.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="only the cases of one design")
+    ap.add_argument("--truth", choices=("window", "point"), default="window", help="the truth the errors are against")
     ap.add_argument("--out", type=Path, required=True, help="the run's directory (the cases' errors.zarr)")
     ap.add_argument("--fit-seeds", nargs="+", type=int, required=True, help="seeds the factor is fitted on")
     ap.add_argument("--flows", nargs="*", default=None, help="only these flows' cases (fit and check)")
     ap.add_argument("--bins", action="store_true", help="ratio per tercile of the correlation peak height")
     args = ap.parse_args()
 
-    cfg = validate_config(read_config(args.config, args.set))
+    raw = read_config(args.config, args.set)
+    for item in args.sweep:
+        key, _, vals = item.partition("=")
+        raw.setdefault("sweep", {})[key] = yaml.safe_load(vals)
+    cfg = validate_config(raw)
     sw = Sweep(cfg)
     cases = [c for c in sw.cases() if (args.out / sw.locate(c, "errors.zarr")).exists()]
     if args.flows:
         cases = [c for c in cases if c["flow"] in args.flows]
+    cases = [c for c in cases if _matches(c, args.where)]
+    if not cases:
+        raise SystemExit(f"no case of {args.out} has errors.zarr and matches --flows / --where")
     errs = {c.case_id: io.open_zarr(args.out / sw.locate(c, "errors.zarr")).load() for c in cases}
     study = combine_cases([(c, errs[c.case_id]) for c in cases], sw.settings)
     for d in study.dims:
@@ -87,7 +125,8 @@ def main() -> None:
     )
     cal = fit_calibration(sub, source=str(args.out))
     print(cal.summary())
-    print(f"fitted on {len(fit)} cases (seeds {args.fit_seeds}), checked on {len(held)} held-out cases\n")
+    print(f"fitted on {len(fit)} cases (seeds {args.fit_seeds}), checked on {len(held)} held-out cases")
+    print(f"errors against the {'window-averaged' if args.truth == 'window' else 'point'} truth\n")
     header = f"{'case':<44}{'set':>5} ax   raw cov  ratio  |  cal cov  ratio   band raw/cal"
     print(header)
     zlines = []
@@ -96,7 +135,7 @@ def main() -> None:
         tag = "fit" if c in fit else "check"
         name = " ".join(f"{k}={c[k]}" for k in ("flow", "seed"))
         for ax, comp in AXES.items():
-            err, sig = e[f"{comp}_err_mm"].values, e[f"unc_{comp}_mm"].values
+            err, sig = _error(e, comp, args.truth), e[f"unc_{comp}_mm"].values
             fin = np.isfinite(err)
             cov0, r0 = uncertainty_calibration(err, sig, fin)
             cov1, r1 = uncertainty_calibration(err, sig * cal.factor[ax], fin)
@@ -129,7 +168,7 @@ def main() -> None:
             dims = e["u_err_mm"].dims
             peak = piv["peak"].transpose(*dims).values
             for ax, comp in AXES.items():
-                err, sig = e[f"{comp}_err_mm"].values, e[f"unc_{comp}_mm"].values
+                err, sig = _error(e, comp, args.truth), e[f"unc_{comp}_mm"].values
                 ok = np.isfinite(err) & np.isfinite(sig) & np.isfinite(peak)
                 edges = np.quantile(peak[ok], [0, 1 / 3, 2 / 3, 1])
                 parts = []
