@@ -160,15 +160,16 @@ def _written(label: str, fn: Callable[..., None], args: tuple) -> bool:
     return Path(args[_OUTPUT_ARG[fn.__name__]]).exists()
 
 
-def _priority(wave: int, fn: Callable[..., None], args: tuple) -> tuple[float, int]:
+def _priority(wave: int, fn: Callable[..., None], args: tuple) -> tuple[float, bool, int]:
     """Sort key of a ready task: the longest first (an IPR fit takes 10-30x a MART reconstruction and grows
-    with the seeding, so the fits do not start last and hold the run's end), then the later stages first
-    (a case's PIV and errors as soon as its volumes are there: a run stopped early keeps whole cases)."""
+    with the seeding, so the fits do not start last and hold the run's end), then a case's PIV and errors (as
+    soon as its volumes are there: a run stopped early keeps whole cases), then the earlier stages first
+    (the calibration before the images: the reconstructions need both)."""
     cost = 0.0
     if fn.__name__ == "run_reconstruct":
         sc = args[0]
         cost = (30.0 if sc["reconstruct"]["method"] == "ipr" else 1.0) * float(sc["particles"]["ppp"])
-    return -cost, -wave
+    return -cost, fn.__name__ not in ("run_piv", "run_errors"), wave
 
 
 def _schedule(waves: list[list[tuple[str, Callable[..., None], tuple]]], jobs: int, threads: int) -> int:
