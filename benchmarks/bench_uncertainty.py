@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import tempfile
 import time
 from collections.abc import Callable
@@ -168,7 +169,9 @@ def _priority(wave: int, fn: Callable[..., None], args: tuple) -> tuple[float, b
     cost = 0.0
     if fn.__name__ == "run_reconstruct":
         sc = args[0]
-        cost = (30.0 if sc["reconstruct"]["method"] == "ipr" else 1.0) * float(sc["particles"]["ppp"])
+        # the stage config holds no ppp (the images it reads do); its stage id names it (ppp~<value>)
+        ppp = re.search(r"(?:^|/)ppp~([^/]+)", sc["stage_id"])
+        cost = (30.0 if sc["reconstruct"]["method"] == "ipr" else 1.0) * (float(ppp.group(1)) if ppp else 1.0)
     return -cost, fn.__name__ not in ("run_piv", "run_errors"), wave
 
 

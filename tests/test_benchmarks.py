@@ -129,3 +129,30 @@ def test_bench_uncertainty_schedules_by_inputs_and_runs_on_past_a_failure(tmp_pa
     printed = capsys.readouterr().out
     assert "FAILED d2: ValueError: planted failure" in printed and "left out (an input failed): e3" in printed
     assert "  p3" not in printed  # kept, not rerun
+
+
+def test_bench_uncertainty_starts_the_ipr_fits_first(tmp_path, monkeypatch):
+    """The scheduler's order of ready tasks on a real study's stage configs: IPR fits before MART, the denser
+    seeding first; then PIV and errors; then the earlier stages."""
+    import yaml
+
+    from lfstudy.study.config import validate_config
+
+    monkeypatch.syspath_prepend(str(BENCH))
+    sys.modules.pop("bench_uncertainty", None)
+    from bench_uncertainty import _priority, _tasks
+
+    raw = yaml.safe_load((ROOT / "tests" / "data" / "tiny.yaml").read_text())
+    raw |= {"depth_calibration": {"enabled": False}}
+    raw["sweep"] = {"ppp": [0.001, 0.004], "reconstruct.method": ["mart", "ipr"]}
+    waves = _tasks(validate_config(raw), tmp_path)
+    tasks = [(w, label, fn, a) for w, wave in enumerate(waves) for label, fn, a in wave]
+    order = [t[1] for t in sorted(tasks, key=lambda t: _priority(t[0], t[2], t[3]))]
+    recon = [label for label in order if label.startswith("reconstruct")]
+    kinds = [("ipr" if "method~ipr" in x else "mart", "0.004" if "ppp~0.004" in x else "0.001") for x in recon]
+    assert kinds == [("ipr", "0.004")] * 2 + [("ipr", "0.001")] * 2 + [("mart", "0.004")] * 2 + [("mart", "0.001")] * 2
+    assert order[: len(recon)] == recon
+    rest = [label.split()[0] for label in order[len(recon) :]]
+    n_case = rest.count("piv") + rest.count("errors")
+    assert n_case == 8 and set(rest[:n_case]) == {"piv", "errors"}
+    assert rest.index("camera") < rest.index("simulate") < rest.index("register") < rest.index("refocus")
