@@ -1,8 +1,9 @@
 """Per-vector uncertainty against the truth on study cases (issue 28): coverage and RMS ratio.
 
-Reproduces: docs/architecture.md § "Benchmarks": no figure of its own is documented; it is the runner of
-bench_budget.py and bench_ipr_density.py (their coverage and ratio columns in the config reference) and prints
-issue 28's coverage and ratio per case.
+Reproduces: lfstudy/piv/resolution.py (the ``unresolved`` flag's hit and false rates on the thesis camera's
+MART and IPR reconstructions); with bench_uncertainty_calibration.py, docs/config.md § "σ calibrated by a
+study (`uncertainty.calibration`)" (the thesis camera's raw coverage and ratio); it is also the runner of
+bench_budget.py and bench_ipr_density.py (their coverage and ratio columns in the config reference).
 
 Runs the cases of a config (default: the thesis camera, Table 4.3) through the same stage
 functions the Snakefile's rules call, in this process's workers (no Snakemake: this also runs
