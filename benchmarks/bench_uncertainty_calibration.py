@@ -35,18 +35,18 @@ against the point truth, ``--truth point``), held-out case-components in the ban
 The ratio per tercile of the correlation peak height shows no common trend (uniform x 2.3/2.6/2.6, Hill x
 4.7/8.0/8.5, Hill z 4.2/3.8/2.5): the factor is not modelled on it.
 
-Measured on the thesis camera (issue 38; 2026-11-28, 2 loaded cores, the device machine meant for it was not
-lent): config/thesis.yaml with ``--set camera.sensor.n_pixels_x=800 camera.sensor.n_pixels_y=600
-depth_calibration.enabled=false raytrace.method=montecarlo``, seeds 2011 and 2012 (``--sweep
-"reconstruct.method=[mart,ipr]" "seed=[2011,2012]"``), the thesis' 2-level WIDIM (final window 8 x 16 x 16
-voxels at 4 x 8 x 8, 7 x 3 x 5 = 105 vectors a case); errors against the window-averaged truth; each design
-(method, ppp) fitted on one seed with its flows pooled and checked on the other, both ways. Held-out
-case-components in the band, raw -> calibrated (of 9 per way with three flows, 6 with two). The runs, into one
-DIR, with SET the ``--set`` above: ``bench_uncertainty.py --flows hill uniform_x lamb_oseen --ppp 0.005 --set SET
---sweep "reconstruct.method=[mart]" "seed=[2011,2012]"``, then ``--flows hill uniform_x --ppp 0.001`` and
-``--flows hill --ppp 0.005``, both with ``"reconstruct.method=[mart,ipr]"``; each design is read with
-``--set SET "sweep.flow=[hill,uniform_x,lamb_oseen]" "sweep.ppp=[0.005,0.001]" --sweep
-"reconstruct.method=[mart,ipr]" "seed=[2011,2012]" --where reconstruct.method=mart ppp=0.005 --fit-seeds 2011``:
+Measured on the thesis camera (issue 38, 2026-11-28): config/thesis.yaml with SET = ``--set
+camera.sensor.n_pixels_x=800 camera.sensor.n_pixels_y=600 depth_calibration.enabled=false
+raytrace.method=montecarlo``, seeds 2011 and 2012, the thesis' 2-level WIDIM (final window 8 x 16 x 16 voxels at
+4 x 8 x 8, 7 x 3 x 5 = 105 vectors a case); errors against the window-averaged truth; each design (method, ppp)
+fitted on one seed with its flows pooled and checked on the other, both ways. The twelve 0.005 ppp cases ran on
+a 16-core machine, ``bench_uncertainty.py --flows hill uniform_x lamb_oseen --ppp 0.005 --set SET --sweep
+"reconstruct.method=[mart,ipr]" "seed=[2011,2012]" --jobs 16 --threads 1`` (336 s in all, an IPR frame 242-298
+s); the 0.001 ppp ones (``--flows hill uniform_x --ppp 0.001``) on 2 loaded cores, where the 0.005 ppp MART
+cases and Hill's IPR ones also ran (the same figures: MART to 1e-16, IPR to 2e-7). A design is read with ``--set
+SET "sweep.flow=[hill,uniform_x,lamb_oseen]" "sweep.ppp=[0.005,0.001]" --sweep "reconstruct.method=[mart,ipr]"
+"seed=[2011,2012]" --where reconstruct.method=mart ppp=0.005 --fit-seeds 2011``. Held-out case-components in
+the band, raw -> calibrated (of 9 per way with three flows, 6 with two):
 
 - MART 0.005 ppp (uniform_x, Hill, lamb_oseen): 4 -> 5 and 4 -> 6 (factors x 1.68-1.74, y 0.96-0.98, z
   1.75-1.87). y is right raw on every flow (coverage 0.58-0.80, ratio 0.79-1.17). x: Hill 1.53-1.68 and
@@ -61,13 +61,15 @@ DIR, with SET the ``--set`` above: ``bench_uncertainty.py --flows hill uniform_x
 - IPR 0.001 ppp (uniform_x, Hill; paired PTV): 3 -> 1 and 1 -> 3. The flows disagree in x (Hill 1.43-1.53,
   the uniform shift 0.39-0.50: σ far too large where the particle tracks are clean), so the pooled factor
   (0.77-0.84) suits neither; Hill's z 1.82-2.44 (coverage 0.21-0.29).
-- IPR 0.005 ppp, Hill alone (``--flows hill``; the uniform shift and lamb_oseen were cut: 6-18 min per IPR
-  frame here, with the load): both ways together 2 -> 3 of 6. x 0.34-0.41 / 1.37-1.50 -> 0.50-0.58 /
-  0.91-1.10, y in the band either way, z 0.22-0.26 / 2.29-2.43 -> 0.44-0.49 / 0.94-1.06: the ratio is
+- IPR 0.005 ppp (uniform_x, Hill, lamb_oseen; paired PTV): 3 -> 5 and 3 -> 6 (factors x 1.53-1.56, y
+  0.99-1.05, z 1.75-1.99). y is right raw on every flow; x as MART's (Hill 1.37-1.50, lamb_oseen 4.0-4.2, the
+  uniform shift 0.60-0.65), so the factor helps Hill (0.53-0.60 / 0.87-0.99) and hurts the uniform shift
+  (0.94 / 0.40-0.41); z calibrated is in the band on the uniform shift and lamb_oseen (0.58-0.80 /
+  0.73-1.26), Hill's stays at 0.37-0.44 / 1.15-1.39. On Hill alone (``--flows hill``): x 0.34-0.41 /
+  1.37-1.50 -> 0.50-0.58 / 0.91-1.10, z 0.22-0.26 / 2.29-2.43 -> 0.44-0.49 / 0.94-1.06: the ratio is
   repaired, the coverage is not (as MART's z).
 
-Not run (a machine with many cores: bench_uncertainty.py --jobs 16 starts the IPR fits first): IPR at 0.005 ppp on
-the uniform shift and lamb_oseen, IPR on lamb_oseen at 0.001 ppp, and a larger crop (more vectors a case).
+Not run: lamb_oseen at 0.001 ppp, and a larger crop (more vectors a case).
 """
 
 from __future__ import annotations
