@@ -23,8 +23,13 @@ flag's misses against its false flags (``UNRESOLVED_FACTOR``, chosen on study ca
 
 What it achieves (thesis camera, Hill's vortex, the oracle): it catches 0.67-0.80 of the vectors
 whose true filtering exceeds 2σ, but 0.39-0.52 of its flags fall where the filtering is below σ;
-on a MART reconstruction the noise dominates (23 % of a uniform flow's vectors flagged). Read it
-as "the flow varies on the window's scale here", not as a per-vector verdict.
+on a MART reconstruction the noise dominates (23 % of a uniform flow's vectors flagged). On the
+reconstructions of the thesis camera cropped to 800 x 600 px (seeds 2011 and 2012, 105 vectors a case;
+``benchmarks/bench_uncertainty.py``, its cases in ``benchmarks/bench_uncertainty_calibration.py``'s
+docstring): Hill with MART hit 0.41-0.63, false 0.55-0.63 (0.001 and 0.005 ppp), with IPR hit 0.81-0.82
+/ false 0.51 at 0.001 ppp and 0.67 / 0.45, 0.85 / 0.38 at 0.005 ppp, 50-75 % of the vectors flagged; a
+uniform shift 19-24 % flagged with either method. Issue 38's targets (hit >= 0.8 with false <= 0.2) are
+not met. Read it as "the flow varies on the window's scale here", not as a per-vector verdict.
 """
 
 from __future__ import annotations
