@@ -392,6 +392,17 @@ def test_the_predictor_reads_a_descending_axis():
     np.testing.assert_allclose(up[:, :2], np.column_stack(_rotation(*pts.T))[:, :2], atol=1e-12)  # linear: exact
 
 
+def test_the_predictor_reads_a_grid_one_window_deep():
+    """A grid with a single window along an axis (a small crop) predicts as the full grid: the validity
+    weights were padded twice there and the interpolator refused them. The rotation does not vary in z,
+    so the one plane of windows holds the whole field (linear in x, y: exact)."""
+    grid = _grid(_rotation)
+    one = grid.isel(z=[2])
+    pts = np.array([[1.0, 1.3, float(grid.z[2])], [2.2, 0.9, float(grid.z[2]) + 0.7]])
+    np.testing.assert_allclose(predict(one, pts), np.column_stack(_rotation(*pts.T)), atol=1e-12)
+    np.testing.assert_allclose(predict(one, pts), predict(grid, pts), atol=1e-12)
+
+
 def test_paired_piv_drops_particles_fitted_in_one_frame_only(tmp_path):
     """piv.particles paired: a fifth of frame b's particles misplaced one voxel in depth (real particles
     fitted at the wrong place, as IPR's ghosts on the coarse designs) bias WIDIM's w; paired against

@@ -163,12 +163,11 @@ def predict(predictor: xr.Dataset, xyz: np.ndarray) -> np.ndarray:
     # a single window along an axis: the interpolator needs two nodes; repeat it one step on
     grid = [a if a.size > 1 else np.array([a[0], a[0] + 1.0]) for a in axes]
     pad = tuple((0, 0) if a.size > 1 else (0, 1) for a in axes)
-    w = np.pad(valid.astype(float), pad, mode="edge")
 
-    def interp(values: np.ndarray) -> np.ndarray:
+    def interp(values: np.ndarray) -> np.ndarray:  # values on the windows; padded here, once
         return RegularGridInterpolator(grid, np.pad(values, pad, mode="edge"), method="linear")(pts)
 
-    den = interp(w)
+    den = interp(valid.astype(float))
     num = [interp(np.where(valid, c, 0.0)) for c in comps]
     ok = den > 1e-9
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)[valid]
