@@ -411,10 +411,11 @@ def _snakemake_process(work: Path, cfg: Path, timeout: int = 900) -> subprocess.
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.parametrize("name", ["..", ".", "a/b", ".hidden"])
+@pytest.mark.parametrize("name", ["..", "."])
 def test_snakemake_process_refuses_a_name_that_is_a_path(recording, tmp_path, name):
     """`name: ..` once deleted the whole working directory through the target's directory() output, and
-    `name: .` another study's results: a name is a plain name, refused before Snakemake removes anything."""
+    `name: .` another study's results: a name is a plain name, refused before Snakemake removes anything.
+    (The other names that are paths are refused by the same check, below, without a Snakemake start each.)"""
     work = tmp_path / "W"
     cfg = _user_recording(recording, work, name)
     (work / "results" / "other").mkdir(parents=True)
@@ -424,6 +425,18 @@ def test_snakemake_process_refuses_a_name_that_is_a_path(recording, tmp_path, na
     assert r.returncode != 0
     assert "config key 'name'" in r.stderr and "a plain name" in r.stderr, r.stderr[-2000:]
     _kept(before, work)
+
+
+@pytest.mark.parametrize("name", ["a/b", ".hidden", "..", "", "x" * 101])
+def test_a_recording_name_that_is_a_path_is_refused_by_the_loader(recording, tmp_path, name):
+    """The check the Snakemake target runs at parse time (the recording config's loader), on the other names
+    that are paths or empty or too long: refused, naming the key and what a name may be."""
+    from lfstudy.config import ConfigError
+    from lfstudy.process.config import load_process_config
+
+    cfg = _user_recording(recording, tmp_path / "rec", name)
+    with pytest.raises(ConfigError, match=r"config key 'name'"):
+        load_process_config(cfg)
 
 
 def test_snakemake_process_refuses_a_recording_under_its_output(recording, tmp_path):
