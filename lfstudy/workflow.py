@@ -258,9 +258,7 @@ def run_piv(
     if depth:  # Snakemake passes '' where the calibration is disabled
         res = correct_depth(res, io.open_zarr(depth).load())
     if tracked:
-        import numpy as np
-
-        voxel = tuple(float(np.median(np.abs(np.diff(a[d].values)))) for d in ("x", "y", "z"))
+        voxel = cl.volume_voxel(a)
         parts = [io.open_zarr(p).load() for p in lists]
         if mode == "ptv":
             res = cl.case_ptv(ccfg, res, *parts, voxel=voxel)

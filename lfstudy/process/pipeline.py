@@ -405,8 +405,7 @@ def _measure(
         res = correct_depth(res, depth)
     if cfg["piv"].get("particles") == "paired":  # a particle method without a traverse (process.config)
         parts = [io.open_zarr(root / frame_dir(k) / "particles.zarr").load() for k in (i, j)]
-        voxel = tuple(float(np.median(np.abs(np.diff(a[d].values)))) for d in ("x", "y", "z"))
-        res = cl.case_paired_piv(cfg, res, a, b, *parts, voxel=voxel)
+        res = cl.case_paired_piv(cfg, res, a, b, *parts, voxel=cl.volume_voxel(a))
     if sigma_cal is not None:  # after the depth correction: the study's σ of w is the corrected one
         res = apply_calibration(res, sigma_cal)
     ratio = peak_ratio(a, b, res)

@@ -45,6 +45,7 @@ __all__ = [
     "case_reconstruction",
     "case_piv",
     "case_paired_piv",
+    "volume_voxel",
     "oracle_volumes",
     "oracle_piv",
     "case_depth_calibration",
@@ -527,6 +528,12 @@ def _tracks(
     search = float(ccfg["piv"].get("ptv_search", SEARCH))
     tracks = match_particles(particles_a, particles_b, piv, search=search, voxel=voxel)
     return validate_tracks(tracks, voxel=tracks.attrs["voxel_mm"])
+
+
+def volume_voxel(vol: xr.DataArray) -> tuple[float, float, float]:
+    """A reconstructed volume's voxel size (dx, dy, dz) [mm], from its coordinates: the ``voxel`` that
+    :func:`case_ptv` and :func:`case_paired_piv` take (the study's piv stage and ``lfstudy process`` alike)."""
+    return tuple(float(np.median(np.abs(np.diff(vol[d].values)))) for d in ("x", "y", "z"))
 
 
 def case_ptv(
