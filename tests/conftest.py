@@ -98,3 +98,15 @@ class _TinyStudyFirst:
 
 def pytest_configure(config):
     config.pluginmanager.register(_TinyStudyFirst(), "lfstudy-tiny-study-first")
+    # pytest-xdist 3.8 groups by a suffix on the node id, which pytest 9.2 no longer reads (pytest-xdist#1386):
+    # `--dist loadgroup` then silently spreads every group over the workers and the tiny study is built twice
+    # (2-3 min more on 2 cores). The test extra pins pytest < 9.2; say so where another pytest is installed.
+    if config.getoption("dist", "no") == "loadgroup" and not hasattr(config, "workerinput"):
+        import xdist
+
+        xdist_version = tuple(int(p) for p in xdist.__version__.split(".")[:2])
+        if pytest.version_tuple[:2] >= (9, 2) and xdist_version <= (3, 8):
+            raise pytest.UsageError(
+                f"pytest {pytest.__version__} with pytest-xdist {xdist.__version__}: --dist loadgroup ignores "
+                "xdist_group (pytest-xdist#1386); install the test extra (pip install -e '.[test]': pytest < 9.2)"
+            )
