@@ -31,10 +31,12 @@ from lfstudy.reconstruct._shake_kernels import _accumulate_masked, _choose
 from lfstudy.reconstruct.image_model import ImageModel
 from lfstudy.reconstruct.registry import ReconstructionError
 from lfstudy.simulate._render_common import (
+    _G_COS,
     _G_HH,
     _G_HW,
     _G_NCOL,
     _G_NROW,
+    _G_SIN,
     _blurs,
     _geometry,
     solid_angle,
@@ -74,8 +76,11 @@ def _patch_kernel(px, py, pz, wt, geos, gidx, buf, boff, psz, nlmax, stats, quad
                 continue
             geo = geos[gidx[t]]
             cnt[:] = 0.0
-            chunk = (buf[boff[t, 0] : boff[t, 1]], 0, int(geo[_G_NROW]) - 1)
-            _render_particle(geo, False, px[t], py[t], pz[t], wt[t], scr, chunk, cnt)
+            # the full render's argument types (a typed row 0, the grid's rotation read from geo, False for the
+            # model camera), so both kernels call the one compiled _render_particle
+            chunk = (buf[boff[t, 0] : boff[t, 1]], np.int64(0), int(geo[_G_NROW]) - 1)
+            rotated = geo[_G_SIN] != 0.0 or geo[_G_COS] != 1.0
+            _render_particle(geo, rotated, px[t], py[t], pz[t], wt[t], scr, chunk, cnt)
             for q in range(_ST_SIZE):
                 stats[t, q] += cnt[q]
 
