@@ -1,6 +1,6 @@
 """What numba's first compile costs a fresh clone: the heavy kernels' cold compile, stage by stage (issue 37).
 
-Reproduces: the comment on :func:`lfstudy.simulate.exact._render_particle` (why it is compiled on its own) and
+Reproduces: lfstudy/simulate/exact.py (the comment on ``_render_particle``: why it is compiled on its own) and
 the suite-time figures of issue 37's note.
 
     python benchmarks/bench_compile.py [--threads 1] [--order exact,patches,montecarlo,mart]
