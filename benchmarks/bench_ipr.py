@@ -190,6 +190,22 @@ The images (``image_accuracy``): the fit's results do not move beyond the seed n
 0.001 ppp, seed 7: the same 156 particles' figures (88.1 %, 9.6 %, 0.047 and 0.090 voxel), CPU 25.3 / 25.7 s (the
 MART candidates dominate there). (CPU per image: ``bench_particle_image.py``'s docstring.)
 
+The polish's screen (``_POLISH_SCREEN`` in ``lfstudy/reconstruct/ipr/polish.py``; issue 39, fewer images per
+particle). Where the images went on the demo camera (``--camera demo --crop 320 240 --ppp 0.005 --rays 2000 --photons
+4000 --threads 1``, seed 1, counted by caller): the polish's stencils 30,738 (51.5 %), the shake 28,560 (47.8 %). 192 of
+the 360 particles are near focus, and in the first round 79 % of them move less than 0.02 voxel: their current
+position already holds the stencil's weight. Rendering the stencil's 8 axis positions first (with the current one)
+and the other 36 only where an axis position weighs at least e^-10 of the current one: seeds 1 / 2 (used to choose
+e^-10) and 3 / 4 (held out) give the same found, ghosts and rms as before to the digit (81.5 / 15.0, 81.2 / 15.8,
+79.4 / 18.0, 78.4 / 17.8), particle images 55,681 -> 43,862 and 56,570 -> 46,086 (-21 %, -19 %; the polish's -46 %),
+CPU of seeds 1 and 2 over two alternating runs each (the screen off by setting it to inf: the stencil's current
+position then rendered twice, 56,257 / 57,149 images) 10.5 / 11.5 and 12.5 / 12.7 s without, 9.4 / 12.0 and 9.1 / 9.6
+s with it (load 1-2). Held out on the Table 4.3 camera (``--crop 300 300 --ppp 0.005
+--threads 1``, seeds 5 / 6 / 7, before -> after): found 81.3 -> 80.9, 80.2 -> 80.0, 79.3 -> 79.3 %, ghosts 14.6 -> 14.9,
+21.0 -> 21.2, 17.3 -> 17.3 %, images -18 / -17 / -18 %, CPU 17.0 / 18.4 / 16.7 -> 16.8 / 18.6 / 18.8 s (there the
+near-focus images the screen saves are the cheapest, 0.1 ms, and the load varied). With e^-7 instead one screened
+particle of 708 would have moved 0.30 voxel; with e^-10 none of 643 more than 0.02.
+
 The polish (``polish``): before it, the missed particles and the ghosts were near the focal plane. On the Table 4.3
 camera (spot radius 0.125·|z| mm, pitch 0.125 mm) the missed particles and the ghosts were these: 12 of the 18
 missed at 0.001 ppp (seed 3) had |z| < 0.5 mm (of the 15 there; none missed beyond |z| = 2 mm), and each of the 14

@@ -483,3 +483,42 @@ def test_residual_volume_same_bytes_whatever_the_threads(scene, kind):
     for v in ("x", "y", "z", "intensity"):
         assert np.array_equal(one[v].values, two[v].values)
     assert one.attrs["candidates_added"] == two.attrs["candidates_added"] and len(one.attrs["candidates_added"]) >= 1
+
+
+def test_polish_screen_skips_only_sharp_minima(monkeypatch):
+    """The polish's screen (``_POLISH_SCREEN``): a particle fitted where its data is (a sharp minimum: every axis
+    neighbour of the stencil far less likely) renders only the current and axis positions and stays where the
+    whole stencil would leave it; one 0.25 voxel off its data renders the whole stencil and moves as it would
+    without the screen. Two well-separated near-focus particles, data with 1 % noise."""
+    from lfstudy.reconstruct.ipr import polish as pol
+    from lfstudy.reconstruct.ipr.patches import _FitImages
+
+    vox = np.array([0.125, 0.125, 0.5])
+    true = np.array([[-0.6, -0.5, 0.3], [0.6, 0.5, -0.2]])
+    fit = true + np.array([[0.0, 0.0, 0.0], [0.25, 0.0, 0.0]]) * vox
+    buf, offs, r0, c0, shp = particle_patches(CAM, *true.T)
+    data = np.zeros((300, 300))
+    for j in range(2):
+        data[r0[j] : r0[j] + shp[j, 0], c0[j] : c0[j] + shp[j, 1]] += buf[offs[j] : offs[j + 1]].reshape(shp[j])
+    data += 0.01 * data.max() * np.random.default_rng(3).standard_normal(data.shape)
+    stencil, n_axes = pol._polish_stencil(vox)
+    assert n_axes == 9 and len(stencil) == 45 and np.all(np.count_nonzero(stencil[1:n_axes], axis=1) == 1)
+
+    def step(screen: float):
+        monkeypatch.setattr(pol, "_POLISH_SCREEN", screen)
+        images = _FitImages(CAM, np.ones((300, 300), np.uint8), "fast", 256)
+        amp = np.ones(2)
+        res = data.copy()
+        images.add_images(fit, amp, res, -1.0)
+        moved, _ = pol._polish_step(images, fit.copy(), amp, res, stencil, n_axes)
+        return moved, images.clock["images"]
+
+    moved, n_img = step(pol._POLISH_SCREEN)
+    full, n_full = step(np.inf)
+    # both: the residual's 2 images, the 9 axis positions, 2 moved back and 2 refitted; the second particle
+    # also the rest of the stencil, its current position again first
+    rest = 1 + len(stencil) - n_axes
+    assert n_img == 2 + 2 * n_axes + rest + 4 and n_full == n_img + rest
+    np.testing.assert_allclose(moved[0], fit[0], atol=0.02 * vox.min())
+    np.testing.assert_allclose(moved, full, atol=0.02 * vox.min())
+    assert abs(moved[1, 0] - true[1, 0]) < abs(fit[1, 0] - true[1, 0])  # moved towards its data
