@@ -893,3 +893,33 @@ def test_the_sigma_figure_has_readable_ticks_and_its_legend_clear_of_the_curves(
     legend = fig.legends[0].get_window_extent(r)
     assert legend.y1 < min(a.get_window_extent(r).y0 for a in panels)
     assert len(fig.legends[0].get_texts()) == 9  # 8 designs and the 1:1 line
+
+
+@pytest.mark.parametrize("method", ["ipr", "mart"])
+def test_the_report_says_a_particle_fit_with_depth_calibration_compares_piv_modes(method, tmp_path):
+    """IPR swept with and without depth calibration: without it the sweep pairs the fitted particles, with it
+    WIDIM runs on the rendered volumes and the depth correction; the answer says the two rows compare PIV modes.
+    MART runs WIDIM either way and is not said to; IPR without the calibration swept is not either."""
+    from lfstudy.study.sweep import Sweep
+
+    def answer(sweep_dcal):
+        cfg = load_config(ROOT / "config" / "demo.yaml")
+        cfg["reconstruct"]["method"] = method
+        cfg["sweep"] = {"magnification": [-1.0], "lenslet_pitch": [0.0888], "flow": ["uniform_x"]}
+        if sweep_dcal:
+            cfg["sweep"]["depth_calibration.enabled"] = [False, True]
+        sweep = Sweep(cfg)
+        vals = {"rms_total_mm": 0.02, "oracle_rms_total_mm": 0.005, "spacing_mm_x": 0.7, "valid_percent": 95.0}
+        rows = [
+            (c, xr.Dataset({k: ((), v, {"units": "mm", "long_name": k}) for k, v in vals.items()}))
+            for c in sweep.cases()
+        ]
+        return _answer_text(combine_cases(rows, sweep.settings), tmp_path, cfg)
+
+    text = answer(True)
+    said = "cases with and without depth calibration compare two PIV modes" in text
+    assert said == (method == "ipr")
+    if said:
+        assert "The IPR cases" in text and "piv.particles: paired" in text
+        assert "corrected by the design's depth response" in text
+    assert "compare two PIV modes" not in answer(False)

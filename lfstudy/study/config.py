@@ -31,6 +31,7 @@ __all__ = [
     "sweep_of",
     "expand_cases",
     "case_config",
+    "depth_calibrated",
     "stage_config",
     "cases_table",
     "check_piv_grid",
@@ -298,6 +299,12 @@ def case_config(cfg: Mapping[str, Any], case: Case | str) -> dict[str, Any]:
     out["calib_id"] = sweep.calib_id(case)
     out["stage_ids"] = sweep.ids(case)
     return out
+
+
+def depth_calibrated(ccfg: Mapping[str, Any]) -> bool:
+    """Whether a case config (:func:`case_config`) maps its axial displacement through the design's depth
+    calibration (``depth_calibration.enabled``)."""
+    return bool((ccfg.get("depth_calibration") or {}).get("enabled", False))
 
 
 def stage_config(cfg: Mapping[str, Any], case: Case | str, stage: str) -> dict[str, Any]:

@@ -34,7 +34,7 @@ from lfstudy import io
 from lfstudy.optics import PlenopticCamera
 from lfstudy.study import metric_table as mt
 from lfstudy.study.case import case_planes
-from lfstudy.study.config import case_config
+from lfstudy.study.config import case_config, depth_calibrated
 from lfstudy.study.replicates import SEPARATION, pm, replicate_dim, replicate_stats
 from lfstudy.study.sweep import format_value
 
@@ -506,6 +506,49 @@ def _renderers(study: xr.Dataset, cfg: Mapping[str, Any] | None) -> dict[str, tu
     return out
 
 
+def _piv_modes(study: xr.Dataset, cfg: Mapping[str, Any] | None) -> dict[str, tuple[str, bool, str]]:
+    """Per computed case id: (``reconstruct.method``, ``depth_calibration.enabled``, ``piv.particles``) as the
+    case ran them (the sweep fills in ``paired`` for a particle fit without depth calibration); cases whose config
+    cannot be built are left out."""
+    out = {}
+    for cid in _computed_ids(study):
+        try:
+            c = case_config(dict(cfg or {}), cid)
+        except Exception:  # a config that does not build this case (a test's bare study)
+            continue
+        out[cid] = (
+            str(c["reconstruct"].get("method", "")),
+            depth_calibrated(c),
+            str(c["piv"].get("particles", "none")),
+        )
+    return out
+
+
+#: What each ``piv.particles`` mode does, in the report's words.
+PIV_MODES = {
+    "paired": "paired the fitted particles and ran WIDIM again on volumes of the paired particles alone "
+    "(<code>piv.particles: paired</code>)",
+    "ptv": "tracked the fitted particles and binned the tracks on the WIDIM grid (<code>piv.particles: ptv</code>)",
+}
+
+
+def _piv_mode_text(modes: Mapping[str, tuple[str, bool, str]]) -> str:
+    """Where a particle fit ran with and without depth calibration: the two compare PIV modes, not the calibration
+    alone (particles are not paired or tracked with a depth calibration, whose traverse measures WIDIM's gain)."""
+    fits = [v for v in modes.values() if _fits_particles(v[0])]
+    tracked = sorted({mode for _, dcal, mode in fits if not dcal and mode in PIV_MODES})
+    if not (tracked and any(dcal and mode == "none" for _, dcal, mode in fits)):
+        return ""
+    names = ", ".join(sorted({m.upper() for m, _, _ in fits}))
+    return (
+        f" <b>The {html.escape(names)} cases with and without depth calibration compare two PIV modes, not the "
+        f"calibration alone:</b> without it, PIV {' or '.join(PIV_MODES[m] for m in tracked)}; with it, WIDIM ran "
+        "on the volumes rendered from the fitted particles and the axial displacement was corrected by the "
+        "design's depth response (the traverse measures WIDIM's depth gain, so the particles are neither paired "
+        "nor tracked there)."
+    )
+
+
 def _fits_particles(method: str) -> bool:
     from lfstudy.reconstruct.registry import gives_particles
 
@@ -609,7 +652,8 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
         yield Block("answer", "none", note="Recommendation: not available (no computed case with errors in mm).")
         return
     methods = _renderers(study, cfg)
-    yield Block("answer", "terms", html=_terms_html() + f"<p>{_renderer_text(methods)}</p>")
+    said = _renderer_text(methods) + _piv_mode_text(_piv_modes(study, cfg))
+    yield Block("answer", "terms", html=_terms_html() + f"<p>{said}</p>")
     summ = summary_table(ranked, named(budget_table(ranked), names), names)
     front_cols = [c for c in mt.names("front") if c in table]
     cols = [c for c in ("design", "flow") if c in table] + spread_columns(table, front_cols, se=("rms_total_mm",))
