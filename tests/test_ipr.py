@@ -522,3 +522,25 @@ def test_polish_screen_skips_only_sharp_minima(monkeypatch):
     np.testing.assert_allclose(moved[0], fit[0], atol=0.02 * vox.min())
     np.testing.assert_allclose(moved, full, atol=0.02 * vox.min())
     assert abs(moved[1, 0] - true[1, 0]) < abs(fit[1, 0] - true[1, 0])  # moved towards its data
+
+
+def test_a_warm_start_replaces_the_first_candidate_volume(scene):
+    """``start``: the fit begins from the given positions instead of the first MART volume's peaks (one volume
+    fewer, ``warm_start`` their count); from the true positions it keeps every particle within half a voxel;
+    a position more than a voxel outside the grid is dropped (the same fit, byte for byte); anything but finite
+    (n, 3) positions is refused, naming ``start``."""
+    pts, inputs = scene
+    kw = {"iterations": 2, "residual_candidates": 1, "polish": 0}
+    cold = ipr_particles(inputs, **kw)
+    warm = ipr_particles(inputs, start=pts, **kw)
+    assert cold.attrs["warm_start"] == 0 and warm.attrs["warm_start"] == len(pts)
+    assert warm.attrs["mart_volumes"] == cold.attrs["mart_volumes"] - 1
+    vox = np.array(inputs.grid.voxel_size()[::-1])
+    fit = np.column_stack([warm[v].values for v in ("x", "y", "z")])
+    assert (np.abs(fit[None] - pts[:, None]) / vox).max(axis=2).min(axis=1).max() < 0.5  # every true one found
+    far = ipr_particles(inputs, start=np.vstack([pts, [[50.0, 0.0, 0.0]]]), **kw)
+    for v in ("x", "y", "z", "intensity"):
+        assert np.array_equal(far[v].values, warm[v].values)
+    for bad in (pts[:, :2], np.where(np.arange(3) == 1, np.nan, pts)):
+        with pytest.raises(ReconstructionError, match=r"reconstruct\.ipr: start must be finite positions"):
+            ipr_particles(inputs, start=bad, **kw)
