@@ -923,3 +923,38 @@ def test_the_report_says_a_particle_fit_with_depth_calibration_compares_piv_mode
         assert "The IPR cases" in text and "piv.particles: paired" in text
         assert "corrected by the design's depth response" in text
     assert "compare two PIV modes" not in answer(False)
+
+
+def test_the_report_compares_the_reconstruction_methods_where_both_ran(tmp_path):
+    """reconstruct.method swept (MART, IPR): a table of each design's error under each method with its oracle
+    beside it, the multiples of the oracle and the method of the lowest error, and the ranges in words; a
+    study of one method has none."""
+    from lfstudy.study.designs import method_comparison
+    from lfstudy.study.sweep import Sweep
+
+    cfg = load_config(ROOT / "config" / "demo.yaml")
+    cfg["sweep"] = {"magnification": [-1.0, -0.8], "lenslet_pitch": [0.0888], "flow": ["uniform_x"]}
+    cfg["sweep"]["reconstruct.method"] = ["mart", "ipr"]
+    sweep = Sweep(cfg)
+    err = {("mart", -1.0): 0.036, ("ipr", -1.0): 0.009, ("mart", -0.8): 0.035, ("ipr", -0.8): 0.040}
+    rows = []
+    for c in sweep.cases():
+        e, o = err[(c["reconstruct.method"], c.magnification)], 0.002 if c.magnification == -1.0 else 0.004
+        vals = {"rms_total_mm": e, "oracle_rms_total_mm": o, "spacing_mm_x": 0.7, "valid_percent": 95.0}
+        rows.append((c, xr.Dataset({k: ((), v, {"units": "mm", "long_name": k}) for k, v in vals.items()})))
+    study = combine_cases(rows, sweep.settings)
+    from lfstudy.study.designs import design_names
+
+    cmp = method_comparison(study, design_names(study, cfg))
+    assert list(cmp["design"]) == ["M −1, f/2.0, 88.8 µm lenslets", "M −0.8, f/2.8, 88.8 µm lenslets"]
+    assert cmp["mart_mm"].tolist() == [0.036, 0.035] and cmp["ipr_mm"].tolist() == [0.009, 0.040]
+    assert cmp["oracle_mm"].tolist() == [0.002, 0.004] and cmp["lowest"].tolist() == ["ipr", "mart"]
+    np.testing.assert_allclose(cmp["ipr_ratio"], [4.5, 10.0])
+    answer = _answer_text(study, tmp_path, cfg)
+    assert (
+        "Reconstruction methods" in answer and "MART errs 8.8–18.0× its oracle; IPR errs 4.5–10.0× its oracle" in answer
+    )
+    assert "The lowest error: MART on 1, IPR on 1 of 2 designs." in answer and "0.009 (4.5×)" in answer
+    cfg["sweep"].pop("reconstruct.method")
+    one = Sweep(cfg)
+    assert method_comparison(combine_cases([(c, rows[0][1]) for c in one.cases()], one.settings)).empty

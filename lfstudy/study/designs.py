@@ -62,6 +62,7 @@ __all__ = [
     "reconstruction_cut",
     "summary_table",
     "flow_verdict",
+    "method_comparison",
 ]
 
 #: The total error designs are ranked by (mm).
@@ -859,3 +860,47 @@ def flow_verdict(summary: pd.DataFrame, flow: str | None, recommended: str | Non
             "share is 0 there."
         )
     return " ".join(out)
+
+
+#: The study's dimension of a swept reconstruction method (``reconstruct.method``).
+METHOD_DIM = "reconstruct_method"
+
+
+def method_comparison(study: xr.Dataset, names: Mapping[str, str] | None = None) -> pd.DataFrame:
+    """Where the study sweeps ``reconstruct.method``: one row per design (its other swept settings) and flow,
+    with the oracle's total RMS error (PIV on the true volumes: one figure for every method) and each method's,
+    in mm and as a multiple of the oracle's. Empty where fewer than two methods ran or there is no oracle.
+
+    Columns: ``design`` (the readable name of ``names`` less the method, else the label), ``flow``,
+    ``oracle_mm``, ``<method>_mm`` and ``<method>_ratio`` per method in the sweep's order, and ``lowest`` (the
+    method of the lowest error; empty where one is missing).
+    """
+    if METHOD_DIM not in study.dims or study.sizes[METHOD_DIM] < 2:
+        return pd.DataFrame()
+    df = design_table(study)
+    if df.empty or TOTAL not in df or ORACLE_TOTAL not in df or METHOD_DIM not in df:
+        return pd.DataFrame()
+    methods = [str(m) for m in study[METHOD_DIM].values]
+    names = names or {}
+
+    def base(label: str, method: str) -> str:
+        name = names.get(label, label)
+        for tail in (f", {_setting_text(study, METHOD_DIM, method)}", f" {METHOD_DIM}={method}"):
+            name = name.removesuffix(tail)
+        return name
+
+    df = df.assign(
+        design=[base(str(d), str(m)) for d, m in zip(df["design"], df[METHOD_DIM])],
+        flow=df.get("flow", ""),
+    )
+    rows = []
+    for (design, flow), g in df.groupby(["design", "flow"], sort=False):
+        row: dict[str, object] = {"design": design, "flow": flow, "oracle_mm": float(g[ORACLE_TOTAL].mean())}
+        for m in methods:
+            e = g.loc[g[METHOD_DIM].astype(str) == m, TOTAL]
+            row[f"{m}_mm"] = float(e.iloc[0]) if len(e) else math.nan
+            row[f"{m}_ratio"] = row[f"{m}_mm"] / row["oracle_mm"] if row["oracle_mm"] > 0 else math.nan
+        errs = [row[f"{m}_mm"] for m in methods]
+        row["lowest"] = methods[int(np.argmin(errs))] if all(np.isfinite(errs)) else ""
+        rows.append(row)
+    return pd.DataFrame(rows)

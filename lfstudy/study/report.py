@@ -691,6 +691,7 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
         )
         if reps:
             yield _ranking_block(table, flow)
+    yield from _methods_block(study, names)
     yield Block(
         "answer",
         "method",
@@ -711,6 +712,43 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
     if tol:
         yield _limits_block(study, names)
     yield from _budget_blocks(study, names)
+
+
+def _methods_block(study: xr.Dataset, names: Mapping[str, str]) -> Iterator[Block]:
+    """Where the study sweeps ``reconstruct.method``: every design's total error under each method with the
+    oracle beside it (:func:`lfstudy.study.designs.method_comparison`), and how the methods compare in words."""
+    from lfstudy.study.designs import method_comparison
+
+    cmp = method_comparison(study, names)
+    if cmp.empty:
+        return
+    methods = [c.removesuffix("_mm") for c in cmp if c.endswith("_mm") and c != "oracle_mm"]
+    fmt = lambda e, r: "–" if not np.isfinite(e) else f"{e:.3g} ({r:.1f}×)"  # noqa: E731
+    out = pd.DataFrame({"design": cmp["design"]})
+    if cmp["flow"].astype(bool).any():
+        out["flow"] = cmp["flow"]
+    out["oracle [mm]"] = cmp["oracle_mm"].map(lambda v: f"{v:.3g}")
+    for m in methods:
+        out[f"{m.upper()} [mm] (× oracle)"] = [fmt(e, r) for e, r in zip(cmp[f"{m}_mm"], cmp[f"{m}_ratio"])]
+    out["lowest"] = cmp["lowest"].str.upper().replace("", "–")
+    said = []
+    for m in methods:
+        r = cmp[f"{m}_ratio"][np.isfinite(cmp[f"{m}_ratio"])]
+        if len(r):
+            said.append(f"{m.upper()} errs {r.min():.1f}–{r.max():.1f}× its oracle")
+    wins = cmp["lowest"].value_counts()
+    n = int((cmp["lowest"] != "").sum())
+    best = ", ".join(f"{m.upper()} on {int(wins.get(m, 0))}" for m in methods)
+    text = "; ".join(said) + (f". The lowest error: {best} of {n} designs." if n else ".")
+    yield Block(
+        "answer",
+        "reconstructions",
+        html="<h3>Reconstruction methods</h3><p>Each design's total RMS error under each reconstruction the study "
+        "ran, beside its oracle (the same PIV on the true particle volumes, the same for every method). "
+        + html.escape(text)
+        + "</p>"
+        + _table(out, index=False),
+    )
 
 
 def _ranking_block(table: pd.DataFrame, flow: str) -> Block:
