@@ -19,29 +19,34 @@ the found [mm], CPU s (one thread), exact particle images and MART volumes; and 
 rms error [mm] per axis: where the warm start leaves b's particles near their start, their displacement leans
 towards the predictor's.
 
-Measured (demo camera, 320 x 240 px, 0.005 ppp, shift (0.2, 0, 0.1) mm, 1 thread, load 1-2 on 2 cores, ``--seed 1 2
---compare iterations=3,residual_candidates=2 iterations=5``; found inside the grid / ghosts %, CPU s, and the mean w
-[mm] of the particles found in both frames, true 0.1; frame a cold: 81.5 / 15.0 and 81.2 / 15.8, 9.5-9.7 s):
+Measured (demo camera, 320 x 240 px, 0.005 ppp, shift (0.2, 0, 0.1) mm, 1 thread, quiet 2 cores (load 1-2), ``--seed
+1 2 --compare iterations=3,residual_candidates=2 iterations=5``; found inside the grid / ghosts %, CPU s, and the mean w
+[mm] of the particles found in both frames, true 0.1; frame a cold: 81.5 / 15.0 and 81.2 / 15.8, 8.0 / 8.8 s). "no
+scan": the same warm fits with the depth scan off (a script's patch of ``_START_SCAN = ()`` in
+``lfstudy/reconstruct/ipr/polish.py``), as the start was first built:
 
-=====================  ================================  ================================
-frame b                seed 1 (predictor w 0.076, -24 %)  seed 2 (predictor w 0.049, -51 %)
-=====================  ================================  ================================
-cold (defaults)        84.7 / 14.1, 9.9 s, w .0988        79.5 / 17.7, 9.3-10.6 s, w .0971
-cold, 5 iterations     83.3 / 15.9, 8.0 s, w .0998        78.7 / 20.1, 6.5 s, w .0981
-cold, 3 it., 2 rounds  81.4 / 17.5, 4.9 s, w .0989        75.8 / 21.7, 4.6 s, w .1001
-warm (defaults)        87.3 / 11.7, 8.5-9.5 s, w .0959    82.6 / 16.9, 10.3-11.0 s, w .0937
-warm, 5 iterations     86.4 / 14.6, 6.3 s, w .0977        83.1 / 17.8, 7.4 s, w .0936
-warm, 3 it., 2 rounds  87.0 / 14.6, 4.1-4.4 s, w .0963    82.9 / 18.4, 4.1-4.2 s, w .0922
-=====================  ================================  ================================
+=========================  ================================  ================================
+frame b                    seed 1 (predictor w 0.076, -24 %)  seed 2 (predictor w 0.049, -51 %)
+=========================  ================================  ================================
+cold (defaults)            84.7 / 14.1, 8.3 s, w .0988        79.5 / 17.7, 8.1 s, w .0971
+cold, 5 iterations         83.3 / 15.9, 5.3 s, w .0998        78.7 / 20.1, 5.3 s, w .0981
+cold, 3 it., 2 rounds      81.4 / 17.5, 3.7 s, w .0989        75.8 / 21.7, 3.7 s, w .1001
+warm (defaults)            83.3 / 15.0, 8.8 s, w .0994        80.6 / 18.4, 8.4 s, w .0959
+warm, 5 iterations         82.5 / 17.2, 6.0 s, w .0989        81.2 / 19.0, 5.7 s, w .0964
+warm, 3 it., 2 rounds      82.5 / 17.7, 4.3 s, w .0977        78.9 / 21.3, 4.2 s, w .0980
+no scan (defaults)         87.3 / 11.7, 7.7 s, w .0959        82.6 / 16.9, 8.4 s, w .0937
+no scan, 5 iterations      86.4 / 14.6, 4.6 s, w .0977        83.1 / 17.8, 5.2 s, w .0936
+no scan, 3 it., 2 rounds   87.0 / 14.6, 3.3 s, w .0963        82.9 / 18.4, 3.7 s, w .0922
+=========================  ================================  ================================
 
-("3 it., 2 rounds": ``iterations=3,residual_candidates=2``.) At the same CPU the warm start finds 5.6 / 7.1 points more
-than the cold fit with fewer ghosts (-2.9 / -3.3 points), and it takes 0.4-0.45x the CPU of the cold defaults at equal
-or better found. But where the residual is flat (near focus) a particle of frame b stays near its start, so the
-displacements lean towards the predictor: the mean w is 2.1-7.9 % of the true w lower than the cold fit's of the same
-settings, with predictors 24-51 % short in w (the rms error of w is smaller: 0.040-0.041 against 0.046-0.049 mm).
-The study does not use it yet: the second frame's reconstruction would depend on the first's and on a predictor, and
-that pull must first be taken out (a predictor from the particles themselves, or the depth of a flat particle taken
-from frame b's own candidates).
+("3 it., 2 rounds": ``iterations=3,residual_candidates=2``.) Without the scan the warm start looked like the lever:
+5.6 / 7.1 points more found than the cold fit of the same settings, and at 3.3-3.7 s (0.4-0.45x the cold defaults'
+CPU) as many or more particles as the cold defaults. But those particles near focus, where the residual is flat in z,
+kept the predictor's depth: the mean w lay 2.1-7.9 % of the true w below the cold fit's of the same settings. With
+the scan (each started particle moved along z, within 2 voxels, to where this frame's residual drops most) the pull
+is within 2.1 points (+0.6 to -2.1), and so is the gain: the warm fits find -1.4 to +3.1 points against the cold fits
+of the same settings, for about the same CPU (the scan's 17 images a particle against the first MART volume). The
+warm start's gain was the predictor's depth, which is also its bias; the study does not use it.
 """
 
 from __future__ import annotations

@@ -954,7 +954,7 @@ def test_the_report_compares_the_reconstruction_methods_where_both_ran(tmp_path)
     assert (
         "Reconstruction methods" in answer and "MART errs 8.8–18.0× its oracle; IPR errs 4.5–10.0× its oracle" in answer
     )
-    assert "The lowest error: MART on 1, IPR on 1 of 2 designs." in answer and "0.009 (4.5×)" in answer
+    assert "The lowest error: MART on 1, IPR on 1 of 2 (a design on a flow)." in answer and "0.009 (4.5×)" in answer
     cfg["sweep"].pop("reconstruct.method")
     one = Sweep(cfg)
     assert method_comparison(combine_cases([(c, rows[0][1]) for c in one.cases()], one.settings)).empty

@@ -739,7 +739,7 @@ def _methods_block(study: xr.Dataset, names: Mapping[str, str]) -> Iterator[Bloc
     wins = cmp["lowest"].value_counts()
     n = int((cmp["lowest"] != "").sum())
     best = ", ".join(f"{m.upper()} on {int(wins.get(m, 0))}" for m in methods)
-    text = "; ".join(said) + (f". The lowest error: {best} of {n} designs." if n else ".")
+    text = "; ".join(said) + (f". The lowest error: {best} of {n} (a design on a flow)." if n else ".")
     yield Block(
         "answer",
         "reconstructions",

@@ -15,6 +15,9 @@ positions along one axis (8 of 44) are rendered first, and the rest only where o
 e^-``_POLISH_SCREEN`` of the current position (on the demo camera 46–66 % of the near-focus particles are
 screened out and the polish's images 46 % fewer, the fit's particles the same on seeds 1–4; on the Table 4.3
 camera found −0.4 / −0.2 / 0 points, seeds 5–7; ``benchmarks/bench_ipr.py``'s docstring).
+
+The same drops of the exact residual take a warm start's depths from the frame's own data (:func:`_scan_depths`,
+``ipr_particles(start=...)``): along z only, the best of a 17-point scan over ±2 voxels.
 """
 
 from __future__ import annotations
@@ -89,6 +92,30 @@ def _polish_step(
     logw = (drop - drop.max(axis=1, keepdims=True)) / (2.0 * _POLISH_T * s2[:, None])
     wgt = np.exp(logw)
     moved = pos + (wgt @ stencil) / wgt.sum(axis=1)[:, None]
+    images.add_images(pos, amp, res, 1.0)
+    return moved, images.fit_intensity(moved, res, -1.0)
+
+
+#: a warm start's depth scan: offsets along z [voxels] at which each started particle's exact residual drop is
+#: evaluated before the shake (``_scan_depths``)
+_START_SCAN = tuple(np.arange(-2.0, 2.01, 0.25))
+
+
+def _scan_depths(
+    images: _FitImages, pos: np.ndarray, amp: np.ndarray, res: np.ndarray, vox: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A warm start's depths taken from this frame's data: each particle (the others held fixed) moved along z
+    to the offset of ``_START_SCAN`` where the exact residual drops most, then the intensities refitted there.
+
+    Near focus the residual is flat in z over about a voxel, and the shake and the polish leave a particle
+    where it starts on the flat: started from a predictor's depth, the particle would keep the predictor's
+    error in w. The best of the scan is the data's, whatever the start within ±2 voxels."""
+    if not len(pos) or not _START_SCAN:
+        return pos, amp
+    stencil = np.zeros((len(_START_SCAN) + 1, 3))
+    stencil[1:, 2] = np.asarray(_START_SCAN) * vox[2]
+    drop = _stencil_drops(images, pos, amp, res, stencil)[:, : len(stencil)]
+    moved = pos + stencil[np.argmax(drop, axis=1)]
     images.add_images(pos, amp, res, 1.0)
     return moved, images.fit_intensity(moved, res, -1.0)
 
