@@ -33,27 +33,32 @@ def test_shipped_configs_valid():
 
 
 def test_demo_sweeps_designs_flows_and_a_dotted_setting(demo_raw):
-    """The demo: 2 magnifications x 2 lenslet pitches x (uniform shift, Hill's vortex), MART, without and
-    with the depth calibration; pinned so that its runtime cannot creep."""
+    """The demo: 2 magnifications x 2 lenslet pitches x (uniform shift, Hill's vortex), IPR without depth
+    calibration, its PIV pairing the fitted particles; pinned so that its runtime cannot creep. The depth
+    calibration swept by its dotted path on top shares every stage up to the reconstruction."""
     cfg = validate_config(demo_raw)
     cases = expand_cases(cfg)
-    assert len(cases) == 16
+    assert len(cases) == 8
     for key in ("magnification", "lenslet_pitch"):
         assert len({getattr(c, key) for c in cases}) == 2
     assert {c.flow for c in cases} == {"uniform_x", "hill"}
-    assert {c.params["depth_calibration.enabled"] for c in cases} == {False, True}
     assert cfg["camera"]["sensor"]["n_pixels_x"] * cfg["camera"]["sensor"]["n_pixels_y"] == 640 * 480
     assert cfg["particles"]["ppp"] == 0.005 and cfg["raytrace"]["rays_per_particle"] == 4000
+    assert cfg["raytrace"]["method"] == "montecarlo"  # not the model IPR fits (issue 39)
     ids = [c.case_id for c in cases]
     assert len(set(ids)) == len(ids)
-    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.005/flow~uniform_x/depth_calibration.enabled~false"
+    assert ids[0] == "mag~-1/fnum~matched/pitch~0.0888/ppp~0.005/flow~uniform_x"
     assert sweep_of(cfg).case(ids[5]) == cases[5]
     one = case_config(cfg, ids[-1])
     assert one["camera"]["magnification"] == cases[-1].magnification
-    assert one["flow"]["name"] == "hill" and one["reconstruct"]["method"] == "mart"
-    assert one["depth_calibration"]["enabled"] is True
-    # the calibration on/off share every stage up to the reconstruction: 8 volumes per frame, 4 calibrations
-    sw = sweep_of(cfg)
+    assert one["flow"]["name"] == "hill" and one["reconstruct"]["method"] == "ipr"
+    assert one["depth_calibration"]["enabled"] is False and one["piv"]["particles"] == "paired"
+    # the calibration on/off swept share every stage up to the reconstruction: 8 volumes per frame, 4 calibrations
+    raw = {**demo_raw, "sweep": {**demo_raw["sweep"], "depth_calibration.enabled": [False, True]}}
+    both = validate_config(raw)
+    assert {c.params["depth_calibration.enabled"] for c in expand_cases(both)} == {False, True}
+    sw = sweep_of(both)
+    assert len(expand_cases(both)) == 16
     assert len(sw.stage_ids("reconstruct")) == 8 and len(sw.stage_ids("depthcal")) == 4
     # every design reconstructs the seeded slab
     assert one["grid"]["z_range"] == [-one["particles"]["z_span"] / 2, one["particles"]["z_span"] / 2]
@@ -135,7 +140,7 @@ def test_cli_optics_prints_table51(capsys):
 
 def test_cli_cases_and_errors(capsys, tmp_path):
     assert main(["cases", str(ROOT / "config" / "demo.yaml"), "--ids"]) == 0
-    assert len(capsys.readouterr().out.split()) == 16
+    assert len(capsys.readouterr().out.split()) == 8
     bad = tmp_path / "bad.yaml"
     bad.write_text(
         "camera: {sensor: {n_pixels_x: 64, n_pixels_y: 64, pixel_pitch: 0.0074}, "
@@ -224,11 +229,11 @@ def test_sweep_size_limit_is_checked_before_the_cases(tmp_path, capsys, monkeypa
     assert main(["cases", str(config)]) == 2
     assert time.perf_counter() - t0 < 5  # validating 10,000 cases would take minutes
     assert "the sweep makes 10000 cases" in capsys.readouterr().err
-    demo = ROOT / "config" / "demo.yaml"  # 16 cases
-    monkeypatch.setenv("LFSTUDY_MAX_CASES", "15")
+    demo = ROOT / "config" / "demo.yaml"  # 8 cases
+    monkeypatch.setenv("LFSTUDY_MAX_CASES", "7")
     assert main(["cases", str(demo), "--ids"]) == 2
-    assert "makes 16 cases (the product of its lists' lengths), more than the limit of 15" in capsys.readouterr().err
-    monkeypatch.setenv("LFSTUDY_MAX_CASES", "16")
+    assert "makes 8 cases (the product of its lists' lengths), more than the limit of 7" in capsys.readouterr().err
+    monkeypatch.setenv("LFSTUDY_MAX_CASES", "8")
     assert main(["cases", str(demo), "--ids"]) == 0
     for bad in ("many", "0"):
         monkeypatch.setenv("LFSTUDY_MAX_CASES", bad)
