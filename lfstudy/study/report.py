@@ -488,40 +488,44 @@ def _terms_html() -> str:
     )
 
 
-def _renderers(study: xr.Dataset, cfg: Mapping[str, Any] | None) -> dict[str, tuple[str, str]]:
-    """Per computed case id: (``raytrace.method``, ``reconstruct.method``) from the case's config (the sweep
-    may set either); the study config's own where a case's cannot be built."""
+def _case_configs(study: xr.Dataset, cfg: Mapping[str, Any] | None) -> dict[str, dict[str, Any] | None]:
+    """Per computed case id: the case's config (:func:`case_config`), built once for every sentence that reads
+    one; None where the config does not build that case (a test's bare study)."""
+    cfg = dict(cfg or {})
+    out: dict[str, dict[str, Any] | None] = {}
+    for cid in _computed_ids(study):
+        try:
+            out[cid] = case_config(cfg, cid)
+        except Exception:
+            out[cid] = None
+    return out
+
+
+def _renderers(
+    cases: Mapping[str, Mapping[str, Any] | None], cfg: Mapping[str, Any] | None
+) -> dict[str, tuple[str, str]]:
+    """Per computed case id (``cases``: :func:`_case_configs`): (``raytrace.method``, ``reconstruct.method``) from
+    the case's config (the sweep may set either); the study config's own where a case's cannot be built."""
     cfg = dict(cfg or {})
     top = (
         str((cfg.get("raytrace") or {}).get("method", "exact")),
         str((cfg.get("reconstruct") or {}).get("method", "")),
     )
-    out = {}
-    for cid in _computed_ids(study):
-        try:
-            c = case_config(cfg, cid)
-            out[cid] = (str(c["raytrace"].get("method", "exact")), str(c["reconstruct"].get("method", "")))
-        except Exception:  # a config that does not build this case (a test's bare study): the study's own
-            out[cid] = top
-    return out
+    return {
+        cid: top if c is None else (str(c["raytrace"].get("method", "exact")), str(c["reconstruct"].get("method", "")))
+        for cid, c in cases.items()
+    }
 
 
-def _piv_modes(study: xr.Dataset, cfg: Mapping[str, Any] | None) -> dict[str, tuple[str, bool, str]]:
-    """Per computed case id: (``reconstruct.method``, ``depth_calibration.enabled``, ``piv.particles``) as the
-    case ran them (the sweep fills in ``paired`` for a particle fit without depth calibration); cases whose config
-    cannot be built are left out."""
-    out = {}
-    for cid in _computed_ids(study):
-        try:
-            c = case_config(dict(cfg or {}), cid)
-        except Exception:  # a config that does not build this case (a test's bare study)
-            continue
-        out[cid] = (
-            str(c["reconstruct"].get("method", "")),
-            depth_calibrated(c),
-            str(c["piv"].get("particles", "none")),
-        )
-    return out
+def _piv_modes(cases: Mapping[str, Mapping[str, Any] | None]) -> dict[str, tuple[str, bool, str]]:
+    """Per computed case id (``cases``: :func:`_case_configs`): (``reconstruct.method``,
+    ``depth_calibration.enabled``, ``piv.particles``) as the case ran them (the sweep fills in ``paired`` for a
+    particle fit without depth calibration); cases whose config cannot be built are left out."""
+    return {
+        cid: (str(c["reconstruct"].get("method", "")), depth_calibrated(c), str(c["piv"].get("particles", "none")))
+        for cid, c in cases.items()
+        if c is not None
+    }
 
 
 #: What each ``piv.particles`` mode does, in the report's words.
@@ -651,8 +655,9 @@ def _answer_blocks(study: xr.Dataset, cfg: Mapping[str, Any] | None = None) -> I
     if not sentences:
         yield Block("answer", "none", note="Recommendation: not available (no computed case with errors in mm).")
         return
-    methods = _renderers(study, cfg)
-    said = _renderer_text(methods) + _piv_mode_text(_piv_modes(study, cfg))
+    cases = _case_configs(study, cfg)
+    methods = _renderers(cases, cfg)
+    said = _renderer_text(methods) + _piv_mode_text(_piv_modes(cases))
     yield Block("answer", "terms", html=_terms_html() + f"<p>{said}</p>")
     summ = summary_table(ranked, named(budget_table(ranked), names), names)
     front_cols = [c for c in mt.names("front") if c in table]

@@ -30,7 +30,7 @@ from lfstudy.reconstruct.ipr.candidates import (
 from lfstudy.reconstruct.ipr.patches import _FitImages
 from lfstudy.reconstruct.ipr.polish import _polish, _scan_depths
 from lfstudy.reconstruct.ipr.settings import IPRSettings
-from lfstudy.reconstruct.ipr.shake import _GHOST_FROM, _Particles, _remove_ghosts, _shake, _unwoken
+from lfstudy.reconstruct.ipr.shake import _GHOST_FROM, _near_grid, _Particles, _remove_ghosts, _shake, _unwoken
 from lfstudy.reconstruct.ipr.split import _split
 from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs
 
@@ -118,8 +118,9 @@ def ipr_particles(
         inputs, _refined(grid, _REFINE_XY, _REFINE_Z), s.residual_plane_step, s.peak_threshold, images.clock
     )
 
+    inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
     # step 1: the candidates of the data (or the warm start)
-    xyz = volumes.first(lf, s.mart_iterations) if start is None else _start_positions(start, inputs, vox)
+    xyz = volumes.first(lf, s.mart_iterations) if start is None else _start_positions(start, inputs, inside, vox)
     n_cand = len(xyz)
     p = _Particles.unshaken(xyz, np.zeros(len(xyz)))
     norm_d = float(np.sqrt(np.sum(data**2))) or 1.0
@@ -127,7 +128,6 @@ def ipr_particles(
     ghosts = 0
     gain: list[int] = []  # new particles accepted per residual-candidate round
     stop_after, skipped = s.iterations, 0  # residual-candidate rounds skipped from this iteration on
-    inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
     settle = float(s.shake_settle)
     sat_out: list[int] = []  # particles not shaken, per iteration
     late = False  # residual_late_gain: a round added fewer than that of the list
@@ -266,20 +266,19 @@ def ipr_particles(
     )
 
 
-def _start_positions(start: Any, inputs: ReconstructionInputs, vox: np.ndarray) -> np.ndarray:
+def _start_positions(
+    start: Any, inputs: ReconstructionInputs, inside: tuple[tuple[float, float], ...], vox: np.ndarray
+) -> np.ndarray:
     """A warm start's positions (n, 3) [mm] in the fit's (nominal) frame, those more than a voxel outside the
-    grid dropped; a clear error for anything that is not finite positions."""
+    grid's extent ``inside`` dropped (as the fit drops its particles); a clear error for anything that is not
+    finite positions."""
     xyz = np.asarray(start, dtype=float)
     if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.all(np.isfinite(xyz)):
         raise ReconstructionError(
             f"reconstruct.ipr: start must be finite positions x, y, z [mm] of shape (n, 3); got shape {xyz.shape}"
             + ("" if xyz.ndim != 2 or xyz.shape[1] != 3 else " with non-finite values")
         )
-    g = inputs.grid
-    keep = np.ones(len(xyz), bool)
-    for a, c in enumerate((g.x, g.y, g.z)):
-        keep &= (xyz[:, a] >= c[0] - vox[a]) & (xyz[:, a] <= c[-1] + vox[a])
-    xyz = xyz[keep]
+    xyz = xyz[_near_grid(xyz, inside, vox)]
     if inputs.calibration is not None and len(xyz):  # the exact renderer fits in the nominal camera's frame
         xyz = volumetric_frame(xyz, inputs.lightfield, inputs.camera, inputs.calibration, to="nominal")
     return xyz

@@ -157,6 +157,15 @@ def _unmerged(xyz: np.ndarray, inten: np.ndarray, vox: np.ndarray) -> np.ndarray
     return keep
 
 
+def _near_grid(xyz: np.ndarray, inside: tuple[tuple[float, float], ...], vox: np.ndarray) -> np.ndarray:
+    """True for the positions ``xyz`` (n, 3) [mm] within a voxel of the grid's extent ``inside`` ((lo, hi) [mm]
+    per axis): those the fit keeps."""
+    keep = np.ones(len(xyz), bool)
+    for a in range(3):
+        keep &= (xyz[:, a] >= inside[a][0] - vox[a]) & (xyz[:, a] <= inside[a][1] + vox[a])
+    return keep
+
+
 def _remove_ghosts(
     images: _FitImages,
     p: _Particles,
@@ -168,9 +177,7 @@ def _remove_ghosts(
     """The ghosts removed: particles not brighter than ``floor``, those more than a voxel outside the grid's
     extent ``inside`` ((lo, hi) [mm] per axis) and the fainter of each pair closer than half a voxel; their images
     are added back to ``res``. Returns the list kept and the removed particles' positions."""
-    keep = p.inten > floor
-    for a in range(3):
-        keep &= (p.xyz[:, a] >= inside[a][0] - vox[a]) & (p.xyz[:, a] <= inside[a][1] + vox[a])
+    keep = (p.inten > floor) & _near_grid(p.xyz, inside, vox)
     keep &= _unmerged(p.xyz, p.inten, vox)
     gone = ~keep & (p.inten > 0)
     if gone.any():
