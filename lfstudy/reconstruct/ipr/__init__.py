@@ -53,7 +53,8 @@ The steps, one module each
    one to four lenslets and the residual is flat as it moves within them; ``polish`` (3) rounds move each
    particle whose defocus spot is at most ``_POLISH_SPOT`` lenslet pitches to the likelihood-weighted mean of a
    stencil around it (the estimate of least expected error on the flat), the stencil's off-axis positions
-   rendered only where its axis positions show the minimum is not sharp (``_POLISH_SCREEN``).
+   rendered only where its axis positions show the minimum is not sharp (``_POLISH_SCREEN``); the particles
+   move one run after another (Gauss–Seidel, runs of particles whose patches do not overlap).
 5. **Split** (:mod:`~lfstudy.reconstruct.ipr.split`; ``split`` 0, off): each particle brighter than
    ``split_ratio`` (1.3) times the median is tried as a close pair, kept where ‖R‖² falls by more than
    ``split_penalty`` (16) times its variance.

@@ -250,6 +250,16 @@ class _FitImages:
         self.clock["images"] += len(pos) * (1 if trials is None else 1 + len(trials))
         return out
 
+    def boxes(self, pos: np.ndarray) -> np.ndarray:
+        """The sensor boxes (row0, col0, rows, cols) (n, 4) of the patches :meth:`patches` renders for the
+        particles at ``pos`` (n, 3) [mm], with the fit's image model."""
+        sm, sl = _blurs(self.cam, True, None)
+        gap = None
+        if not self.model.ideal:
+            sm, sl, gap = sm * self.model.blur_scale, sl * self.model.blur_scale, self.model.gap(self.cam)
+        r0, c0, h, w, _, _ = _patch_boxes(self.cam, *np.asarray(pos, float).T, sm, sl, _MARGIN_PX, gap)
+        return np.stack([r0, c0, h, w], axis=1)
+
     def add_images(self, pos: np.ndarray, amp: np.ndarray, res: np.ndarray, sign: float) -> None:
         """res += sign·amp·U on the light field's pixels (the exact images of the particles at ``pos``)."""
         for s in range(0, len(pos), self.batch):
