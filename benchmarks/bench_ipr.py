@@ -221,6 +221,15 @@ the residual falls in the polish (0.161 -> 0.156 and the like). ``--camera demo 
 voxel). Cut from the list where two patches meet instead of packed, the runs held a few particles each and the images'
 per-call cost (about 1 ms) raised the polish's CPU per image by ~70 %.
 
+The batch (``batch``, particles rendered at once; not a config key): it sets the patch memory and changes the fit
+by rounding only (the faint residual candidates are now added back once every candidate is fitted, not batch by
+batch). An image costs less in smaller batches: ``--camera demo ... --seed 1 --compare batch=64 batch=32`` (the
+same 360 particles, found and ghosts to the digit; load 3-4 on 2 cores) CPU 11.5 s at 256, 9.3 s at 64 and at 32,
+the images' own time 13.9 -> 7.5 / 7.4 s of wall; ``particle_patches`` alone on 512 particles x 7 images, one
+thread, best of 4 interleaved: demo camera (M -0.8, 0.1184 mm) 0.093 ms an image at 256, 0.070 at 64, 0.075 at
+32; Table 4.3 camera 0.245 at 256, 0.159 at 64. The default is 64 (0.15 GB of patches on the full Table 4.3
+frame, against 0.59 GB at 256); below ~32 particles a call the calls' own cost (~1 ms each) shows.
+
 The polish (``polish``): before it, the missed particles and the ghosts were near the focal plane. On the Table 4.3
 camera (spot radius 0.125·|z| mm, pitch 0.125 mm) the missed particles and the ghosts were these: 12 of the 18
 missed at 0.001 ppp (seed 3) had |z| < 0.5 mm (of the 15 there; none missed beyond |z| = 2 mm), and each of the 14

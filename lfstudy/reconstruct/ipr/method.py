@@ -110,7 +110,7 @@ class IPR(ReconstructionMethod):
         float64 volumes: a MART volume's buffers and the peak search's copies) and three float64 copies of the
         raw frame the fit compares with. On the full Table 4.3 frame (33 planes) 7.16 GB with the process's
         0.3 GB, against the 7.18 GB peak ``benchmarks/bench_ipr.py --memory`` measured there (with its scene's
-        0.48 GB); the shake's patches (0.59 GB a batch of 256 there) stay below the MART's peak."""
+        0.48 GB); the shake's patches (~0.15 GB a batch of 64 there) stay below the MART's peak."""
         nz = _REFINE_Z * size.n_planes
         nvox = _REFINE_XY * _REFINE_XY * _REFINE_Z * size.n_voxels
         tables = nz * size.n_lenslets * size.pixels_per_lenslet * (17 * 4 + 2 * 2)

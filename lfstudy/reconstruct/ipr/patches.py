@@ -271,7 +271,8 @@ class _FitImages:
 
     def fit_intensity(self, pos: np.ndarray, res: np.ndarray, floor: float) -> np.ndarray:
         """Intensities of new particles at ``pos`` (Gauss–Seidel on ``res``, which keeps the images of those
-        brighter than ``floor``: the others are added back)."""
+        brighter than ``floor``: the others are added back once all are fitted, so the result does not depend
+        on the batches)."""
         out = np.zeros((len(pos), 2))
         mask = self.mask
         for s in range(0, len(pos), self.batch):
@@ -279,7 +280,8 @@ class _FitImages:
             buf, offs, r0, c0, shp = self.patches(pos[sl])
             t0 = time.perf_counter()
             _choose(res, mask, buf, offs, r0, c0, shp, 1, np.zeros(len(shp)), buf, offs, r0, c0, shp, out[sl])
-            back = np.where(out[sl, 1] > floor, 0.0, out[sl, 1])
-            _accumulate_masked(res, mask, buf, offs, r0, c0, shp, back, 1.0)
             self.clock["fit"] += time.perf_counter() - t0
+        back = (out[:, 1] <= floor) & (out[:, 1] != 0.0)
+        if back.any():
+            self.add_images(pos[back], out[back, 1], res, 1.0)
         return out[:, 1]

@@ -68,7 +68,7 @@ def _stencil_drops(
     residual variance per pixel at the current position (``_stencil``'s output: (n, k + 1)); ``stencil[0]`` is 0."""
     k = len(stencil)
     drop = np.zeros((len(pos), k + 1))
-    per = max(1, images.batch // k)  # particles per batch: each renders the whole stencil
+    per = max(1, 7 * images.batch // k)  # particles a call: as many images as a shake batch's (7 a particle)
     for s in range(0, len(pos), per):
         sl = slice(s, s + per)
         cand = (pos[sl][:, None, :] + stencil[None]).reshape(-1, 3)

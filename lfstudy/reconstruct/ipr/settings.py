@@ -26,9 +26,12 @@ _JACOBIANS = ("central", "forward")  # finite differences of the position Jacobi
 #: focal stack on the refined grid (its additive back-projection, one pass over the tables, no iteration)
 _RESIDUAL_VOLUMES = ("mart", "case", "stack")
 #: Particles per batch of images: a shake batch holds 7 images per particle, each its patch's box (the defocus spot
-#: and a lenslet, ~200 x 200 px on average over the Table 4.3 camera's 7 mm depth, 5 % of it lit): 256 particles
-#: take 0.59 GB (``bench_ipr.py --memory``), the 2048 before 4.7 GB, more than the candidate MART's tables
-_BATCH = 256
+#: and a lenslet, ~200 x 200 px on average over the Table 4.3 camera's 7 mm depth, 5 % of it lit): 64 particles
+#: take ~0.15 GB, 256 took 0.59 GB (``bench_ipr.py --memory``), the 2048 before 4.7 GB. The batch changes the fit
+#: by rounding only (tests), and its cost: an image costs less in smaller batches (fresh buffers of hundreds of MB a
+#: call at 256), the fit's CPU x0.81 at 64 on the demo camera (``bench_ipr.py``'s docstring); below ~32 the
+#: calls' own cost (~1 ms each) shows
+_BATCH = 64
 
 
 def _param(default: Any, description: str, *, config: bool = True, **schema: Any) -> Any:
@@ -115,8 +118,8 @@ class IPRSettings:
         iterations, the polish and the split fit with the calibrated images. 0: the nominal camera's images. 0–5.
     batch : int
         Particles rendered at once (bounds the patch memory: their images' boxes, ~40,000 pixels each on average
-        over the thesis' 7 mm depth, the shake's 7 per particle: 0.59 GB at 256, 4.7 GB at the former 2048); not
-        a config key. ≥ 1.
+        over the thesis' 7 mm depth, the shake's 7 per particle: ~0.15 GB at 64, 0.59 GB at 256); it changes the
+        fit by rounding only; not a config key. ≥ 1.
 
     Raises
     ------
