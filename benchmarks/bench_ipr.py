@@ -219,16 +219,19 @@ the residual falls in the polish (0.161 -> 0.156 and the like). ``--camera demo 
 43,384 (seeds 1, 2). Table 4.3 camera (``--crop 300 300 --ppp 0.005 --threads 1``), seeds 5 / 6 / 7: 80.9 / 14.9 ->
 82.2 / 12.9, 80.0 / 21.2 -> 81.1 / 19.6, 79.3 / 17.3 -> 80.0 / 17.3; z rms 0.0751 / 0.0775 / 0.0741 mm (0.148-0.155
 voxel). Cut from the list where two patches meet instead of packed, the runs held a few particles each and the images'
-per-call cost (about 1 ms) raised the polish's CPU per image by ~70 %.
+per-call cost (~0.3 ms) raised the polish's CPU per image by ~70 %.
 
-The batch (``batch``, particles rendered at once; not a config key): it sets the patch memory and changes the fit
-by rounding only (the faint residual candidates are now added back once every candidate is fitted, not batch by
-batch). An image costs less in smaller batches: ``--camera demo ... --seed 1 --compare batch=64 batch=32`` (the
-same 360 particles, found and ghosts to the digit; load 3-4 on 2 cores) CPU 11.5 s at 256, 9.3 s at 64 and at 32,
-the images' own time 13.9 -> 7.5 / 7.4 s of wall; ``particle_patches`` alone on 512 particles x 7 images, one
-thread, best of 4 interleaved: demo camera (M -0.8, 0.1184 mm) 0.093 ms an image at 256, 0.070 at 64, 0.075 at
-32; Table 4.3 camera 0.245 at 256, 0.159 at 64. The default is 64 (0.15 GB of patches on the full Table 4.3
-frame, against 0.59 GB at 256); below ~32 particles a call the calls' own cost (~1 ms each) shows.
+The batch (``batch``, particles rendered at once; not a config key): it sets the patch memory and changes the fit by
+rounding only (the faint residual candidates are now added back once every candidate is fitted, not batch by batch).
+An image costs less in smaller batches (quiet machine, one thread): ``--camera demo ... --seed 1 --compare batch=256
+batch=64 batch=256`` (the same 360 particles, found and ghosts to the digit) 7.0 / 6.6 s of wall at 64 against 7.9 /
+7.5 s at 256, the images 4.1 / 3.8 s against 5.1 / 4.7 s. One frame of the demo study (M -1, 0.1184 mm, uniform_x
+frame a, its stored light field refitted, back to back with the commit before the polish's order and this batch):
+36.1 -> 29.4 s (the shake's 101,736 images 0.144 -> 0.105 ms each; the polish's images 100,498 -> 69,270, its
+order); the MART candidates 8.9 / 8.6 s of it. ``particle_patches`` alone (320 particles of that design, one image
+each): ~0.33 ms a call on top of 0.09 ms an image (half of it Gauss–Legendre nodes recomputed in ``solid_angle``).
+The default is 64 (0.15 GB of patches on the full Table 4.3 frame, against 0.59 GB at 256); below ~32 particles a
+call the calls' own cost shows.
 
 The polish (``polish``): before it, the missed particles and the ghosts were near the focal plane. On the Table 4.3
 camera (spot radius 0.125·|z| mm, pitch 0.125 mm) the missed particles and the ghosts were these: 12 of the 18

@@ -45,7 +45,7 @@ _POLISH_T = 1.0  # the polish's weights exp(−ΔC/(2·T·σ²)): T = 1 the Gaus
 #: screens out the whole stencil moved none more than 0.02 voxel; with e^-7 one of 708 by 0.30 voxel)
 _POLISH_SCREEN = 10.0
 #: the polish moves at most this many particles together (a run whose patches do not overlap): enough to spread
-#: the images' per-call cost (about 1 ms a call against 0.07-0.2 ms an image), while each run sees the residual the
+#: the images' per-call cost (~0.3 ms a call against 0.07-0.2 ms an image), while each run sees the residual the
 #: runs before it left
 _POLISH_CHUNK = 32
 #: a run is packed from at most this many times _POLISH_CHUNK of the first particles not yet in one (bounds the

@@ -28,9 +28,9 @@ _RESIDUAL_VOLUMES = ("mart", "case", "stack")
 #: Particles per batch of images: a shake batch holds 7 images per particle, each its patch's box (the defocus spot
 #: and a lenslet, ~200 x 200 px on average over the Table 4.3 camera's 7 mm depth, 5 % of it lit): 64 particles
 #: take ~0.15 GB, 256 took 0.59 GB (``bench_ipr.py --memory``), the 2048 before 4.7 GB. The batch changes the fit
-#: by rounding only (tests), and its cost: an image costs less in smaller batches (fresh buffers of hundreds of MB a
-#: call at 256), the fit's CPU x0.81 at 64 on the demo camera (``bench_ipr.py``'s docstring); below ~32 the
-#: calls' own cost (~1 ms each) shows
+#: by rounding only (tests), and its cost: an image costs less in smaller batches (a call's patches are tens to
+#: hundreds of MB at 256; the cause is not measured further), the shake's images 0.144 -> 0.105 ms on a demo frame
+#: (``bench_ipr.py``'s docstring); below ~32 the calls' own cost (~0.3 ms each) shows
 _BATCH = 64
 
 
