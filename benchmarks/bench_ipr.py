@@ -209,7 +209,7 @@ particle of 708 would have moved 0.30 voxel; with e^-10 none of 643 more than 0.
 The polish's order (issue 39; ``_runs`` in ``lfstudy/reconstruct/ipr/polish.py``). The polish moved every particle at
 once, each by drops of the residual computed with the others where they were: on the demo's coarse designs (every
 particle near focus, several behind each lenslet) two particles sharing lenslets each took the other's data for its
-own and both moved into it, and the residual rose from 0.16-0.20 to 0.30-0.35 of the data's norm (``residual_norm``'s
+own and both moved into it, and the residual rose from 0.16-0.20 to 0.21-0.35 of the data's norm (``residual_norm``'s
 last entry, demo study, all 16 frames). Now it moves them one run after another, each run at most 32 particles whose
 patches do not overlap, packed from the list, on the residual the runs before it left (Gauss–Seidel, as the shake):
 the residual falls in the polish (0.161 -> 0.156 and the like). ``--camera demo --crop 320 240 --ppp 0.005 --rays 2000
