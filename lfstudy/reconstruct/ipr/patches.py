@@ -122,6 +122,17 @@ def _patch_boxes(
     return r0, c0, r1 - r0 + 1, c1_ - c0 + 1, psz, nlmax
 
 
+def _model_blurs(
+    camera: PlenopticCamera, model: ImageModel | None, diffraction: bool = True
+) -> tuple[float, float, float | None]:
+    """The blurs (main lens', lenslet's) and the lenslet-to-sensor gap the images take under ``model`` (None or
+    ideal: the nominal camera's blurs and gap None, the lenslet focal length)."""
+    sm, sl = _blurs(camera, diffraction, None)
+    if model is None or model.ideal:
+        return sm, sl, None
+    return sm * model.blur_scale, sl * model.blur_scale, model.gap(camera)
+
+
 def _unit_weights(camera: PlenopticCamera, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Ω/Ω_ref per particle (eq. 4.14 generalised): a particle of intensity I delivers I·Ω/Ω_ref."""
     rad = camera.aperture_diameter / 2.0
@@ -193,11 +204,7 @@ def particle_patches(
     n = x.size
     tr = np.zeros((1, 3)) if trials is None else np.vstack([np.zeros((1, 3)), np.asarray(trials, float)])
     k = tr.shape[0]
-    sm, sl = _blurs(camera, diffraction, None)
-    gap = None
-    if model is not None and not model.ideal:
-        sm, sl = sm * model.blur_scale, sl * model.blur_scale
-        gap = model.gap(camera)
+    sm, sl, gap = _model_blurs(camera, model, diffraction)
     r0, c0, h, w, psz, nlmax = _patch_boxes(camera, x, y, z, sm, sl, pad, gap)
     # the trial offsets may widen the scratch needed: size it on every position
     ax_, ay_, az_ = (np.concatenate([v + d for d in tr[:, i]]) for i, v in enumerate((x, y, z)))
@@ -253,10 +260,7 @@ class _FitImages:
     def boxes(self, pos: np.ndarray) -> np.ndarray:
         """The sensor boxes (row0, col0, rows, cols) (n, 4) of the patches :meth:`patches` renders for the
         particles at ``pos`` (n, 3) [mm], with the fit's image model."""
-        sm, sl = _blurs(self.cam, True, None)
-        gap = None
-        if not self.model.ideal:
-            sm, sl, gap = sm * self.model.blur_scale, sl * self.model.blur_scale, self.model.gap(self.cam)
+        sm, sl, gap = _model_blurs(self.cam, self.model)
         r0, c0, h, w, _, _ = _patch_boxes(self.cam, *np.asarray(pos, float).T, sm, sl, _MARGIN_PX, gap)
         return np.stack([r0, c0, h, w], axis=1)
 
