@@ -32,7 +32,7 @@ from lfstudy.reconstruct import gives_particles
 from lfstudy.simulate.flows import flow_input_files
 from lfstudy.study.config import stage_config, validate_config
 from lfstudy.study.resources import job_mem_mb, machine_memory
-from lfstudy.study.sweep import SHARED, STAGES, Sweep
+from lfstudy.study.sweep import SHARED, STAGES, Sweep, frame_stage
 from lfstudy.workflow import logged
 
 # The demo config only when none is given: Snakemake merges a --configfile into the Snakefile's
@@ -63,9 +63,16 @@ CASES = [c.case_id for c in SWEEP.cases()]
 IDS = {stage: SWEEP.stage_ids(stage) for stage in STAGES}  # stage -> {where it writes: a case}
 # Where the reconstruction fits particles (reconstruct.method: ipr): those jobs also write the
 # particle list (rule reconstruct_particles); every other case's rule reconstruct is unchanged.
-PARTICLE_IDS = sorted(
-    i for i, c in IDS["reconstruct"].items() if gives_particles(SWEEP.apply(c)["reconstruct"]["method"])
-)
+# Frame a (before the flow moves the particles) has stages of its own, "<stage>_a", written once per
+# design and shared by its flows (lfstudy.study.sweep.FRAME_STAGES).
+PARTICLE_IDS = {
+    f: sorted(
+        i
+        for i, c in IDS[frame_stage("reconstruct", f)].items()
+        if gives_particles(SWEEP.apply(c)["reconstruct"]["method"])
+    )
+    for f in "ab"
+}
 OUT = f"results/{NAME}"
 LOG = f"{OUT}/logs"
 BENCH = f"{OUT}/benchmarks"
@@ -111,15 +118,17 @@ STUDY_CFG = json.dumps(CFG, sort_keys=True, default=str)
 
 
 def _case(stage, wildcards):
-    """A case whose `stage` output lives at this rule's {sid} (or {cid} for the calibration)."""
+    """A case whose `stage` output lives at this rule's {sid} (or {cid} for the calibration); for a
+    rule of both exposures ({frame}), the stage of that frame (frame a's: shared by the flows)."""
     key = wildcards.cid if stage in SHARED else wildcards.sid
-    return IDS[stage][key]
+    return IDS[frame_stage(stage, getattr(wildcards, "frame", ""))][key]
 
 
 def stage_params(stage):
     """params.cfg of a per-stage rule: the stage's config sections as JSON."""
     def cfg(wildcards):
-        return json.dumps(stage_config(CFG, _case(stage, wildcards), stage), sort_keys=True)
+        own = frame_stage(stage, getattr(wildcards, "frame", ""))
+        return json.dumps(stage_config(CFG, _case(stage, wildcards), own), sort_keys=True)
     return cfg
 
 
@@ -165,8 +174,8 @@ localrules: all
 # Every intermediate is a target too: Snakemake (>= 7.7) ignores a deleted
 # intermediate whose downstream outputs exist, but regenerates a missing
 # target, and the newer file then reruns exactly what depends on it.
-def every(stage, *names):
-    ids = sorted(IDS[stage])
+def every(stage, *names, frame=""):
+    ids = sorted(IDS[frame_stage(stage, frame)])
     root = f"{OUT}/calib" if stage in SHARED else OUT
     return [f"{root}/{i}/{n}" for i in ids for n in names]
 
@@ -179,13 +188,13 @@ rule all:
         every("camera", "camera.json", "focal_planes.zarr"),
         every("particles", "particles_a.zarr"),
         every("displace", "particles_b.zarr"),
-        every("simulate", "raw_a.zarr", "raw_b.zarr", "raw_a.tif", "raw_b.tif"),
+        [every("simulate", f"raw_{f}.zarr", f"raw_{f}.tif", frame=f) for f in "ab"],
         every("pinhole", "pinhole.zarr", "pinhole.tif"),
         every("calibrate", "centers.zarr"),
-        every("register", "lightfield_a.zarr", "lightfield_b.zarr"),
-        every("refocus", "stack_a.zarr", "stack_b.zarr"),
-        every("reconstruct", "volume_a.zarr", "volume_b.zarr"),
-        [f"{OUT}/{i}/volume_{f}.particles.zarr" for i in PARTICLE_IDS for f in "ab"],
+        [every("register", f"lightfield_{f}.zarr", frame=f) for f in "ab"],
+        [every("refocus", f"stack_{f}.zarr", frame=f) for f in "ab"],
+        [every("reconstruct", f"volume_{f}.zarr", frame=f) for f in "ab"],
+        [f"{OUT}/{i}/volume_{f}.particles.zarr" for f in "ab" for i in PARTICLE_IDS[f]],
         every("piv", "piv.zarr"),
         every("errors", "errors.zarr"),
 
@@ -328,13 +337,13 @@ rule reconstruct:
 # A method that fits particles writes the list beside each volume, from the same fit (one job).
 # Snakemake's outputs are static per rule, so these cases get a rule of their own, bound to
 # their stage ids; it wins over rule reconstruct for their volumes.
-if PARTICLE_IDS:
+if PARTICLE_IDS["a"] or PARTICLE_IDS["b"]:
 
     ruleorder: reconstruct_particles > reconstruct
 
     rule reconstruct_particles:
         wildcard_constraints:
-            sid="(?:" + "|".join(re.escape(i) for i in PARTICLE_IDS) + ")",
+            sid="(?:" + "|".join(re.escape(i) for i in sorted({*PARTICLE_IDS["a"], *PARTICLE_IDS["b"]})) + ")",
         input:
             stack=at("stack_{frame}.zarr", "reconstruct"),
             lightfield=at("lightfield_{frame}.zarr", "reconstruct"),
@@ -423,6 +432,7 @@ rule errors:
     params: cfg=stage_params("errors")
     shell:
         STAGE + " errors {input.piv:q} {input.volume:q} {input.particles:q} {output[0]:q} {input.particles_b:q}"
+        " {input.fitted:q}"
 
 
 rule study:
@@ -464,7 +474,7 @@ localrules: export
 rule export:
     input:
         every("piv", "piv.vtr"),
-        every("reconstruct", "volume_a.vtr", "volume_a.tif"),
+        every("reconstruct", "volume_a.vtr", "volume_a.tif", frame="a"),
 
 
 rule export_piv:

@@ -281,6 +281,8 @@ def run_errors(
     particles: str | Path,
     out: str | Path,
     particles_b: str | Path | None = None,
+    fitted_a: str | Path | None = None,
+    fitted_b: str | Path | None = None,
 ) -> None:
     """Errors of one case against the known flow, its field of view, Q and depth gain
     (:func:`lfstudy.study.metrics.case_metrics`); given the second frame's particles
@@ -288,7 +290,8 @@ def run_errors(
     on the true volumes) and the error budget. For a method that fits particles (``ipr``) the
     particle lists written beside both volumes (``volume_a.particles.zarr``, ``volume_b...``) are
     scored against the true particles too (:func:`lfstudy.study.particle_metrics.particle_metrics`:
-    found, ghosts, the found particles' own crosstalk; needs ``particles_b``)."""
+    found, ghosts, the found particles' own crosstalk; needs ``particles_b``); ``fitted_a``, ``fitted_b``: their
+    paths where they are not beside ``volume`` (the study's frame a lives at the design, frame b at the flow)."""
     from lfstudy.reconstruct import gives_particles
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study.metrics import case_metrics, particles_per_cell
@@ -307,7 +310,8 @@ def run_errors(
         print(f"oracle (PIV on the true volumes): {oracle.attrs['oracle_seconds']:.2f} s", flush=True)
         if gives_particles(ccfg["reconstruct"]["method"]):
             vol = Path(volume)
-            fitted = [io.open_zarr(vol.with_name(f"volume_{f}.particles.zarr")).load() for f in "ab"]
+            paths = [p or vol.with_name(f"volume_{f}.particles.zarr") for f, p in zip("ab", (fitted_a, fitted_b))]
+            fitted = [io.open_zarr(p).load() for p in paths]
             dof = cam.depth_of_field(0.0)
             focus = (float(dof["z_near"][0]), float(dof["z_far"][0]))
             found.update(particle_metrics(fitted, [parts, parts_b], grid.voxel_size()[::-1], bounds, focus))

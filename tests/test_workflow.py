@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lfstudy import io
-from lfstudy.study.config import case_config, expand_cases, load_config
+from lfstudy.study.config import case_config, expand_cases, load_config, sweep_of
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.yaml"
@@ -77,6 +77,29 @@ def _job_stats(text: str) -> dict[str, int]:
     end = re.search(r"^total\s+\d+\s*$", table, flags=re.M)
     assert end, f"the job table has no total:\n{table[:3000]}"
     return _parse_dry_run(table[: end.end()])
+
+
+def test_the_first_exposure_is_made_once_per_design_and_shared_by_its_flows(tmp_path):
+    """Frame a is the seeded field before the flow moves it: its images, light field, focal stack and volume
+    live at the design (the case id without its flow) and both flows of a demo design read the same files;
+    frame b's are each flow's own. The demo then plans 4 x (1 + 2) jobs per frame stage, not 4 x 2 x 2."""
+    from lfstudy.study.sweep import FILES
+
+    demo = ROOT / "config" / "demo.yaml"
+    sweep = sweep_of(load_config(demo))
+    cases = sweep.cases()
+    flows = {c.flow for c in cases}
+    assert len(flows) == 2
+    for name in FILES:
+        where = {c.case_id: sweep.locate(c, name) for c in cases}
+        design = {c.case_id: c.case_id.rsplit("/flow~", 1)[0] for c in cases}
+        if name.startswith(("raw_a", "lightfield_a", "stack_a", "volume_a", "particles_a")):
+            assert all(where[c] == f"{design[c]}/{name}" for c in where), (name, where)
+        elif name.startswith(("raw_b", "lightfield_b", "stack_b", "volume_b", "particles_b", "piv", "errors")):
+            assert all(where[c] == f"{c}/{name}" for c in where), (name, where)
+    jobs = _planned_jobs(tmp_path, config=demo)
+    assert jobs["simulate"] == jobs["register"] == jobs["refocus"] == jobs["reconstruct_particles"] == 12, jobs
+    assert jobs["piv"] == jobs["errors"] == 8
 
 
 def test_dry_run_parser_refuses_what_it_does_not_understand():
@@ -144,8 +167,8 @@ def test_simulate_case_reproduces_the_workflow(study_dir):
     out = study_dir / "results" / "tiny"
     cid = expand_cases(load_config(TINY))[-1].case_id
     res = simulate_case(case_config(load_config(TINY), cid))
-    for frame in "ab":
-        raw = io.open_zarr(out / cid / f"raw_{frame}.zarr", name="intensity").values
+    for frame in "ab":  # frame a at the design (shared by its flows), frame b at the case
+        raw = io.open_zarr(out / sweep_of(load_config(TINY)).locate(cid, f"raw_{frame}.zarr"), name="intensity").values
         assert np.array_equal(res[f"image_{frame}"].values, raw)
     pin = io.open_zarr(
         out / "calib" / case_config(load_config(TINY), cid)["calib_id"] / "pinhole.zarr", name="intensity"
@@ -217,7 +240,8 @@ def test_deleting_intermediate_reruns_only_dependents_and_a_killed_rerun_restart
     assert jobs["reconstruct"] == 1 and jobs["piv"] == 1
     shutil.rmtree(out / "study.zarr")
     # the case's focal stack: its refocus job is where the kill lands; the rest of its chain reruns
-    shutil.rmtree(out / case / "stack_a.zarr")
+    stack_a = out / sweep_of(load_config(TINY)).locate(case, "stack_a.zarr")  # frame a: at the design
+    shutil.rmtree(stack_a)
     cmd = [*SNAKEMAKE, "-s", str(ROOT / "Snakefile"), "-d", str(study_dir), "--configfile", str(TINY), "--cores", "1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 120
@@ -225,7 +249,8 @@ def test_deleting_intermediate_reruns_only_dependents_and_a_killed_rerun_restart
     # kill everything hard, so the kill lands in the middle of a write.
     writing = False
     while time.time() < deadline and proc.poll() is None:
-        if any(out.rglob(".stack_a.zarr.lfstudy-tmp-*")):
+        # (that store's folder only: a recursive walk races with other jobs' temporary stores vanishing)
+        if any(stack_a.parent.glob(".stack_a.zarr.lfstudy-tmp-*")):
             writing = True
             break
         time.sleep(0.01)
@@ -243,7 +268,7 @@ def test_deleting_intermediate_reruns_only_dependents_and_a_killed_rerun_restart
     r = _snakemake(study_dir, "--rerun-incomplete")
     assert r.returncode == 0, r.stderr[-3000:]
     assert _planned_jobs(study_dir) == {}
-    assert (out / case / "volume_b.zarr").is_dir() and (out / case / "stack_a.zarr").is_dir()
+    assert (out / case / "volume_b.zarr").is_dir() and stack_a.is_dir()
     for store in out.rglob("*.zarr"):
         io.open_zarr(store)
     # The rerun cleaned the killed writer's temporary output.
@@ -352,7 +377,8 @@ def test_sweep_over_dotted_settings_shares_the_upstream_stages(study_dir, tmp_pa
     assert np.all(np.isfinite(rms.values)), rms
     mart_id = str(study["case_id"].sel(reconstruct_method="mart", piv_spacing="4x6x6").squeeze().values)
     assert mart_id.endswith("/reconstruct.method~mart/piv.spacing~4x6x6")
-    vol = io.open_array(work / "results" / "tiny" / Path(mart_id).parent / "volume_a.zarr")
+    vol = io.open_array(work / "results" / "tiny" / sweep_of(load_config(cfg_path)).locate(mart_id, "volume_a.zarr"))
+    assert "flow~" not in sweep_of(load_config(cfg_path)).locate(mart_id, "volume_a.zarr")  # shared by the flows
     assert vol.attrs["method"] == "mart" and float(vol.min()) >= 0.0
 
 
@@ -376,7 +402,8 @@ def test_open_study_is_lazy_and_quiet(study_dir):
         assert {"u", "v", "w", "valid"} <= set(piv.data_vars)
         assert hasattr(piv["u"].data, "dask")  # lazy
         assert any(node.name == "centers" for node in tree["calib"].subtree)
-        for store in (out / cid / "piv.zarr", out / cid / "volume_a.zarr", out / "study.zarr"):
+        vol_a = out / sweep_of(load_config(TINY)).locate(cid, "volume_a.zarr")  # frame a: at the design
+        for store in (out / cid / "piv.zarr", vol_a, out / "study.zarr"):
             xr.open_zarr(store).close()
 
 

@@ -252,7 +252,7 @@ def case_image(
     The field is lit by the case's light volume (:func:`case_illuminated`; ``illuminate=False``:
     it already is), rendered with ``raytrace.method`` (exact: the expected image; montecarlo: ray
     traced), then recorded by the case's sensor; both seeds derive from the
-    study seed, the simulate stage's location and the frame, so one config gives
+    study seed, the simulate stage's location (frame a's: shared by the flows) and the frame, so one config gives
     one image, byte for byte. The location's imperfection settings (``TOLERANCES``) are left out
     of the seeds: the levels of a tolerance sweep see the same rays and noise (common random
     numbers), so what differs between them is the imperfection. Every particle setting acts on
@@ -262,7 +262,9 @@ def case_image(
     from lfstudy.simulate.raytrace import render
 
     rt = ccfg["raytrace"]
-    sid = _noise_stream(_stage_id(ccfg, "simulate"))
+    from lfstudy.study.sweep import frame_stage
+
+    sid = _noise_stream(_stage_id(ccfg, frame_stage("simulate", frame)))
     seed = derive_seed(ccfg["seed"], "raytrace", sid, frame)
     img = render(
         case_camera(ccfg),

@@ -14,7 +14,9 @@ table come:
   pipeline stage that first reads them (:data:`SECTION_ORDER`), so the output
   directory of a stage is a prefix of the case id and holds only the settings
   it depends on: cases that differ in a reconstruction setting share their
-  ray-traced images, light fields and focal stacks; the calibration is shared
+  ray-traced images, light fields and focal stacks; the first exposure (frame
+  a, before the flow moves the particles) is shared by the flows of a design
+  (its stages write at the case id without the flow); the calibration is shared
   by the cases whose camera (bar the working f-number) is the same;
 - labels and units (the schema's ``title`` and ``units`` annotations), the
   study Dataset's dimensions and the report's axes.
@@ -46,6 +48,8 @@ __all__ = [
     "format_value",
     "FILES",
     "SHARED",
+    "FRAME_STAGES",
+    "frame_stage",
     "TOLERANCES",
     "is_tolerance",
 ]
@@ -140,15 +144,34 @@ STAGES: dict[str, _Stage] = {
         ("calibrate", "volcal"),
         ("depth_calibration.enabled",),  # whether the PIV uses it, not what it is
     ),
-    "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "depthcal")),
+    "piv": _Stage(("piv", "depth_calibration"), ("reconstruct", "reconstruct_a", "depthcal")),
     # the errors stage also runs the oracle: the case's PIV on the true volumes, on the case's grid
     # (the true particles lit as in the images); it reads reconstruct.method to know whether a
     # particle list lies beside the volumes (found particles and ghosts)
     "errors": _Stage(
         ("flow", "camera", "illumination", "refocus", "grid", "reconstruct", "piv"),
-        ("piv", "reconstruct", "particles", "displace"),
+        ("piv", "reconstruct", "reconstruct_a", "particles", "displace"),
     ),
 }
+
+#: The stages each exposure goes through. The first exposure (frame a) is the seeded field before any
+#: displacement, so its images, light field, focal stack and volume do not depend on the flow: its stages
+#: (``<stage>_a``, reading what the stage reads, fed by frame a's stages) write where the settings they depend on
+#: say (:meth:`Sweep.stage_id`), shared by every flow of a design. Frame b's keep the plain names.
+FRAME_STAGES: tuple[str, ...] = ("simulate", "register", "refocus", "reconstruct")
+_FIRST_EXPOSURE_UPSTREAM = {
+    "simulate": ("particles",),
+    "register": ("simulate_a", "calibrate"),
+    "refocus": ("register_a", "volcal"),
+    "reconstruct": ("refocus_a", "register_a", "calibrate", "volcal"),
+}
+STAGES.update({f"{s}_a": _Stage(STAGES[s].reads, _FIRST_EXPOSURE_UPSTREAM[s], STAGES[s].ignores) for s in FRAME_STAGES})
+
+
+def frame_stage(stage: str, frame: str) -> str:
+    """The stage that runs ``stage`` (a key of :data:`STAGES`) for exposure ``frame`` ("a", "b" or "" for a
+    stage of both): ``<stage>_a`` for frame a of the :data:`FRAME_STAGES`, else ``stage``."""
+    return f"{stage}_a" if frame == "a" and stage in FRAME_STAGES else stage
 
 
 #: Stages whose outputs are shared by every case with equal settings and live under ``calib/``:
@@ -161,17 +184,17 @@ FILES: dict[str, str] = {
     "focal_planes.zarr": "camera",
     "particles_a.zarr": "particles",
     "particles_b.zarr": "displace",
-    **{f"raw_{f}.{e}": "simulate" for f in "ab" for e in ("zarr", "tif")},
+    **{f"raw_{f}.{e}": frame_stage("simulate", f) for f in "ab" for e in ("zarr", "tif")},
     "pinhole.zarr": "pinhole",
     "pinhole.tif": "pinhole",
     "centers.zarr": "calibrate",
     "depth_calibration.zarr": "depthcal",
     "volcal.zarr": "volcal",
-    **{f"lightfield_{f}.zarr": "register" for f in "ab"},
-    **{f"stack_{f}.zarr": "refocus" for f in "ab"},
-    **{f"volume_{f}.zarr": "reconstruct" for f in "ab"},
+    **{f"lightfield_{f}.zarr": frame_stage("register", f) for f in "ab"},
+    **{f"stack_{f}.zarr": frame_stage("refocus", f) for f in "ab"},
+    **{f"volume_{f}.zarr": frame_stage("reconstruct", f) for f in "ab"},
     # the particle list of a method that fits particles (ipr), beside its volume; other methods have none
-    **{f"volume_{f}.particles.zarr": "reconstruct" for f in "ab"},
+    **{f"volume_{f}.particles.zarr": frame_stage("reconstruct", f) for f in "ab"},
     "piv.zarr": "piv",
     "errors.zarr": "errors",
 }
@@ -521,9 +544,15 @@ class Sweep:
         return tuple(s for s in self.settings if _under(s.path, reads) and not _under(s.path, ignores))
 
     def stage_id(self, case: Case | str, stage: str) -> str:
-        """Where a stage's outputs live: the case-id prefix up to the last setting it depends on."""
+        """Where a stage's outputs live: the case-id prefix up to the last setting it depends on; for frame a's
+        stages (``<stage>_a``, :data:`FRAME_STAGES`) the case's segments of exactly the settings they depend on
+        (the case id without its flow), so the flows of a design share the first exposure's files."""
         case = self.case(case)
         deps = {s.key for s in self.depends_on(stage)}
+        if stage.endswith("_a") and stage[:-2] in FRAME_STAGES:
+            own = "/".join(seg for s, seg in zip(self.settings, case.segments) if s.key in deps)
+            if own:
+                return own
         last = max((i for i, s in enumerate(self.settings) if s.key in deps), default=0)
         return "/".join(case.segments[: last + 1])
 
