@@ -33,7 +33,6 @@ from lfstudy.simulate.flows import flow_input_files
 from lfstudy.study.config import stage_config, validate_config
 from lfstudy.study.resources import job_mem_mb, machine_memory
 from lfstudy.study.sweep import SHARED, STAGES, Sweep, frame_stage
-from lfstudy.workflow import logged
 
 # The demo config only when none is given: Snakemake merges a --configfile into the Snakefile's
 # `configfile:` key by key, so a study's config would otherwise inherit every demo setting it
@@ -442,11 +441,8 @@ rule study:
         csv=f"{OUT}/study.csv",
     log: f"{LOG}/study.log"
     threads: 1
-    params: cfg=STUDY_CFG
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_study
-            run_study(CFG, CASES, list(input), BENCH, output.zarr, output.csv)
+    params: cfg=STUDY_CFG, out=OUT
+    shell: STAGE + " study {params.out:q} {output.zarr:q} {output.csv:q}"
 
 
 rule report:
@@ -456,11 +452,8 @@ rule report:
     output: report(f"{OUT}/report.html", caption="reports/report.rst", category="Study")
     log: f"{LOG}/report.log"
     threads: 1
-    params: cfg=STUDY_CFG
-    run:
-        with logged(log[0]):
-            from lfstudy.workflow import run_report
-            run_report(CFG, CASES, OUT, input.study, output[0])
+    params: cfg=STUDY_CFG, out=OUT
+    shell: STAGE + " report {params.out:q} {input.study:q} {output[0]:q}"
 
 
 # Optional, not part of `all`: ParaView and Fiji files of every case.

@@ -371,6 +371,26 @@ def run_report(
     write_report(io.open_zarr(study).load(), files, dict(cfg), Path(out_html))
 
 
+def run_study_stage(cfg: Mapping[str, Any], out_dir: str | Path, out_zarr: str | Path, out_csv: str | Path) -> None:
+    """:func:`run_study` over every case of ``cfg`` (the whole validated config), reading the results under
+    ``out_dir`` (``results/<name>``: each case's ``errors.zarr`` and the ``benchmarks`` tables): the Snakefile's
+    ``study`` rule, a plain process (a ``run:`` rule started another Snakemake, ~10 s, on the study's last step)."""
+    from lfstudy.study.sweep import Sweep
+
+    sweep = Sweep(cfg)
+    cases = [c.case_id for c in sweep.cases()]
+    errors = [Path(out_dir) / sweep.locate(c, "errors.zarr") for c in cases]
+    run_study(cfg, cases, errors, Path(out_dir) / "benchmarks", out_zarr, out_csv)
+
+
+def run_report_stage(cfg: Mapping[str, Any], out_dir: str | Path, study: str | Path, out_html: str | Path) -> None:
+    """:func:`run_report` over every case of ``cfg`` (the whole validated config), their files under ``out_dir``:
+    the Snakefile's ``report`` rule, a plain process as :func:`run_study_stage`."""
+    from lfstudy.study.sweep import Sweep
+
+    run_report(cfg, [c.case_id for c in Sweep(cfg).cases()], out_dir, study, out_html)
+
+
 #: The stages whose dask graphs a ``compute`` section may send to a dask.distributed client.
 DASK_STAGES = ("refocus", "reconstruct", "depthcal", "piv")
 
@@ -388,6 +408,8 @@ _RUNNERS = {
     "reconstruct": run_reconstruct,
     "piv": run_piv,
     "errors": run_errors,
+    "study": run_study_stage,
+    "report": run_report_stage,
 }
 
 

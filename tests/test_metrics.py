@@ -213,6 +213,11 @@ def test_stage_times(tmp_path):
     t = stage_times(tmp_path, {"piv": cid, "simulate": cid, "refocus": cid})
     assert t == {"piv": 3.0, "simulate": 3.0, "total": 6.0}
     assert stage_times(tmp_path / "missing", {"piv": cid}) == {}
+    # frame a's own stage (shared by the flows) at the design: its table counts under the rule, frame b's at the case
+    design = cid.rsplit("/flow~", 1)[0]
+    (tmp_path / "simulate" / f"{design}_a.tsv").write_text("s\th:m:s\n4.0\t0:00:04\n")
+    t = stage_times(tmp_path, {"piv": cid, "simulate": cid, "simulate_a": design})
+    assert t == {"piv": 3.0, "simulate": 6.0, "total": 9.0}
 
 
 def _scalars(rms, q):

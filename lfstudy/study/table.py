@@ -186,10 +186,14 @@ def stage_times(benchmark_dir: str | Path, ids: Mapping[str, str]) -> dict[str, 
     benchmark_dir : path
         ``results/<name>/benchmarks``, holding ``<rule>/<id>.tsv`` and, for the
         per-frame rules, ``<rule>/<id>_<f>.tsv`` (summed).
-    ids : mapping rule -> id
-        Where each stage of the case wrote (its stage id or calibration id):
-        a stage shared by several cases counts in each of them. Repeated
-        benchmark runs (several rows) are averaged.
+    ids : mapping stage -> id
+        Where each stage of the case wrote (its stage id or calibration id,
+        :meth:`lfstudy.study.sweep.Sweep.ids`): a stage shared by several cases
+        counts in each of them. Repeated benchmark runs (several rows) are
+        averaged. Where frame a has a stage of its own (``simulate_a`` ...,
+        :data:`lfstudy.study.sweep.FRAME_STAGES`: the first exposure, shared by
+        the flows) its table ``<rule>/<its id>_a.tsv`` counts under the rule,
+        and the plain stage's id counts frame b's alone.
 
     Returns
     -------
@@ -198,15 +202,22 @@ def stage_times(benchmark_dir: str | Path, ids: Mapping[str, str]) -> dict[str, 
     """
     import pandas as pd
 
+    from lfstudy.study.sweep import FRAME_STAGES
+
     root = Path(benchmark_dir)
     out: dict[str, float] = {}
     if not root.is_dir():
         return out
-    for rule, sid in ids.items():
+    for stage, sid in ids.items():
+        rule, frames = stage, "(_[a-z])?"
+        if stage.endswith("_a") and stage[:-2] in FRAME_STAGES:
+            rule, frames = stage[:-2], "_a"
+        elif f"{stage}_a" in ids:
+            frames = "_b"
         d = root / rule / Path(sid).parent
         if not d.is_dir():
             continue
-        pat = re.compile(rf"^{re.escape(Path(sid).name)}(_[a-z])?\.tsv$")
+        pat = re.compile(rf"^{re.escape(Path(sid).name)}{frames}\.tsv$")
         total, found = 0.0, False
         for f in sorted(d.iterdir()):
             if not pat.match(f.name):
@@ -219,7 +230,7 @@ def stage_times(benchmark_dir: str | Path, ids: Mapping[str, str]) -> dict[str, 
                 total += float(s.mean())
                 found = True
         if found:
-            out[rule] = total
+            out[rule] = out.get(rule, 0.0) + total
     if out:
         out["total"] = float(sum(out.values()))
     return out
