@@ -31,7 +31,7 @@ from lfstudy.piv.ptv import PARTICLE_MODES
 from lfstudy.reconstruct import gives_particles
 from lfstudy.simulate.flows import flow_input_files
 from lfstudy.study.config import stage_config, validate_config
-from lfstudy.study.resources import job_mem_mb, machine_memory
+from lfstudy.study.resources import job_mem_mb, job_runtime_min, machine_memory
 from lfstudy.study.sweep import SHARED, STAGES, Sweep, frame_stage
 
 # The demo config only when none is given: Snakemake merges a --configfile into the Snakefile's
@@ -137,6 +137,15 @@ def mem_mb(stage):
     def mb(wildcards, attempt):
         return job_mem_mb(SWEEP.apply(_case(stage, wildcards)), stage, attempt)
     return mb
+
+
+def runtime_min(stage, floor):
+    """resources.runtime of a rule whose method may estimate its time (reconstruct: IPR's goes with the
+    particles): lfstudy.study.resources.job_runtime_min, at least `floor` minutes, doubled on a retry. The
+    SLURM profile sets no runtime for these rules (its set-resources would override this)."""
+    def minutes(wildcards, attempt):
+        return job_runtime_min(SWEEP.apply(_case(stage, wildcards)), stage, floor, attempt)
+    return minutes
 
 
 def at(name, of):
@@ -326,7 +335,7 @@ rule reconstruct:
     benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
     threads: HEAVY
     params: cfg=stage_params("reconstruct")
-    resources: mem_mb=mem_mb("reconstruct")
+    resources: mem_mb=mem_mb("reconstruct"), runtime=runtime_min("reconstruct", 5)
     # '' for the particle list this method does not have, then the volumetric calibration ('' where none)
     shell:
         DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q} {output[0]:q} ''"
@@ -355,7 +364,7 @@ if PARTICLE_IDS["a"] or PARTICLE_IDS["b"]:
         benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
         threads: HEAVY
         params: cfg=stage_params("reconstruct")
-        resources: mem_mb=mem_mb("reconstruct")
+        resources: mem_mb=mem_mb("reconstruct"), runtime=runtime_min("reconstruct", 5)
         shell:
             DASK_STAGE + " reconstruct {input.stack:q} {input.lightfield:q} {input.centers:q}"
             " {output.volume:q} {output.particles:q} {input.volcal:q}"

@@ -101,3 +101,23 @@ def test_a_volumetric_case_needs_the_calibration_where_the_method_uses_one():
             case_reconstruction(ccfg, None)
     finally:
         unregister_method("modelled-test")
+
+
+def test_the_reconstruct_time_limit_follows_the_method_estimate():
+    """A SLURM time limit is a kill: IPR's reconstruct job asks for RUNTIME_MARGIN times its estimate (its time goes
+    with the particles: the full Table 4.3 frame at 0.005 ppp took ~45 min), the grid methods for the floor, and a
+    retry for twice as much."""
+    from lfstudy.study.resources import RUNTIME_MARGIN, job_runtime_min, reconstruct_seconds
+
+    ccfg = _case(ROOT / "config" / "thesis.yaml", method="ipr")
+    ccfg["particles"]["ppp"] = 0.005
+    n = ccfg["camera"]["sensor"]["n_pixels_x"] * ccfg["camera"]["sensor"]["n_pixels_y"] * 0.005
+    est = reconstruct_seconds(ccfg)
+    assert 45 * 60 < est < 3 * 45 * 60  # above the measured full frame, within three times it
+    assert est == pytest.approx(get_method("ipr").seconds(ReconstructionSize(1, 1, 1, 1, 1, round(n))), rel=0.05)
+    minutes = job_runtime_min(ccfg, "reconstruct", 5)
+    assert minutes == pytest.approx(RUNTIME_MARGIN * est / 60, abs=1) and minutes > 60
+    assert job_runtime_min(ccfg, "reconstruct", 5, attempt=2) == 2 * minutes
+    assert job_runtime_min(ccfg, "piv", 5) == 5  # no estimate: the floor
+    for other in ("mart", "threshold", "deconvolution"):
+        assert job_runtime_min({**ccfg, "reconstruct": {"method": other}}, "reconstruct", 5) == 5

@@ -416,7 +416,7 @@ def test_heavy_rules_declare_their_memory(tmp_path):
     import yaml
 
     from lfstudy.study.config import validate_config
-    from lfstudy.study.resources import RULE_STAGES, job_mem_mb
+    from lfstudy.study.resources import RULE_STAGES, job_mem_mb, job_runtime_min
     from lfstudy.study.sweep import Sweep
 
     raw = yaml.safe_load(TINY.read_text())
@@ -440,10 +440,17 @@ def test_heavy_rules_declare_their_memory(tmp_path):
     assert set(seen) == set(RULE_STAGES) - {"process"}, seen
     for rule, values in seen.items():
         assert values <= expected[rule], (rule, values, expected[rule])
+    # and the reconstruct jobs their time limit (job_runtime_min: the floor for these grid methods)
+    runtimes = {job_runtime_min(sweep.apply(c), "reconstruct", 5) for c in sweep.cases()}
+    for block in re.split(r"\n(?=rule \w+:)", r.stdout + r.stderr):
+        if block.startswith(("rule reconstruct:", "rule reconstruct_particles:")):
+            minutes = re.search(r"resources: .*\bruntime=(\d+)", block)
+            assert minutes and int(minutes.group(1)) in runtimes, block
 
 
 def test_slurm_profile_leaves_the_estimate_to_the_heavy_rules():
-    """The profile's set-resources would override a rule's own mem_mb: it sets none for the heavy rules."""
+    """The profile's set-resources would override a rule's own mem_mb and runtime: it sets no mem_mb for the heavy
+    rules and no runtime for reconstruct (its method's estimate)."""
     import yaml
 
     from lfstudy.study.resources import RULE_STAGES
@@ -451,6 +458,7 @@ def test_slurm_profile_leaves_the_estimate_to_the_heavy_rules():
     profile = yaml.safe_load((ROOT / "profiles" / "slurm" / "config.yaml").read_text())
     for rule, res in profile["set-resources"].items():
         assert rule not in RULE_STAGES or "mem_mb" not in res, rule
+    assert "runtime" not in profile["set-resources"].get("reconstruct", {})
 
 
 def test_an_ipr_case_plans_its_particle_list(tmp_path):

@@ -172,6 +172,8 @@ class ReconstructionSize:
         Planes of the reconstruction grid.
     n_voxels : int
         Voxels of the reconstruction grid.
+    n_particles : int
+        Particles seeded in the frame (0: unknown), for a method whose time goes with them.
     """
 
     n_pixels: int
@@ -179,6 +181,7 @@ class ReconstructionSize:
     pixels_per_lenslet: int
     n_planes: int
     n_voxels: int
+    n_particles: int = 0
 
     @property
     def lightfield_bytes(self) -> int:
@@ -215,6 +218,22 @@ class ReconstructionMethod:
             The method's parameters (``reconstruct.<name>``), for a method whose memory depends on one.
         """
         return size.lightfield_bytes + 4 * size.n_voxels * 8
+
+    @classmethod
+    def seconds(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
+        """An upper estimate of one frame's reconstruction time [s] on one core, for a batch system's time limit
+        (:func:`lfstudy.study.resources.job_runtime_min`); 0: none beyond the rule's floor (the profile's
+        measured figures cover the grid methods). A method whose time grows past that floor (``ipr``: with the
+        particles) states its own.
+
+        Parameters
+        ----------
+        size : ReconstructionSize
+            The camera's, the grid's and the seeding's sizes.
+        params : mapping, optional
+            The method's parameters (``reconstruct.<name>``).
+        """
+        return 0.0
 
     def run(self, inputs: ReconstructionInputs, *, progress: bool = False, **params: Any) -> xr.DataArray:
         raise NotImplementedError  # pragma: no cover - subclasses implement run

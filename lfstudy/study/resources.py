@@ -21,7 +21,15 @@ from typing import Any
 
 from lfstudy.config import ConfigError
 
-__all__ = ["machine_memory", "case_memory", "check_memory", "job_mem_mb", "RULE_STAGES"]
+__all__ = [
+    "machine_memory",
+    "case_memory",
+    "check_memory",
+    "job_mem_mb",
+    "job_runtime_min",
+    "reconstruct_seconds",
+    "RULE_STAGES",
+]
 
 _BASE = 0.3e9  # interpreter, numpy, xarray, numba: measured ~0.25 GB per stage process
 
@@ -40,9 +48,20 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
     Returns
     -------
     dict
-        ``{"simulate", "register", "reconstruct", "piv": bytes}`` and the config
-        key that sizes each (``"<stage>_key"``), for the error message.
+        ``{"simulate", "register", "reconstruct", "piv": bytes}``.
     """
+    return _case_estimates(ccfg)[0]
+
+
+def reconstruct_seconds(ccfg: Mapping[str, Any]) -> float:
+    """The case's reconstruction method's estimate of one frame's time on one core [s]
+    (:meth:`~lfstudy.reconstruct.registry.ReconstructionMethod.seconds`; 0: none), from the sizes of
+    :func:`case_memory`."""
+    return _case_estimates(ccfg)[1]
+
+
+def _case_estimates(ccfg: Mapping[str, Any]) -> tuple[dict[str, float], float]:
+    """:func:`case_memory`'s bytes and :func:`reconstruct_seconds`' seconds, from one count of the sizes."""
     from lfstudy.optics import PlenopticCamera
     from lfstudy.reconstruct.grid import default_voxel_z
     from lfstudy.reconstruct.registry import ReconstructionSize, get_method
@@ -80,11 +99,12 @@ def case_memory(ccfg: Mapping[str, Any]) -> dict[str, float]:
     # the method's own estimate (its weight tables, spectra, candidate volumes: the class knows them)
     rcfg = ccfg.get("reconstruct", {}) or {}
     method = rcfg.get("method", "threshold")
-    size = ReconstructionSize(npx, cam.n_lenslets_x * cam.n_lenslets_y, n, nz, nvox)
+    size = ReconstructionSize(npx, cam.n_lenslets_x * cam.n_lenslets_y, n, nz, nvox, n_part)
     reconstruct = get_method(method).memory_bytes(size, rcfg.get(method, {}) or {})
     piv = 2 * nvox * 4 + 4 * nvox * 8 + 2**25 * 4 * 3  # volumes, spline coefficients, a correlation batch
     out = {"simulate": simulate, "register": register, "reconstruct": reconstruct, "piv": piv}
-    return {k: v + _BASE for k, v in out.items()}
+    params = rcfg.get(method, {}) or {}
+    return {k: v + _BASE for k, v in out.items()}, get_method(method).seconds(size, params)
 
 
 #: the config key that sizes each stage, and what it holds
@@ -168,3 +188,32 @@ def job_mem_mb(ccfg: Mapping[str, Any], rule: str, attempt: int = 1) -> int:
     need = case_memory(ccfg)
     most = max(need[s] for s in RULE_STAGES[rule])
     return max(1, int(attempt)) * max(JOB_FLOOR_MB, math.ceil((most + JOB_EXTRA) / 1e6))
+
+
+#: A reconstruct job's time limit is at least this many times its method's estimate: the estimate is already the top
+#: of the measured costs (the profile's floors are 10x measured figures; 10x an upper estimate would ask a SLURM
+#: queue for 26 h for one frame of the thesis camera at 0.01 ppp), and a job killed for time retries with twice it.
+RUNTIME_MARGIN = 3
+
+
+def job_runtime_min(ccfg: Mapping[str, Any], rule: str, floor: int, attempt: int = 1) -> int:
+    """Minutes a workflow rule declares as its Snakemake ``runtime`` resource (a SLURM time limit).
+
+    ``floor`` (the profile's measured figure) unless the case's reconstruction method estimates more:
+    :data:`RUNTIME_MARGIN` times :meth:`~lfstudy.reconstruct.registry.ReconstructionMethod.seconds` for
+    ``reconstruct`` (IPR's time goes with the particles: a full Table 4.3 frame at 0.005 ppp ~45 min, far above
+    the grid methods' minutes); times ``attempt`` (a job killed for time is retried with twice as much).
+
+    Parameters
+    ----------
+    ccfg : mapping
+        A case config.
+    rule : str
+        A workflow rule (only ``reconstruct`` has an estimate; any other gets ``floor``).
+    floor : int
+        The least [min].
+    attempt : int
+        Snakemake's attempt number.
+    """
+    est = reconstruct_seconds(ccfg) if rule == "reconstruct" else 0.0
+    return max(1, int(attempt)) * max(int(floor), math.ceil(RUNTIME_MARGIN * est / 60.0))

@@ -24,6 +24,11 @@ from lfstudy.reconstruct.truth import render_truth
 
 __all__ = ["IPR", "ipr", "particle_volume", "render_particles"]
 
+#: One thread's fit time per seeded particle [s], an upper figure of those measured (quiet 2-core machine, 1 thread,
+#: the defaults): a full demo frame 28.6 s for 1,467 particles (19.5 ms), Table 4.3 crops 300 x 300 px at 0.005 ppp
+#: 17-24 s for 450 (38-53 ms; ``benchmarks/bench_ipr.py``), the full Table 4.3 frame ~44-49 min for ~79,000 (33-37 ms)
+_SECONDS_PER_PARTICLE = 0.06
+
 #: The output volume's parameter (``reconstruct.ipr.blob_sigma``), besides the fit's (:class:`IPRSettings`).
 _BLOB_SIGMA = {
     "type": "number",
@@ -115,6 +120,12 @@ class IPR(ReconstructionMethod):
         nvox = _REFINE_XY * _REFINE_XY * _REFINE_Z * size.n_voxels
         tables = nz * size.n_lenslets * size.pixels_per_lenslet * (17 * 4 + 2 * 2)
         return super().memory_bytes(size, params) + (tables + nvox * (4 * 4 + 6 * 8) + 3 * size.n_pixels * 8)
+
+    @classmethod
+    def seconds(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
+        """``_SECONDS_PER_PARTICLE`` per seeded particle: the fit's time goes with the particles (their images, and
+        the candidate volumes of a seeded field of that density)."""
+        return _SECONDS_PER_PARTICLE * size.n_particles
 
     def run(
         self, inputs: ReconstructionInputs, *, blob_sigma: float = 0.0, progress: bool = False, **params: Any
