@@ -260,10 +260,9 @@ def case_image(
     both renderers honour all.
     """
     from lfstudy.simulate.raytrace import render
-
-    rt = ccfg["raytrace"]
     from lfstudy.study.sweep import frame_stage
 
+    rt = ccfg["raytrace"]
     sid = _noise_stream(_stage_id(ccfg, frame_stage("simulate", frame)))
     seed = derive_seed(ccfg["seed"], "raytrace", sid, frame)
     img = render(

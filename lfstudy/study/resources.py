@@ -100,10 +100,10 @@ def _case_estimates(ccfg: Mapping[str, Any]) -> tuple[dict[str, float], float]:
     rcfg = ccfg.get("reconstruct", {}) or {}
     method = rcfg.get("method", "threshold")
     size = ReconstructionSize(npx, cam.n_lenslets_x * cam.n_lenslets_y, n, nz, nvox, n_part)
-    reconstruct = get_method(method).memory_bytes(size, rcfg.get(method, {}) or {})
+    params = rcfg.get(method, {}) or {}
+    reconstruct = get_method(method).memory_bytes(size, params)
     piv = 2 * nvox * 4 + 4 * nvox * 8 + 2**25 * 4 * 3  # volumes, spline coefficients, a correlation batch
     out = {"simulate": simulate, "register": register, "reconstruct": reconstruct, "piv": piv}
-    params = rcfg.get(method, {}) or {}
     return {k: v + _BASE for k, v in out.items()}, get_method(method).seconds(size, params)
 
 

@@ -50,6 +50,7 @@ __all__ = [
     "SHARED",
     "FRAME_STAGES",
     "frame_stage",
+    "first_exposure_of",
     "TOLERANCES",
     "is_tolerance",
 ]
@@ -166,6 +167,12 @@ _FIRST_EXPOSURE_UPSTREAM = {
     "reconstruct": ("refocus_a", "register_a", "calibrate", "volcal"),
 }
 STAGES.update({f"{s}_a": _Stage(STAGES[s].reads, _FIRST_EXPOSURE_UPSTREAM[s], STAGES[s].ignores) for s in FRAME_STAGES})
+
+
+def first_exposure_of(stage: str) -> str | None:
+    """The :data:`FRAME_STAGES` stage that ``stage`` runs for frame a (``simulate`` for ``simulate_a``), else None."""
+    base = stage.removesuffix("_a")
+    return base if base != stage and base in FRAME_STAGES else None
 
 
 def frame_stage(stage: str, frame: str) -> str:
@@ -549,7 +556,7 @@ class Sweep:
         (the case id without its flow), so the flows of a design share the first exposure's files."""
         case = self.case(case)
         deps = {s.key for s in self.depends_on(stage)}
-        if stage.endswith("_a") and stage[:-2] in FRAME_STAGES:
+        if first_exposure_of(stage):
             own = "/".join(seg for s, seg in zip(self.settings, case.segments) if s.key in deps)
             if own:
                 return own

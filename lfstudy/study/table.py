@@ -202,7 +202,7 @@ def stage_times(benchmark_dir: str | Path, ids: Mapping[str, str]) -> dict[str, 
     """
     import pandas as pd
 
-    from lfstudy.study.sweep import FRAME_STAGES
+    from lfstudy.study.sweep import first_exposure_of
 
     root = Path(benchmark_dir)
     out: dict[str, float] = {}
@@ -210,8 +210,8 @@ def stage_times(benchmark_dir: str | Path, ids: Mapping[str, str]) -> dict[str, 
         return out
     for stage, sid in ids.items():
         rule, frames = stage, "(_[a-z])?"
-        if stage.endswith("_a") and stage[:-2] in FRAME_STAGES:
-            rule, frames = stage[:-2], "_a"
+        if first_exposure_of(stage):
+            rule, frames = first_exposure_of(stage), "_a"
         elif f"{stage}_a" in ids:
             frames = "_b"
         d = root / rule / Path(sid).parent
