@@ -73,6 +73,7 @@ def _piv(a: Any, b: Any, p: dict[str, Any]) -> Any:
         mode=p["mode"],
         subpixel=p["subpixel"],
         predictor_filter=p["predictor_filter"],
+        zero_pad=p.get("zero_pad", False),
         progress=True,
         uncertainty=p.get("uncertainty", "correlation"),
     )

@@ -171,7 +171,9 @@ def _gauss_offset(c0: np.ndarray, cp: np.ndarray, cm: np.ndarray) -> np.ndarray:
     return np.abs(three_point(cm, c0, cp))
 
 
-def window_uncertainty(a: np.ndarray, b: np.ndarray, method: str = "correlation") -> np.ndarray:
+def window_uncertainty(
+    a: np.ndarray, b: np.ndarray, method: str = "correlation", *, unweighted: bool = False
+) -> np.ndarray:
     """Standard uncertainty of the displacement of each window pair, per array axis.
 
     Parameters
@@ -181,6 +183,10 @@ def window_uncertainty(a: np.ndarray, b: np.ndarray, method: str = "correlation"
         windows; they should match at lag 0 (a converged pass).
     method : {"correlation", "moment", "independent"}
         Estimator (module docstring).
+    unweighted : bool
+        The lag-±1 sums divided by their overlap weighting (n − 1)/n along the axis, as WIDIM's estimator divides
+        a zero-padded correlation (:func:`lfstudy.piv.engine._unweighted`), so that σ is that estimator's response;
+        False (a circular plane) leaves them as they are.
 
     Returns
     -------
@@ -200,9 +206,13 @@ def window_uncertainty(a: np.ndarray, b: np.ndarray, method: str = "correlation"
     for k in range(nd):  # array axis k of the window is axis 3 - nd + k of the kernel
         o = 3 + 5 * (3 - nd + k)
         cp, cm, s1, s2, cnt = (s[:, o + j] for j in range(5))
+        # the lag-±1 sums run over the n − 1 voxel pairs that overlap along the axis, the peak's over n: divided by
+        # that weighting where WIDIM's estimator divides its correlation by it, so σ is the estimator's own response
+        unw = a.shape[1 + k] / max(a.shape[1 + k] - 1, 1) if unweighted else 1.0
+        cp, cm = cp * unw, cm * unw
         with np.errstate(divide="ignore", invalid="ignore"):
             if method in ("correlation", "independent"):
-                sig_dc = np.sqrt(np.maximum(s2 - s1 * s1 / np.maximum(cnt, 1.0), 0.0))
+                sig_dc = unw * np.sqrt(np.maximum(s2 - s1 * s1 / np.maximum(cnt, 1.0), 0.0))
                 if method == "correlation":
                     sig_dc = sig_dc * np.sqrt(fac[:, 3 - nd + k])
                 cbar = 0.5 * (cp + cm)

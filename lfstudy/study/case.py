@@ -507,6 +507,7 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
         mode=p["mode"],
         subpixel=p["subpixel"],
         predictor_filter=p["predictor_filter"],
+        zero_pad=p.get("zero_pad", False),
         progress=progress,
         uncertainty=p.get("uncertainty", "correlation"),
     )

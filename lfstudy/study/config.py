@@ -233,6 +233,7 @@ def check_piv_grid(ccfg: Mapping[str, Any], shape: tuple[int, ...], where: str =
             mode=p["mode"],
             subpixel=p["subpixel"],
             predictor_filter=p["predictor_filter"],
+            zero_pad=p.get("zero_pad", False),
         )
     except ValueError as exc:
         raise ConfigError(f"config key 'piv'{at}: {exc} (on {grid})") from None
