@@ -33,7 +33,11 @@ the correlation coefficient at the peak, over the square root of the number of i
 matches, the window's voxels over the peak's volume ``Π (2 sqrt(π) s_j)``.
 
 The sums run over the voxels of each window in numba sweeps (no correlation plane): cheap beside
-the deformation and FFT of a pass.
+the deformation and FFT of a pass. Where WIDIM's correlation is zero-padded (``piv.zero_pad``) its
+estimator divides the windows' overlap weighting out of the correlation (:func:`lfstudy.piv.engine._unweighted`);
+the lag-±1 sums, over the n − 1 overlapping pairs of an n-voxel axis, are then divided by (n − 1)/n too
+(``unweighted``), so σ stays that estimator's response (tested: σ of w covers 0.65 of the errors of noisy
+depth-elongated particles, 0.38 left weighted).
 """
 
 from __future__ import annotations
