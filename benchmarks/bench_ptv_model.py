@@ -54,17 +54,20 @@ def main() -> None:
     args = ap.parse_args()
     print(f"{'case':<58} {'box':>5}  coverage x/y/z   ratio x/y/z     rms x/y/z [mm]       verdict")
     for root in args.roots:
-        for lists in sorted(root.rglob("volume_a.particles.zarr")):
-            case = lists.parent
+        for lists_b in sorted(root.rglob("volume_b.particles.zarr")):
+            case = lists_b.parent
             none = case / "piv.particles~none"
-            if not (none / "piv.zarr").exists() or not (none / "errors.zarr").exists():
+            # frame a is fitted once per design: its list and volume sit at the case's folder less its flow segment
+            design = root.joinpath(*(p for p in case.relative_to(root).parts if not p.startswith("flow~")))
+            first = [d for d in (case, design) if (d / "volume_a.particles.zarr").exists()]
+            if not first or not (none / "piv.zarr").exists() or not (none / "errors.zarr").exists():
                 continue
             piv = io.open_zarr(none / "piv.zarr").load()
             err = io.open_zarr(none / "errors.zarr").load()
-            vol = io.open_array(case / "volume_a.zarr")
+            vol = io.open_array(first[0] / "volume_a.zarr")
             voxel = tuple(float(np.median(np.abs(np.diff(vol[a].values)))) for a in "xyz")
-            pa = io.open_zarr(lists).load()
-            pb = io.open_zarr(case / "volume_b.particles.zarr").load()
+            pa = io.open_zarr(first[0] / "volume_a.particles.zarr").load()
+            pb = io.open_zarr(lists_b).load()
             tracks = match_particles(pa, pb, piv, search=args.search, voxel=voxel)
             tracks = validate_tracks(tracks, voxel=tracks.attrs["voxel_mm"])
             name = f"{root.name}: " + "/".join(p for p in case.relative_to(root).parts if "~" in p and "fnum" not in p)

@@ -81,7 +81,7 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
     from lfstudy import workflow as wf
     from lfstudy.piv.ptv import PARTICLE_MODES
     from lfstudy.study.config import stage_config
-    from lfstudy.study.sweep import Sweep
+    from lfstudy.study.sweep import Sweep, frame_stage
 
     sw = Sweep(cfg)
 
@@ -104,24 +104,24 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
         waves[1].append((f"displace {sid}", wf.run_displace, args))
     for sid, c, sc in each("calibrate"):
         waves[1].append((f"calibrate {sid}", wf.run_calibrate, (sc, at(c, "pinhole.zarr"), at(c, "centers.zarr"))))
-    for sid, c, sc in each("simulate"):
-        for f in "ab":
+    for f in "ab":  # frame a once per design (its own stages, lfstudy.study.sweep.frame_stage), b per case
+        for sid, c, sc in each(frame_stage("simulate", f)):
             args = (sc, f, at(c, f"particles_{f}.zarr"), at(c, f"raw_{f}.zarr"), at(c, f"raw_{f}.tif"))
             waves[2].append((f"simulate {f} {sid}", wf.run_simulate, args))
     if depth_on:
         for sid, c, sc in each("depthcal"):
             args = (sc, at(c, "centers.zarr"), at(c, "depth_calibration.zarr"))
             waves[2].append((f"depthcal {sid}", wf.run_depth_calibration, args))
-    for sid, c, sc in each("register"):
-        for f in "ab":
+    for f in "ab":
+        for sid, c, sc in each(frame_stage("register", f)):
             args = (sc, at(c, f"raw_{f}.zarr"), at(c, "centers.zarr"), at(c, f"lightfield_{f}.zarr"))
             waves[3].append((f"register {f} {sid}", wf.run_register, args))
-    for sid, c, sc in each("refocus"):
-        for f in "ab":
+    for f in "ab":
+        for sid, c, sc in each(frame_stage("refocus", f)):
             args = (sc, at(c, f"lightfield_{f}.zarr"), at(c, f"stack_{f}.zarr"))
             waves[4].append((f"refocus {f} {sid}", wf.run_refocus, args))
-    for sid, c, sc in each("reconstruct"):
-        for f in "ab":
+    for f in "ab":
+        for sid, c, sc in each(frame_stage("reconstruct", f)):
             args = (sc, at(c, f"stack_{f}.zarr"), at(c, f"lightfield_{f}.zarr"), at(c, "centers.zarr"))
             args += (at(c, f"volume_{f}.zarr"),)
             if sc["reconstruct"]["method"] == "ipr":
@@ -136,7 +136,10 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
     for c in sw.cases():
         sc = stage_config(cfg, c, "errors")
         args = (sc, at(c, "piv.zarr"), at(c, "volume_a.zarr"), at(c, "particles_a.zarr"), at(c, "errors.zarr"))
-        waves[7].append((f"errors {c.case_id}", wf.run_errors, (*args, at(c, "particles_b.zarr"))))
+        args += (at(c, "particles_b.zarr"),)
+        if sc["reconstruct"]["method"] == "ipr":  # the lists live at their frames' stages (frame a at the design)
+            args += tuple(at(c, f"volume_{f}.particles.zarr") for f in "ab")
+        waves[7].append((f"errors {c.case_id}", wf.run_errors, args))
     return waves
 
 
