@@ -824,6 +824,20 @@ def test_the_uncertainty_verdict():
     assert "σ of w (z) is 1.3–7.5× too small on these designs: do not trust it." in v
     assert "σ of u (x) is about right" in v
     assert "not on others" in _uncertainty_verdict(pd.DataFrame({"unc_ratio_y": [0.9, 3.0]}))
+    # a circular correlation with σ of w too small on some design: the verdict names the linear correlation
+    assert "piv.zero_pad: true" in _uncertainty_verdict(pd.DataFrame({"unc_ratio_z": [0.9, 3.0]}), circular=True)
+    assert "zero_pad" not in _uncertainty_verdict(pd.DataFrame({"unc_ratio_z": [0.9, 3.0]}), circular=False)
+    assert "zero_pad" not in _uncertainty_verdict(pd.DataFrame({"unc_ratio_z": [0.9, 1.2]}), circular=True)
+    import json
+
+    import xarray as xr
+
+    from lfstudy.study.report import _circular
+
+    def study(zero_pad):
+        return xr.Dataset(attrs={"parameters": json.dumps({"piv": {"zero_pad": zero_pad}})})
+
+    assert _circular(study(False)) and not _circular(study(True))
 
 
 def test_figures_of_the_answer_and_the_cases_read_right():

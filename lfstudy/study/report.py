@@ -17,6 +17,7 @@ import base64
 import contextlib
 import html
 import io as _io
+import json
 import math
 import re
 import time
@@ -1233,9 +1234,18 @@ MAX_UNCERTAINTY_LINES = 10
 SIGMA_OFF = 1.5
 
 
-def _uncertainty_verdict(df: pd.DataFrame) -> str:
+#: Said where σ of w is too small on some design and the study correlated circularly (docs/config.md, piv.zero_pad).
+ZERO_PAD_HINT = (
+    "A circular correlation in windows a few voxels deep reads depth motion that varies across the window short, "
+    "and σ cannot see it; piv.zero_pad: true is the measured alternative (docs/config.md)."
+)
+
+
+def _uncertainty_verdict(df: pd.DataFrame, circular: bool = False) -> str:
     """The verdict in words on the per-vector σ, per component, from the designs' RMS error / RMS σ ratios
-    (``unc_ratio_<axis>``): too small (do not trust it), too large (conservative), about right, or mixed."""
+    (``unc_ratio_<axis>``): too small (do not trust it), too large (conservative), about right, or mixed.
+    ``circular``: the study's PIV correlated circularly (``piv.zero_pad`` false); where σ of w is too small on
+    some design the verdict then names the linear correlation (:data:`ZERO_PAD_HINT`)."""
     from lfstudy.study.metrics import AXES
 
     out = []
@@ -1255,7 +1265,19 @@ def _uncertainty_verdict(df: pd.DataFrame) -> str:
             out.append(f"{what} is about right ({span} the actual error, within {SIGMA_OFF:g}×).")
         else:
             out.append(f"{what} is {span} the actual error: right on some designs, not on others; trust it per design.")
+        if ax == "z" and circular and hi > SIGMA_OFF:
+            out.append(ZERO_PAD_HINT)
     return " ".join(out)
+
+
+def _circular(study: xr.Dataset) -> bool:
+    """Whether the study's PIV correlated circularly: ``piv.zero_pad`` false in its parameters and not swept."""
+    try:
+        piv = json.loads(study.attrs.get("parameters", "{}")).get("piv", {})
+    except (TypeError, ValueError):
+        return False
+    swept = any(str(study[d].attrs.get("sweep_key", d)) == "piv.zero_pad" for d in study.dims)
+    return not swept and not bool(piv.get("zero_pad", False))
 
 
 def _uncertainty_blocks(
@@ -1304,7 +1326,11 @@ def _uncertainty_blocks(
         "through the parallax of the sub-apertures and has a σ of its own scale."
         + _replicates_note(study)
         + "</p>"
-        + (f'<p class="verdict"><b>{html.escape(v)}</b></p>' if (v := _uncertainty_verdict(df)) else "")
+        + (
+            f'<p class="verdict"><b>{html.escape(v)}</b></p>'
+            if (v := _uncertainty_verdict(df, _circular(study)))
+            else ""
+        )
         + _table(shown.sort_values(["design", "flow"] if "flow" in df else ["design"]), index=False),
     )
     groups: dict[str, list[str]] = {}
