@@ -91,6 +91,11 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
     def each(stage: str):
         return [(sid, case, stage_config(cfg, case, stage)) for sid, case in sw.stage_ids(stage).items()]
 
+    def frames(stage: str):
+        """(frame, sid, case, config) of a stage run per frame: frame a once per design at its own stage
+        (lfstudy.study.sweep.frame_stage), frame b per case."""
+        return [(f, *t) for f in "ab" for t in each(frame_stage(stage, f))]
+
     depth_on = cfg["depth_calibration"]["enabled"]
     waves: list[list[tuple[str, Callable[..., None], tuple]]] = [[], [], [], [], [], [], [], []]
     for sid, c, sc in each("camera"):
@@ -104,29 +109,25 @@ def _tasks(cfg: dict[str, Any], out: Path) -> list[list[tuple[str, Callable[...,
         waves[1].append((f"displace {sid}", wf.run_displace, args))
     for sid, c, sc in each("calibrate"):
         waves[1].append((f"calibrate {sid}", wf.run_calibrate, (sc, at(c, "pinhole.zarr"), at(c, "centers.zarr"))))
-    for f in "ab":  # frame a once per design (its own stages, lfstudy.study.sweep.frame_stage), b per case
-        for sid, c, sc in each(frame_stage("simulate", f)):
-            args = (sc, f, at(c, f"particles_{f}.zarr"), at(c, f"raw_{f}.zarr"), at(c, f"raw_{f}.tif"))
-            waves[2].append((f"simulate {f} {sid}", wf.run_simulate, args))
+    for f, sid, c, sc in frames("simulate"):
+        args = (sc, f, at(c, f"particles_{f}.zarr"), at(c, f"raw_{f}.zarr"), at(c, f"raw_{f}.tif"))
+        waves[2].append((f"simulate {f} {sid}", wf.run_simulate, args))
     if depth_on:
         for sid, c, sc in each("depthcal"):
             args = (sc, at(c, "centers.zarr"), at(c, "depth_calibration.zarr"))
             waves[2].append((f"depthcal {sid}", wf.run_depth_calibration, args))
-    for f in "ab":
-        for sid, c, sc in each(frame_stage("register", f)):
-            args = (sc, at(c, f"raw_{f}.zarr"), at(c, "centers.zarr"), at(c, f"lightfield_{f}.zarr"))
-            waves[3].append((f"register {f} {sid}", wf.run_register, args))
-    for f in "ab":
-        for sid, c, sc in each(frame_stage("refocus", f)):
-            args = (sc, at(c, f"lightfield_{f}.zarr"), at(c, f"stack_{f}.zarr"))
-            waves[4].append((f"refocus {f} {sid}", wf.run_refocus, args))
-    for f in "ab":
-        for sid, c, sc in each(frame_stage("reconstruct", f)):
-            args = (sc, at(c, f"stack_{f}.zarr"), at(c, f"lightfield_{f}.zarr"), at(c, "centers.zarr"))
-            args += (at(c, f"volume_{f}.zarr"),)
-            if sc["reconstruct"]["method"] == "ipr":
-                args += (at(c, f"volume_{f}.particles.zarr"),)
-            waves[5].append((f"reconstruct {f} {sid}", wf.run_reconstruct, args))
+    for f, sid, c, sc in frames("register"):
+        args = (sc, at(c, f"raw_{f}.zarr"), at(c, "centers.zarr"), at(c, f"lightfield_{f}.zarr"))
+        waves[3].append((f"register {f} {sid}", wf.run_register, args))
+    for f, sid, c, sc in frames("refocus"):
+        args = (sc, at(c, f"lightfield_{f}.zarr"), at(c, f"stack_{f}.zarr"))
+        waves[4].append((f"refocus {f} {sid}", wf.run_refocus, args))
+    for f, sid, c, sc in frames("reconstruct"):
+        args = (sc, at(c, f"stack_{f}.zarr"), at(c, f"lightfield_{f}.zarr"), at(c, "centers.zarr"))
+        args += (at(c, f"volume_{f}.zarr"),)
+        if sc["reconstruct"]["method"] == "ipr":
+            args += (at(c, f"volume_{f}.particles.zarr"),)
+        waves[5].append((f"reconstruct {f} {sid}", wf.run_reconstruct, args))
     for sid, c, sc in each("piv"):
         depth = at(c, "depth_calibration.zarr") if depth_on else None
         args = (sc, at(c, "volume_a.zarr"), at(c, "volume_b.zarr"), at(c, "piv.zarr"), depth)

@@ -63,20 +63,9 @@ def run(args: argparse.Namespace) -> int:
 def _piv(a: Any, b: Any, p: dict[str, Any]) -> Any:
     """WIDIM of the two frames with the piv settings ``p``."""
     from lfstudy.piv import widim
+    from lfstudy.piv.engine import config_options
 
-    return widim(
-        a,
-        b,
-        window=tuple(p["window"]) if isinstance(p["window"], list) else p["window"],
-        spacing=tuple(p["spacing"]) if isinstance(p["spacing"], list) else p["spacing"],
-        levels=p["levels"],
-        mode=p["mode"],
-        subpixel=p["subpixel"],
-        predictor_filter=p["predictor_filter"],
-        zero_pad=p.get("zero_pad", False),
-        progress=True,
-        uncertainty=p.get("uncertainty", "correlation"),
-    )
+    return widim(a, b, **config_options(p), progress=True, uncertainty=p.get("uncertainty", "correlation"))
 
 
 #: A placeholder camera so that the schema's defaults of the piv section can be filled without a config.

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import itertools
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from typing import Any
@@ -44,7 +44,7 @@ from lfstudy.piv.subpixel import three_point
 from lfstudy.piv.uncertainty import METHODS as _UNC_METHODS
 from lfstudy.piv.uncertainty import window_uncertainty
 
-__all__ = ["widim", "WidimSettings", "peak_locking_index", "grid_nodes"]
+__all__ = ["widim", "WidimSettings", "config_options", "peak_locking_index", "grid_nodes"]
 
 _COMP = ("u", "v", "w")  # component of array axis -1, -2, -3
 _DIMS3 = ("z", "y", "x")
@@ -167,6 +167,25 @@ def _level_sizes(window: tuple[int, ...], spacing: tuple[int, ...], rf: int) -> 
 
 # --------------------------------------------------------------------------- settings
 _SUBPIXEL = ("auto", "gauss3")
+
+
+def config_options(p: Mapping[str, Any]) -> dict[str, Any]:
+    """The :func:`widim` keywords a config's ``piv`` section sets (window, spacing, levels, mode, sub-voxel estimator,
+    predictor filter, zero padding): one mapping for the study, ``lfstudy piv`` and the config check. The
+    uncertainty estimator and the progress bar are the caller's."""
+
+    def seq(v: Any) -> Any:
+        return tuple(v) if isinstance(v, (list, tuple)) else v
+
+    return {
+        "window": seq(p["window"]),
+        "spacing": seq(p["spacing"]),
+        "levels": p["levels"],
+        "mode": p["mode"],
+        "subpixel": p["subpixel"],
+        "predictor_filter": p["predictor_filter"],
+        "zero_pad": p.get("zero_pad", False),
+    }
 
 
 @dataclass(frozen=True)
@@ -343,7 +362,7 @@ def _correlate(
         if 2 in nb and plan.shape[ax] >= 5:
             eps = _subpixel5([nb[o][:, ax] for o in (-2, -1, 0, 1, 2)], eps)
         disp[:, ax] = lag[:, ax] + eps
-    peak = np.where(nonempty, r0, 0.0).astype(np.float64)
+    peak = np.where(nonempty, r0, 0.0)
     disp[~nonempty] = 0.0
     return disp, peak, nonempty
 

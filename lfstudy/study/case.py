@@ -495,22 +495,11 @@ def case_piv(ccfg: Mapping[str, Any], a: Any, b: Any, *, progress: bool = False)
     import time
 
     from lfstudy.piv import widim
+    from lfstudy.piv.engine import config_options
 
     p = ccfg["piv"]
     t0 = time.perf_counter()
-    res = widim(
-        a,
-        b,
-        window=tuple(p["window"]),
-        spacing=tuple(p["spacing"]),
-        levels=p["levels"],
-        mode=p["mode"],
-        subpixel=p["subpixel"],
-        predictor_filter=p["predictor_filter"],
-        zero_pad=p.get("zero_pad", False),
-        progress=progress,
-        uncertainty=p.get("uncertainty", "correlation"),
-    )
+    res = widim(a, b, **config_options(p), progress=progress, uncertainty=p.get("uncertainty", "correlation"))
     res.attrs["piv_seconds"] = time.perf_counter() - t0
     return res
 

@@ -191,7 +191,7 @@ def check_piv_grid(ccfg: Mapping[str, Any], shape: tuple[int, ...], where: str =
         Naming ``piv.window``, ``piv.spacing`` or ``piv.levels`` with the allowed range, or
         the ``piv`` setting at fault.
     """
-    from lfstudy.piv.engine import WidimSettings
+    from lfstudy.piv.engine import WidimSettings, config_options
 
     p = ccfg["piv"]
     win = [int(w) for w in p["window"]]
@@ -225,16 +225,7 @@ def check_piv_grid(ccfg: Mapping[str, Any], shape: tuple[int, ...], where: str =
             "for this window"
         )
     try:
-        WidimSettings.build(
-            shape,
-            window=tuple(win),
-            spacing=tuple(p["spacing"]),
-            levels=p["levels"],
-            mode=p["mode"],
-            subpixel=p["subpixel"],
-            predictor_filter=p["predictor_filter"],
-            zero_pad=p.get("zero_pad", False),
-        )
+        WidimSettings.build(shape, **{**config_options(p), "window": tuple(win)})
     except ValueError as exc:
         raise ConfigError(f"config key 'piv'{at}: {exc} (on {grid})") from None
 
