@@ -20,7 +20,10 @@ OpenPIV); lfstudy/piv/engine.py (widim's ``order``: the quintic against the cubi
    uncertainty adds <= 25 %), and per component the coverage (fraction of valid vectors with
    |error| <= sigma, ideal 0.68) and RMS(error) / RMS(sigma) (ideal 1).
 
-Run: ``NUMBA_NUM_THREADS=1 python benchmarks/bench_piv.py [--sections compare] [--threads N]``.
+``--zero-pad`` runs ``full`` and ``uncertainty`` with the linear correlation (``piv.zero_pad``: the windows'
+overlap weighting divided out of the peak fit and of σ).
+
+Run: ``NUMBA_NUM_THREADS=1 python benchmarks/bench_piv.py [--sections compare] [--threads N] [--zero-pad]``.
 """
 
 from __future__ import annotations
@@ -53,8 +56,8 @@ def _errors(ds, shift) -> str:
     return "; ".join(parts)
 
 
-def bench_full(a, b, threads: int) -> None:
-    kw = {"window": (16, 48, 48), "spacing": (8, 24, 24), "levels": 3, "workers": threads}
+def bench_full(a, b, threads: int, zero_pad: bool = False) -> None:
+    kw = {"window": (16, 48, 48), "spacing": (8, 24, 24), "levels": 3, "workers": threads, "zero_pad": zero_pad}
     for mode, order in (("deform", 5), ("deform", 3), ("offset", 5)):
         tracemalloc.start()
         t0 = time.perf_counter()
@@ -74,8 +77,8 @@ def bench_full(a, b, threads: int) -> None:
         print(f"[{mode}]   corrector RMS per pass: {np.round(ds.corrector_rms.values, 3).tolist()}")
 
 
-def bench_uncertainty(a, b, threads: int, repeats: int) -> None:
-    kw = {"window": (16, 48, 48), "spacing": (8, 24, 24), "levels": 3, "workers": threads}
+def bench_uncertainty(a, b, threads: int, repeats: int, zero_pad: bool = False) -> None:
+    kw = {"window": (16, 48, 48), "spacing": (8, 24, 24), "levels": 3, "workers": threads, "zero_pad": zero_pad}
     times: dict[str | None, list[float]] = {None: [], "correlation": [], "independent": [], "moment": []}
     last = {}
     for _ in range(max(1, repeats)):
@@ -253,6 +256,7 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1, help="scipy.fft workers of the full and peak sections (default 1)")
     p.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS), help="what to run (default all)")
     p.add_argument("--repeats", type=int, default=REPEATS, help=f"timed runs per side in compare (default {REPEATS})")
+    p.add_argument("--zero-pad", action="store_true", help="full and uncertainty: linear correlation (piv.zero_pad)")
     args = p.parse_args()
     print(
         f"cpu count {os.cpu_count()}, NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'unset')}, "
@@ -265,11 +269,11 @@ def main() -> None:
     if "compare" in args.sections:
         bench_compare(a, b, args.repeats)
     if "full" in args.sections:
-        bench_full(a, b, args.threads)
+        bench_full(a, b, args.threads, args.zero_pad)
     if "peak" in args.sections:
         bench_peak_locking(args.threads)
     if "uncertainty" in args.sections:
-        bench_uncertainty(a, b, args.threads, args.repeats)
+        bench_uncertainty(a, b, args.threads, args.repeats, args.zero_pad)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"process peak RSS {rss:.0f} MiB")
 
