@@ -30,7 +30,7 @@ from lfstudy.config import read_yaml
 from lfstudy.piv.ptv import PARTICLE_MODES
 from lfstudy.reconstruct import gives_particles
 from lfstudy.simulate.flows import flow_input_files
-from lfstudy.study.config import stage_config, validate_config
+from lfstudy.study.config import case_config, stage_config, validate_config
 from lfstudy.study.resources import job_mem_mb, job_runtime_min, machine_memory
 from lfstudy.study.sweep import SHARED, STAGES, Sweep, frame_stage
 
@@ -324,12 +324,38 @@ rule refocus:
     shell: DASK_STAGE + " refocus {input.lightfield:q} {output[0]:q} {input.volcal:q}"
 
 
+# Numba compiles each kernel once and caches it, but jobs started side by side each compile it (on a fresh
+# clone the demo's first two IPR fits took 78-82 s each, 30-35 s warm). Rule warm compiles the study's kernels
+# first, on a tiny copy of one case per reconstruction method (lfstudy.study.warm), at a high priority, while
+# the other cores render and register; the reconstructions wait for it. Their input is ancient, and the cases
+# are no param (like COMPUTE): warm runs when warm.json is missing, never because the config changed. (A job
+# Snakemake reruns masks the checks of every job below it, and ancient then keeps them from rerunning: a warm
+# job rerun by a config change would hide that change from the stages it concerns.) Its failure is logged in
+# warm.json, never fatal (the stage's own job then reports it).
+WARM = f"{OUT}/warm.json"
+_WARM_CASES = {}
+for _c in SWEEP.cases():
+    _WARM_CASES.setdefault(SWEEP.apply(_c)["reconstruct"]["method"], case_config(CFG, _c))
+WARM_CFG = json.dumps({"cases": list(_WARM_CASES.values())}, sort_keys=True, default=str)
+
+
+rule warm:
+    output: WARM
+    log: f"{LOG}/warm.log"
+    benchmark: f"{BENCH}/warm/warm.tsv"
+    threads: 1
+    priority: 50
+    resources: mem_mb=1500
+    shell: "python -m lfstudy.workflow warm --config {WARM_CFG:q} --log {log:q} --threads {threads} {output:q}"
+
+
 rule reconstruct:
     input:
         stack=at("stack_{frame}.zarr", "reconstruct"),
         lightfield=at("lightfield_{frame}.zarr", "reconstruct"),
         centers=at("centers.zarr", "reconstruct"),
         volcal=volcal_input("reconstruct"),
+        warm=ancient(WARM),
     output: directory(f"{OUT}/{{sid}}/volume_{{frame}}.zarr")
     log: f"{LOG}/reconstruct/{{sid}}_{{frame}}.log"
     benchmark: f"{BENCH}/reconstruct/{{sid}}_{{frame}}.tsv"
@@ -357,6 +383,7 @@ if PARTICLE_IDS["a"] or PARTICLE_IDS["b"]:
             lightfield=at("lightfield_{frame}.zarr", "reconstruct"),
             centers=at("centers.zarr", "reconstruct"),
             volcal=volcal_input("reconstruct"),
+            warm=ancient(WARM),
         output:
             volume=directory(f"{OUT}/{{sid}}/volume_{{frame}}.zarr"),
             particles=directory(f"{OUT}/{{sid}}/volume_{{frame}}.particles.zarr"),

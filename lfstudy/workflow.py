@@ -43,6 +43,7 @@ __all__ = [
     "run_errors",
     "run_study",
     "run_report",
+    "run_warm",
     "DASK_STAGES",
 ]
 
@@ -391,6 +392,21 @@ def run_report_stage(cfg: Mapping[str, Any], out_dir: str | Path, study: str | P
     run_report(cfg, [c.case_id for c in Sweep(cfg).cases()], out_dir, study, out_html)
 
 
+def run_warm(cfg: Mapping[str, Any], out: str | Path) -> None:
+    """Compile the study's numba kernels on a tiny copy of each case in ``cfg["cases"]`` (one per reconstruction
+    method the study sweeps; :func:`lfstudy.study.warm.warm_kernels`) before its jobs need them. Writes each
+    case's stage times and error (None, or the traceback of a stage that failed: warming never fails the study)."""
+    from lfstudy.study.warm import warm_kernels
+
+    done = []
+    for ccfg in cfg["cases"]:
+        r = warm_kernels(ccfg)
+        method = ccfg["reconstruct"]["method"]
+        print(f"warm {method}: {r['seconds']}" + (f"\n{r['error']}" if r["error"] else ""), flush=True)
+        done.append({"case_id": ccfg.get("case_id"), "method": method, **r})
+    _write_json({"cases": done}, out)
+
+
 #: The stages whose dask graphs a ``compute`` section may send to a dask.distributed client.
 DASK_STAGES = ("refocus", "reconstruct", "depthcal", "piv")
 
@@ -410,6 +426,7 @@ _RUNNERS = {
     "errors": run_errors,
     "study": run_study_stage,
     "report": run_report_stage,
+    "warm": run_warm,
 }
 
 
