@@ -22,7 +22,6 @@ from typing import Any
 
 from lfstudy import io
 from lfstudy.compute import dask_scheduler, describe
-from lfstudy.piv.ptv import PARTICLE_MODES
 from lfstudy.study import case as cl
 
 __all__ = [
@@ -245,6 +244,7 @@ def run_piv(
     (:func:`lfstudy.study.case.case_paired_piv`). ``''`` (from the Snakefile) means none.
     """
     from lfstudy.piv.depth import correct_depth
+    from lfstudy.piv.ptv import PARTICLE_MODES
 
     mode = ccfg["piv"].get("particles", "none")
     tracked = mode in PARTICLE_MODES
