@@ -17,7 +17,13 @@ Runs the *oracle* of study cases (the case's PIV on the true particle volumes,
 
     python benchmarks/bench_unresolved.py [--config config/thesis.yaml]
         [--set camera.sensor.n_pixels_x=1600 camera.sensor.n_pixels_y=1200 ...]
-        [--flows uniform_x hill] [--ppp 0.001 0.005] [--factors 0.5 1 2]
+        [--flows uniform_x hill] [--ppp 0.001 0.005] [--factors 0.5 1 2] [--spread]
+
+``--spread`` scores a third candidate beside the curvature (issue 38's "the peak's shape"): the spread of the
+displacement inside each final window, from how much broader the final pass's cross-correlation peak is than the
+windows' autocorrelation peaks (per axis, Gaussian widths from the lags 0 and ±1 of the deformed windows:
+``var = s_cc² − (s_aa² + s_bb²)/2``; for a flow curved across the window, spread ≈ 0.9 × its top-hat term), flagged
+where ``sqrt(var) > factor · σ``. It reads the deformed windows by wrapping WIDIM's internals (a benchmark's probe).
 
 Findings (run 2026-11-28 on 2 cores at load 11-17, NUMBA_NUM_THREADS=1; thesis camera cropped to
 1600 x 1200 px, the study's seed, final window 8 x 16 x 16 voxels = 4 x 2 x 2 mm at spacing
@@ -46,6 +52,11 @@ Findings (run 2026-11-28 on 2 cores at load 11-17, NUMBA_NUM_THREADS=1; thesis c
   bench_uncertainty_richardson.py's two-level estimate: noise on the real PIV (r −0.63 to +0.22).
   Neither meets the issue's targets (hit >= 0.8 with false <= 0.2); UNRESOLVED_FACTOR stays 1, the
   closest on the oracles.
+* ``--spread`` (2026-12-02, 1600 x 1200 px, 0.005 ppp, oracles): uniform_x flagged 100 % at every factor up to 3
+  (spread rms x 0.030 mm = 0.24 voxel, y 0.009, z 0.016 mm, against σ 0.001-0.003 mm: the deformed windows'
+  peaks are broader than their autocorrelations without any flow inside them); Hill flagged 95-98 %, hit 1.00,
+  false 0.48-0.50 (spread against the true filter r 0.62-0.65 in x, y, better than the curvature's 0.46-0.49,
+  but its offset is ten times σ). Not adopted.
 """
 
 from __future__ import annotations
@@ -62,7 +73,61 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def analyse_case(cfg: dict[str, Any], case: Any, factors: list[float]) -> list[str]:
+class _WindowProbe:
+    """Wraps WIDIM's pass and uncertainty (lfstudy.piv.engine) to keep, for the last pass that estimated σ, each
+    window's cross-correlation and autocorrelation peak widths² per axis (voxels²)."""
+
+    def __init__(self) -> None:
+        import lfstudy.piv.engine as eng
+
+        self.last: list[tuple[np.ndarray, np.ndarray]] = []
+        cur: list[tuple[np.ndarray, np.ndarray]] | None = None
+        unc0, pass0 = eng.window_uncertainty, eng._pass
+
+        def unc(wa, wb, method="correlation", *, unweighted=False):
+            if cur is not None:
+                cur.append(self.widths(np.asarray(wa, float), np.asarray(wb, float)))
+            return unc0(wa, wb, method, unweighted=unweighted)
+
+        def pss(*args, **kw):
+            nonlocal cur
+            estimates = kw.get("uncertainty", args[8] if len(args) > 8 else None)
+            cur = [] if estimates else None
+            out = pass0(*args, **kw)
+            if estimates:
+                self.last, cur = cur, None
+            return out
+
+        eng.window_uncertainty, eng._pass = unc, pss
+
+    @staticmethod
+    def widths(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per window (n, *w) and axis: the cross-correlation peak's Gaussian width² and the mean of the two
+        windows' autocorrelation widths², from the lag-0 and lag-±1 means of the mean-free windows."""
+        red = tuple(range(1, a.ndim))
+        a = a - a.mean(axis=red, keepdims=True)
+        b = b - b.mean(axis=red, keepdims=True)
+        c0, a0, b0 = (a * b).mean(axis=red), (a * a).mean(axis=red), (b * b).mean(axis=red)
+        sc, sa = [], []
+        for ax in red:
+            lo = tuple(slice(0, -1) if k == ax else slice(None) for k in range(a.ndim))
+            hi = tuple(slice(1, None) if k == ax else slice(None) for k in range(a.ndim))
+            cp, cm = (a[lo] * b[hi]).mean(axis=red), (a[hi] * b[lo]).mean(axis=red)
+            a1, b1 = (a[lo] * a[hi]).mean(axis=red), (b[lo] * b[hi]).mean(axis=red)
+            with np.errstate(all="ignore"):
+                sc.append(1 / (2 * np.log(c0) - np.log(cp) - np.log(cm)))
+                sa.append(0.5 / (2 * np.log(a0) - 2 * np.log(a1)) + 0.5 / (2 * np.log(b0) - 2 * np.log(b1)))
+        return np.stack(sc, 1), np.stack(sa, 1)
+
+    def spread(self, grid: tuple[int, ...]) -> np.ndarray:
+        """sqrt(max(s_cc² − s_aa², 0)) per component (nd, *grid), voxels; NaN where a width is undefined."""
+        sc = np.concatenate([w[0] for w in self.last])
+        sa = np.concatenate([w[1] for w in self.last])
+        var = np.moveaxis((sc - sa).reshape((*grid, sc.shape[1])), -1, 0)
+        return np.sqrt(np.clip(var, 0.0, None))
+
+
+def analyse_case(cfg: dict[str, Any], case: Any, factors: list[float], probe: _WindowProbe | None = None) -> list[str]:
     """The oracle of one case: its budget's filter term and the flag's scores; the printed lines."""
     from lfstudy.piv.resolution import unresolved
     from lfstudy.simulate.flows import flow_from_config
@@ -107,6 +172,21 @@ def analyse_case(cfg: dict[str, Any], case: Any, factors: list[float]) -> list[s
         lines.append(
             f"  unresolved factor {fac:g}: flagged {pct:.0f} %, hit {hit:.2f} (of {n2} > 2σ), false {false:.2f}"
         )
+    if probe is not None:
+        spread = probe.spread(tuple(o.sizes[d] for d in dims))
+        mm = {ax: float(np.nanmedian(sig[ax] / sigma[i])) for i, ax in enumerate(("z", "y", "x"))}  # mm per voxel
+        for i, ax in enumerate(("z", "y", "x")):
+            f, sp = np.abs(filt[ax][fin]), spread[i][fin] * mm[ax]
+            r = np.corrcoef(f, sp)[0, 1] if f.std() > 0 and sp.std() > 0 else float("nan")
+            lines.append(
+                f"  spread {ax}: rms {np.sqrt(np.nanmean(sp**2)):.4f} mm against |filter| rms "
+                f"{np.sqrt(np.mean(f**2)):.4f}, r {r:.2f}"
+            )
+        for fac in factors:
+            with np.errstate(invalid="ignore"):
+                flag = (spread > fac * sigma).any(axis=0)
+            pct, hit, false = unresolved_scores(flag, filt, sig, fin)
+            lines.append(f"  spread factor {fac:g}: flagged {pct:.0f} %, hit {hit:.2f}, false {false:.2f}")
     return lines
 
 
@@ -118,15 +198,18 @@ def main() -> None:
     ap.add_argument("--add-flow", nargs="*", default=[], metavar="NAME=SPEC", help="a flow added (YAML mapping)")
     ap.add_argument("--ppp", nargs="*", type=float, default=None, help="seeding densities (default: the config's)")
     ap.add_argument("--factors", nargs="*", type=float, default=[0.5, 1.0, 2.0])
+    ap.add_argument("--spread", action="store_true", help="score the peak-width spread candidate too")
     args = ap.parse_args()
-    from bench_uncertainty_resolution import _config
+    args.sweep, args.seed = [], None  # bench_uncertainty's config reader takes these too
+    from bench_uncertainty import _config
 
     from lfstudy.study.sweep import Sweep
 
     cfg = _config(args)
+    probe = _WindowProbe() if args.spread else None
     t0 = time.perf_counter()
     for case in Sweep(cfg).cases():
-        print("\n".join(analyse_case(cfg, case, args.factors)), flush=True)
+        print("\n".join(analyse_case(cfg, case, args.factors, probe)), flush=True)
     print(f"all cases {time.perf_counter() - t0:.0f} s")
 
 
