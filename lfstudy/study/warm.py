@@ -7,9 +7,12 @@ The Snakefile's ``warm`` job runs :func:`warm_kernels` first, with a high priori
 renders and registers the first images; every reconstruction that has yet to run waits for it and then
 loads the kernels from the cache.
 
-The tiny case is the study's own case (its camera, renderer, reconstruction and PIV settings: the
-kernels' type signatures come from the same code paths and dtypes) cut to a few lenslets, so that it
-runs in about a second once compiled. Its numbers are thrown away.
+The tiny case is the study's own case (its camera, reconstruction and PIV settings: the kernels' type
+signatures come from the same code paths and dtypes) cut to a few lenslets, so that it runs in a few seconds
+once compiled. Spots at the lenslet centres (:func:`lfstudy.lightfield.calibrate.synthetic_pinhole`) stand for
+its images: the reconstruction's kernels compile on any image, and the renderers' are left to the study's own
+first render jobs, which run beside this one (rendering here too compiled them twice, 9-10 s each). Its numbers
+are thrown away.
 """
 
 from __future__ import annotations
@@ -61,10 +64,10 @@ def tiny_case(ccfg: Mapping[str, Any], lenslets: int = LENSLETS) -> dict[str, An
 
 
 def warm_kernels(ccfg: Mapping[str, Any], lenslets: int = LENSLETS) -> dict[str, Any]:
-    """Run a tiny copy of a case through the stages that compile numba kernels.
+    """Run a tiny copy of a case through the stages after the rendering, to compile their numba kernels.
 
-    Renders both exposures and the pinhole image, calibrates, registers, refocuses, reconstructs both
-    frames and runs the PIV (with the particle pairing where ``piv.particles`` asks for it), each with the
+    Calibrates, registers, refocuses and reconstructs both frames of a synthetic image (spots at the lenslet
+    centres) and runs the PIV (with the particle pairing where ``piv.particles`` asks for it), each with the
     case's settings. A stage that fails ends the warm-up without raising: warming only saves time, and the
     study's own job then reports the problem where it belongs.
 
@@ -81,7 +84,7 @@ def warm_kernels(ccfg: Mapping[str, Any], lenslets: int = LENSLETS) -> dict[str,
         ``seconds``: per stage, the time it took (compile included); ``error``: the traceback of the
         stage that failed, or None.
     """
-    from lfstudy.lightfield.calibrate import find_lenslet_centers
+    from lfstudy.lightfield.calibrate import find_lenslet_centers, synthetic_pinhole
     from lfstudy.lightfield.registration import register
     from lfstudy.piv.ptv import PARTICLE_MODES
     from lfstudy.study import case as cl
@@ -97,9 +100,14 @@ def warm_kernels(ccfg: Mapping[str, Any], lenslets: int = LENSLETS) -> dict[str,
 
     try:
         t = tiny_case(ccfg, lenslets)
-        sim = cl.simulate_case(t)
-        lap("simulate")
         cam = cl.case_camera(t)
+        # Spots at the lenslet centres stand for the pinhole image and both exposures: the reconstruction's
+        # kernels compile on any image, and the renderers' are not compiled here (the study's first pinhole
+        # and simulate jobs compile them, side by side with this one, instead of both doing it).
+        sim = {"pinhole": synthetic_pinhole(cam, seed=1)}
+        for f, seed in (("a", 2), ("b", 3)):
+            sim[f"image_{f}"] = synthetic_pinhole(cam, sigma_px=1.2, read_noise=0.0, seed=seed)
+        lap("images")
         centers = find_lenslet_centers(sim["pinhole"], cam)
         lap("calibrate")
         if t["refocus"].get("model", "thin_lens") == "volumetric":
