@@ -29,15 +29,12 @@ __all__ = ["tiny_case", "warm_kernels"]
 #: Lenslets along each side of the tiny sensor: the PIV's windows of 8 voxels fit it.
 LENSLETS = 8
 
-#: Particles at most on the tiny sensor (a config seeded by count rather than ppp).
-_MAX_PARTICLES = 50
-
 
 def tiny_case(ccfg: Mapping[str, Any], lenslets: int = LENSLETS) -> dict[str, Any]:
     """A copy of a case config whose sensor holds ``lenslets`` x ``lenslets`` lenslets.
 
-    The seeding density, optics, renderer and processing settings are the case's; the PIV's windows
-    become 8 voxels (4 at the finest of two levels, 50 % overlap), the smallest a tiny volume holds.
+    The optics and the processing settings are the case's; the PIV's windows become 8 voxels (4 at the finest
+    of two levels, 50 % overlap), the smallest a tiny volume holds.
 
     Parameters
     ----------
@@ -57,8 +54,6 @@ def tiny_case(ccfg: Mapping[str, Any], lenslets: int = LENSLETS) -> dict[str, An
     sensor, lenslet = t["camera"]["sensor"], t["camera"]["lenslet"]
     px = math.ceil(float(lenslet["pitch"]) / float(sensor["pixel_pitch"]))
     sensor["n_pixels_x"] = sensor["n_pixels_y"] = lenslets * px
-    if t["particles"].get("count") is not None:
-        t["particles"]["count"] = min(int(t["particles"]["count"]), _MAX_PARTICLES)
     t["piv"].update(window=[8, 8, 8], spacing=[4, 4, 4], levels=2)
     return t
 
