@@ -334,8 +334,10 @@ rule refocus:
 # warm.json, never fatal (the stage's own job then reports it).
 WARM = f"{OUT}/warm.json"
 _WARM_CASES = {}
-for _c in SWEEP.cases():
-    _WARM_CASES.setdefault(SWEEP.apply(_c)["reconstruct"]["method"], case_config(CFG, _c))
+for _c in SWEEP.cases():  # the first case of each method (its full config made once, not per case)
+    _method = SWEEP.apply(_c)["reconstruct"]["method"]
+    if _method not in _WARM_CASES:
+        _WARM_CASES[_method] = case_config(CFG, _c)
 WARM_CFG = json.dumps({"cases": list(_WARM_CASES.values())}, sort_keys=True, default=str)
 
 

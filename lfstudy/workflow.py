@@ -259,12 +259,7 @@ def run_piv(
     if depth:  # Snakemake passes '' where the calibration is disabled
         res = correct_depth(res, io.open_zarr(depth).load())
     if tracked:
-        voxel = cl.volume_voxel(a)
-        parts = [io.open_zarr(p).load() for p in lists]
-        if mode == "ptv":
-            res = cl.case_ptv(ccfg, res, *parts, voxel=voxel)
-        else:
-            res = cl.case_paired_piv(ccfg, res, a, b, *parts, voxel=voxel)
+        res = cl.case_tracked_piv(ccfg, res, a, b, *[io.open_zarr(p).load() for p in lists])
         n = res.attrs[f"{mode}_tracks"], res.attrs[f"{mode}_particles_a"], res.attrs[f"{mode}_particles_b"]
         print(
             f"{mode}: {n[0]} tracks of {n[1]} and {n[2]} particles, {100 * float(res['valid'].mean()):.1f} % "

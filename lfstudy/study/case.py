@@ -45,6 +45,7 @@ __all__ = [
     "case_reconstruction",
     "case_piv",
     "case_paired_piv",
+    "case_tracked_piv",
     "volume_voxel",
     "oracle_volumes",
     "oracle_piv",
@@ -646,6 +647,28 @@ def case_paired_piv(
         paired_seconds=seconds,
     )
     return res
+
+
+def case_tracked_piv(
+    ccfg: Mapping[str, Any],
+    piv: xr.Dataset,
+    a: xr.DataArray,
+    b: xr.DataArray,
+    particles_a: xr.Dataset,
+    particles_b: xr.Dataset,
+) -> xr.Dataset:
+    """The WIDIM result ``piv`` of volumes ``a`` and ``b`` refined with the fitted particle lists as
+    ``piv.particles`` asks: tracked and binned (``ptv``, :func:`case_ptv`) or paired and correlated again
+    (``paired``, :func:`case_paired_piv`), on the volumes' voxel."""
+    from lfstudy.piv.ptv import PARTICLE_MODES
+
+    mode = ccfg["piv"].get("particles", "none")
+    if mode not in PARTICLE_MODES:
+        raise ValueError(f"piv.particles = {mode!r} tracks no particles; allowed values are {PARTICLE_MODES}")
+    voxel = volume_voxel(a)
+    if mode == "ptv":
+        return case_ptv(ccfg, piv, particles_a, particles_b, voxel=voxel)
+    return case_paired_piv(ccfg, piv, a, b, particles_a, particles_b, voxel=voxel)
 
 
 def oracle_volumes(

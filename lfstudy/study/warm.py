@@ -120,11 +120,7 @@ def warm_kernels(ccfg: Mapping[str, Any], lenslets: int = LENSLETS) -> dict[str,
         lap("piv")
         mode = t["piv"].get("particles", "none")
         if mode in PARTICLE_MODES and pa is not None:
-            voxel = cl.volume_voxel(va)
-            if mode == "ptv":
-                cl.case_ptv(t, res, pa, pb, voxel=voxel)
-            else:
-                cl.case_paired_piv(t, res, va, vb, pa, pb, voxel=voxel)
+            cl.case_tracked_piv(t, res, va, vb, pa, pb)
             lap(mode)
     except Exception:  # warming is an optimisation: the stage's own job reports the failure
         return {"seconds": seconds, "error": traceback.format_exc()}
