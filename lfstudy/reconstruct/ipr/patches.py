@@ -65,24 +65,31 @@ def _patch_kernel(px, py, pz, wt, geos, gidx, buf, boff, psz, nlmax, stats, quad
     (:func:`lfstudy.simulate.exact._render_particle`, unrotated grid, quadrature ``quad``). The
     tasks are cut into ``nchunk`` contiguous chunks run in parallel, each with one scratch (the
     render leaves it clean after every particle, as in :func:`~lfstudy.simulate.exact._render_kernel`):
-    every patch is written by one task alone, so the bytes do not depend on the chunks or threads.
+    every patch is written by one task alone, so the bytes do not depend on the chunks or threads. Each task
+    zeroes its patch first (``buf`` comes uninitialised) and clips its rounding residue of either sign to 0
+    after, as render_exact clips: both while the patch is in the cache, in parallel.
     """
     n = px.size
     for c in prange(nchunk):
         scr = _scratch(geos[0], psz, nlmax, quad)
         cnt = np.zeros(_ST_SIZE)
         for t in range(c * n // nchunk, (c + 1) * n // nchunk):
+            seg = buf[boff[t, 0] : boff[t, 1]]
+            seg[:] = 0.0
             if wt[t] == 0.0:
                 continue
             geo = geos[gidx[t]]
             cnt[:] = 0.0
             # the full render's argument types (a typed row 0, the grid's rotation read from geo, False for the
             # model camera), so both kernels call the one compiled _render_particle
-            chunk = (buf[boff[t, 0] : boff[t, 1]], np.int64(0), int(geo[_G_NROW]) - 1)
+            chunk = (seg, np.int64(0), int(geo[_G_NROW]) - 1)
             rotated = geo[_G_SIN] != 0.0 or geo[_G_COS] != 1.0
             _render_particle(geo, rotated, px[t], py[t], pz[t], wt[t], scr, chunk, cnt)
             for q in range(_ST_SIZE):
                 stats[t, q] += cnt[q]
+            for i in range(seg.size):
+                if seg[i] < 0.0:
+                    seg[i] = 0.0
 
 
 def _patch_boxes(
@@ -219,7 +226,7 @@ def particle_patches(
     size = h * w
     offsets = np.zeros(n + 1, dtype=np.int64)
     offsets[1:] = np.cumsum(size * k)
-    buf = np.zeros(int(offsets[-1]))
+    buf = np.empty(int(offsets[-1]))  # each task zeroes its own patch (_patch_kernel)
     gidx = np.repeat(np.arange(n, dtype=np.int64), k)
     start = (offsets[:-1, None] + np.arange(k)[None, :] * size[:, None]).ravel()
     boff = np.stack([start, start + np.repeat(size, k)], axis=1).astype(np.int64)
@@ -231,7 +238,6 @@ def particle_patches(
     _patch_kernel(tx, ty, tz, wt, geos, gidx, buf, boff, psz, nlmax, stats, _QUAD[accuracy], nchunk)
     if stats[:, _ST_BIG].sum() > 0 or stats[:, _ST_SPILL].sum() > 1e-9 * max(float(wt.sum()), 1e-300):
         raise RuntimeError("particle_patches: a patch exceeded its scratch or spilled (a bug)")
-    np.maximum(buf, 0.0, out=buf)  # rounding residue of either sign, as render_exact clips
     return buf, offsets, r0, c0, np.stack([h, w], axis=1)
 
 
