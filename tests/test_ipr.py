@@ -500,6 +500,40 @@ def test_the_batch_changes_the_fit_by_rounding_only(scene):
     np.testing.assert_allclose(one.attrs["residual_norm"], small.attrs["residual_norm"], rtol=1e-9)
 
 
+def test_the_shake_reuses_the_images_of_particles_that_stayed(scene, monkeypatch):
+    """A particle's images depend on its position alone: where a shake kept a particle where it was, the next
+    shake takes its seven images from the cache instead of rendering them. The fit is the one without the cache
+    (up to the rounding of a patch's scratch, sized by its batch), with fewer images rendered; the cache is
+    bounded (``_CACHE_BYTES``: 0 keeps none) and the last iteration keeps none."""
+    from lfstudy.reconstruct.ipr import shake
+
+    _, inputs = scene
+    kw = {"iterations": 4, "residual_candidates": 2}
+    cached = ipr_particles(inputs, **kw)
+    monkeypatch.setattr(shake, "_CACHE_BYTES", 0.0)
+    plain = ipr_particles(inputs, **kw)
+    assert plain.attrs["particle_images_reused"] == 0
+    assert cached.attrs["particle_images_reused"] > 0
+    assert cached.attrs["particle_images"] + cached.attrs["particle_images_reused"] == plain.attrs["particle_images"]
+    assert cached.sizes["particle"] == plain.sizes["particle"] >= 8
+    for v in ("x", "y", "z", "intensity"):
+        np.testing.assert_allclose(cached[v].values, plain[v].values, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(cached.attrs["residual_norm"], plain.attrs["residual_norm"], rtol=1e-9)
+
+
+def test_a_cached_image_is_used_only_at_its_own_position_and_model():
+    """The cache's check: the same position, trials and image model (by identity: a calibration replaces it)."""
+    from lfstudy.reconstruct.image_model import ImageModel
+    from lfstudy.reconstruct.ipr.shake import _Cached
+
+    model, tr = ImageModel(), np.array([[0.01, 0.0, 0.0], [-0.01, 0.0, 0.0]])
+    c = _Cached(np.array([0.1, 0.2, 0.3]), tr, model, 0, 0, np.array([2, 2]), np.zeros(12))
+    assert c.valid(np.array([0.1, 0.2, 0.3]), tr.copy(), model)
+    assert not c.valid(np.array([0.1, 0.2, 0.3 + 1e-12]), tr, model)
+    assert not c.valid(np.array([0.1, 0.2, 0.3]), tr * 2, model)
+    assert not c.valid(np.array([0.1, 0.2, 0.3]), tr, ImageModel())
+
+
 def test_polish_screen_skips_only_sharp_minima(monkeypatch):
     """The polish's screen (``_POLISH_SCREEN``): a particle fitted where its data is (a sharp minimum: every axis
     neighbour of the stencil far less likely) renders only the current and axis positions and stays where the

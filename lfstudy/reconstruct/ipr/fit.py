@@ -151,7 +151,8 @@ def ipr_particles(
             break
         res_hist.append(norm(res))
         # step 3: the shake, then the ghosts (faint particles, particles that left the grid, merged pairs)
-        p, n_out, events = _shake(images, p, res, vox, settle, tr, delta, mstep, s.damping, central)
+        last = it == s.iterations - 1  # no later shake reuses its images
+        p, n_out, events = _shake(images, p, res, vox, settle, tr, delta, mstep, s.damping, central, not last)
         sat_out.append(n_out)
         lit = p.inten > 0
         med = float(np.median(p.inten[lit])) if np.any(lit) else 0.0
@@ -255,6 +256,7 @@ def ipr_particles(
             "seconds_patches": float(clock["patches"]),
             "seconds_fit": float(clock["fit"]),
             "particle_images": int(clock["images"]),
+            "particle_images_reused": int(clock["reused"]),
             "mart_volumes": int(clock["volumes"]),
             "weight_table_bytes": int(volumes.plan.proj.table_bytes),
             "coverage_bytes": int(sum(d.nbytes for d in volumes.plan.dens)),

@@ -245,13 +245,14 @@ class _FitImages:
     """The particle images of one fit: :func:`particle_patches` on the model camera ``cam`` with the fit's
     quadrature (``accuracy``) and current image model (``model``, replaced by the image calibration), ``batch``
     particles at a time, on the light field's pixels (``mask``); ``clock`` counts the time and the images
-    (``patches``, ``images``; ``fit`` the kernels; ``mart`` and ``volumes`` the candidate volumes')."""
+    (``patches``, ``images``; ``reused``: the shake's images taken from its cache instead; ``fit`` the kernels;
+    ``mart`` and ``volumes`` the candidate volumes')."""
 
     def __init__(self, cam: PlenopticCamera, mask: np.ndarray, accuracy: str, batch: int) -> None:
         self.cam, self.mask, self.accuracy, self.batch = cam, mask, accuracy, batch
         # the nominal camera's images until a calibration from the recording's particles replaces them
         self.model = ImageModel()
-        self.clock = {"mart": 0.0, "patches": 0.0, "fit": 0.0, "images": 0, "volumes": 0}
+        self.clock = {"mart": 0.0, "patches": 0.0, "fit": 0.0, "images": 0, "reused": 0, "volumes": 0}
 
     def patches(self, pos: np.ndarray, trials: np.ndarray | None = None, model: ImageModel | None = None):
         """:func:`particle_patches` of the particles at ``pos`` (n, 3) [mm], with the fit's image model unless

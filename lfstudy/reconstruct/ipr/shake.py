@@ -8,12 +8,18 @@ problem ``min ‖R_p − I'·U − Σ_k a_k·D_k‖²`` over (I', a) is solved o
 current position, the trial positions and the Gauss–Newton step (:func:`~lfstudy.reconstruct._shake_kernels._choose`),
 so no move raises the residual. With ``shake_settle`` the particles that settled sit the shake out
 (:func:`_unwoken` wakes them).
+
+A particle's images depend on its position alone, not on the residual: where a shake keeps a particle where it
+was (the exact choice found no better position: 15–45 % of the particles in the demo's later iterations), its
+position and trial images are kept (:class:`_Cached`, up to ``_CACHE_BYTES``) and the next shake reuses them
+instead of rendering the same images again. The fit is then the same to the bit.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -25,6 +31,28 @@ from lfstudy.reconstruct.ipr.patches import _FitImages
 _GHOST_FROM = 0  # first iteration after which faint particles are removed
 _SETTLE_RADIUS = 2.0  # shake_settle: a particle moved, added or removed within this many voxels wakes the settled
 _SETTLE_SKIPS = 2  # and a settled particle sits out at most this many shakes in a row
+#: the shake's image cache (module docstring) holds at most this many bytes of images (a demo frame's up to ~0.2 GB;
+#: on a full Table 4.3 frame it fills, and the particles beyond it are rendered as before)
+_CACHE_BYTES = 256e6
+
+
+@dataclass(frozen=True)
+class _Cached:
+    """One particle's shake images kept for the next shake: rendered at ``pos`` (3,) [mm] with the trial offsets
+    ``trials`` under the image model ``model``, in the patch (``r0``, ``c0``, ``shape``), the images one after the
+    other in ``block`` (flat, as :func:`~lfstudy.reconstruct.ipr.particle_patches` lays them out)."""
+
+    pos: np.ndarray
+    trials: np.ndarray
+    model: Any
+    r0: int
+    c0: int
+    shape: np.ndarray
+    block: np.ndarray
+
+    def valid(self, pos: np.ndarray, trials: np.ndarray, model: Any) -> bool:
+        """Whether these are the images :func:`particle_patches` would render now (same bits)."""
+        return model is self.model and np.array_equal(pos, self.pos) and np.array_equal(trials, self.trials)
 
 
 @dataclass
@@ -39,6 +67,7 @@ class _Particles:
     rel: np.ndarray
     still: np.ndarray
     sat: np.ndarray
+    cache: np.ndarray | None = None  # object (n,): each particle's :class:`_Cached` images or None
 
     @classmethod
     def unshaken(cls, xyz: np.ndarray, inten: np.ndarray) -> _Particles:
@@ -49,12 +78,18 @@ class _Particles:
     def __len__(self) -> int:
         return len(self.xyz)
 
+    def cached(self) -> np.ndarray:
+        """The cache (object (n,), None where a particle has no images kept)."""
+        return np.full(len(self), None, dtype=object) if self.cache is None else self.cache
+
     def take(self, keep: np.ndarray) -> _Particles:
         """The particles where ``keep``."""
-        return _Particles(*(getattr(self, k)[keep] for k in ("xyz", "inten", "sig", "rel", "still", "sat")))
+        parts = (getattr(self, k)[keep] for k in ("xyz", "inten", "sig", "rel", "still", "sat"))
+        return _Particles(*parts, cache=None if self.cache is None else self.cache[keep])
 
     def append(self, new: _Particles) -> _Particles:
         """These particles, then ``new``'s."""
+        cache = None if self.cache is None and new.cache is None else np.concatenate([self.cached(), new.cached()])
         return _Particles(
             np.vstack([self.xyz, new.xyz]),
             np.concatenate([self.inten, new.inten]),
@@ -62,7 +97,34 @@ class _Particles:
             np.concatenate([self.rel, new.rel]),
             np.concatenate([self.still, new.still]),
             np.concatenate([self.sat, new.sat]),
+            cache,
         )
+
+
+def _batch_images(
+    images: _FitImages, pos: np.ndarray, tr: np.ndarray, cache: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`_FitImages.patches` of the particles at ``pos`` with the trials ``tr``, the images of those whose
+    ``cache`` entry is valid taken from it instead of rendered (same layout, same bits)."""
+    hit = np.array([c is not None and c.valid(q, tr, images.model) for c, q in zip(cache, pos)], dtype=bool)
+    if not hit.any():
+        return images.patches(pos, tr)
+    n, k = len(pos), 1 + len(tr)
+    images.clock["reused"] += int(hit.sum()) * k
+    r0, c0 = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    shp = np.zeros((n, 2), np.int64)
+    blocks: list[np.ndarray] = [np.zeros(0)] * n
+    for i in np.nonzero(hit)[0]:
+        c = cache[i]
+        r0[i], c0[i], shp[i], blocks[i] = c.r0, c.c0, c.shape, c.block
+    miss = np.nonzero(~hit)[0]
+    if len(miss):
+        buf, offs, r0[miss], c0[miss], shp[miss] = images.patches(pos[miss], tr)
+        for j, i in enumerate(miss):
+            blocks[i] = buf[offs[j] : offs[j + 1]]
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum(shp[:, 0] * shp[:, 1] * k)
+    return np.concatenate(blocks), offsets, r0, c0, shp
 
 
 def _shake_step(
@@ -75,13 +137,17 @@ def _shake_step(
     mstep: np.ndarray,
     damping: float,
     central: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    cache: np.ndarray | None = None,
+    keep: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Gauss–Newton steps on a linearised copy of the residual, then the exact choice (``_choose``), which
     leaves ``res`` the exact residual of the moved particles.
 
     ``tr`` (k, 3) [mm] are the trial offsets (±δ or +δ along each axis), ``delta`` and ``mstep`` (3,) [mm] the
-    finite-difference step and the largest move. Returns the moved positions, their intensities and the sweep's
-    output per particle (step, intensity, variances of x, y, z, relative residual, ...).
+    finite-difference step and the largest move; ``cache`` (object (n,)) the particles' kept images
+    (:class:`_Cached` or None). Returns the moved positions, their intensities, the sweep's output per particle
+    (step, intensity, variances of x, y, z, relative residual, ...) and the new cache: with ``keep``, the images of
+    the particles that stayed where they were, up to ``_CACHE_BYTES``; else none.
     """
     lin = res.copy()
     out = np.zeros((len(pos), 9))
@@ -89,9 +155,12 @@ def _shake_step(
     moved = pos.copy()
     offsets = np.vstack([np.zeros((1, 3)), tr])
     mask, batch, clock = images.mask, images.batch, images.clock
+    cache = np.full(len(pos), None, dtype=object) if cache is None else cache
+    kept = np.full(len(pos), None, dtype=object)
+    room = _CACHE_BYTES if keep else 0.0
     for s in range(0, len(pos), batch):
         sl = slice(s, s + batch)
-        buf, offs, r0, c0, shp = images.patches(pos[sl], tr)
+        buf, offs, r0, c0, shp = _batch_images(images, pos[sl], tr, cache[sl])
         t0 = time.perf_counter()
         lm = float(damping)
         _sweep(lin, mask, buf, offs, r0, c0, shp, amp[sl].copy(), delta, mstep, lm, True, central, out[sl])
@@ -103,7 +172,14 @@ def _shake_step(
         clock["fit"] += time.perf_counter() - t0
         k = pick[sl, 0].astype(int)
         moved[sl] = np.where((k == len(tr) + 1)[:, None], step, pos[sl] + offsets[np.minimum(k, len(tr))])
-    return moved, pick[:, 1], out
+        for j in np.nonzero(k == 0)[0]:  # stayed: the same images next time
+            block = buf[offs[j] : offs[j + 1]]
+            if block.nbytes > room:
+                break
+            room -= block.nbytes
+            i = s + j
+            kept[i] = _Cached(pos[i].copy(), tr, images.model, int(r0[j]), int(c0[j]), shp[j].copy(), block.copy())
+    return moved, pick[:, 1], out, kept
 
 
 def _shake(
@@ -117,22 +193,27 @@ def _shake(
     mstep: np.ndarray,
     damping: float,
     central: bool,
+    keep: bool = True,
 ) -> tuple[_Particles, int, list[np.ndarray]]:
     """One iteration's shake of the active set (:func:`_shake_step` with ``tr``, ``delta``, ``mstep``, ``damping``,
-    ``central``). Returns the shaken list, how many sat out, and the events: the old and new positions of the
-    particles that moved (by at least ``settle`` voxels; with ``settle`` 0 every shaken one)."""
+    ``central``; ``keep``: whether a later shake may reuse its images, False for the last). Returns the shaken
+    list, how many sat out, and the events: the old and new positions of the particles that moved (by at least
+    ``settle`` voxels; with ``settle`` 0 every shaken one)."""
     # the active set: particles settled (their last shake moved them less than shake_settle voxels, and no
     # particle within _SETTLE_RADIUS voxels moved, was added or removed since) sit out up to _SETTLE_SKIPS shakes
     act = ~(p.still & (p.sat < _SETTLE_SKIPS))
     sat = np.where(act, 0, p.sat + 1)
     old = p.xyz
     xyz, inten, sig, rel = p.xyz.copy(), p.inten.copy(), p.sig.copy(), p.rel.copy()
-    xyz[act], inten[act], out = _shake_step(images, old[act], inten[act], res, tr, delta, mstep, damping, central)
+    cache = p.cached().copy()
+    xyz[act], inten[act], out, cache[act] = _shake_step(
+        images, old[act], inten[act], res, tr, delta, mstep, damping, central, cache[act], keep
+    )
     sig[act] = np.sqrt(out[:, 4:7])
     rel[act] = out[:, 7]
     moved = np.max(np.abs(xyz - old) / vox, axis=1) >= settle if settle > 0 else act
     still = np.where(act, ~moved, p.still)
-    return _Particles(xyz, inten, sig, rel, still, sat), int((~act).sum()), [old[moved], xyz[moved]]
+    return _Particles(xyz, inten, sig, rel, still, sat, cache), int((~act).sum()), [old[moved], xyz[moved]]
 
 
 def _unwoken(still: np.ndarray, xyz: np.ndarray, events: np.ndarray, vox: np.ndarray) -> np.ndarray:
