@@ -489,7 +489,8 @@ rule report:
         errors=[f"{OUT}/{SWEEP.locate(c, 'errors.zarr')}" for c in CASES],
     output: report(f"{OUT}/report.html", caption="reports/report.rst", category="Study")
     log: f"{LOG}/report.log"
-    threads: 1
+    # the last job: its per-case figures are drawn by a process per core (at most one per case)
+    threads: min(CORES, len(CASES))
     params: cfg=STUDY_CFG, out=OUT
     shell: STAGE + " report {params.out:q} {input.study:q} {output[0]:q}"
 

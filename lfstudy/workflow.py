@@ -356,15 +356,21 @@ def run_study(
 
 
 def run_report(
-    cfg: Mapping[str, Any], case_ids: list[str], out_dir: str | Path, study: str | Path, out_html: str | Path
+    cfg: Mapping[str, Any],
+    case_ids: list[str],
+    out_dir: str | Path,
+    study: str | Path,
+    out_html: str | Path,
+    *,
+    threads: int = 1,
 ) -> None:
-    """The self-contained HTML report of the study."""
+    """The self-contained HTML report of the study; its per-case figures drawn by ``threads`` processes."""
     from lfstudy.study.report import write_report
     from lfstudy.study.sweep import FILES, Sweep
 
     sweep = Sweep(cfg)
     files = {cid: {name: Path(out_dir) / sweep.locate(cid, name) for name in FILES} for cid in case_ids}
-    write_report(io.open_zarr(study).load(), files, dict(cfg), Path(out_html))
+    write_report(io.open_zarr(study).load(), files, dict(cfg), Path(out_html), workers=threads)
 
 
 def run_study_stage(cfg: Mapping[str, Any], out_dir: str | Path, out_zarr: str | Path, out_csv: str | Path) -> None:
@@ -379,12 +385,14 @@ def run_study_stage(cfg: Mapping[str, Any], out_dir: str | Path, out_zarr: str |
     run_study(cfg, cases, errors, Path(out_dir) / "benchmarks", out_zarr, out_csv)
 
 
-def run_report_stage(cfg: Mapping[str, Any], out_dir: str | Path, study: str | Path, out_html: str | Path) -> None:
+def run_report_stage(
+    cfg: Mapping[str, Any], out_dir: str | Path, study: str | Path, out_html: str | Path, *, threads: int = 1
+) -> None:
     """:func:`run_report` over every case of ``cfg`` (the whole validated config), their files under ``out_dir``:
-    the Snakefile's ``report`` rule, a plain process as :func:`run_study_stage`."""
+    the Snakefile's ``report`` rule, a plain process as :func:`run_study_stage` (``threads``: its processes)."""
     from lfstudy.study.sweep import Sweep
 
-    run_report(cfg, [c.case_id for c in Sweep(cfg).cases()], out_dir, study, out_html)
+    run_report(cfg, [c.case_id for c in Sweep(cfg).cases()], out_dir, study, out_html, threads=threads)
 
 
 def run_warm(cfg: Mapping[str, Any], out: str | Path) -> None:
@@ -437,6 +445,7 @@ def main(argv: list[str] | None = None) -> int:
     names (:func:`lfstudy.compute.dask_scheduler`); the others ignore it.
     """
     import argparse
+    import inspect
 
     ap = argparse.ArgumentParser(prog="python -m lfstudy.workflow", description=main.__doc__)
     ap.add_argument("stage", choices=sorted(_RUNNERS))
@@ -458,7 +467,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"dask: {describe(compute)}", flush=True)
             # the scheduler is chosen here, at the edge: the stage and the science below it are the same
             with dask_scheduler(compute, threads=ns.threads):
-                _RUNNERS[ns.stage](json.loads(ns.config), *ns.args)
+                runner = _RUNNERS[ns.stage]
+                # a stage that runs processes of its own (the report's figures) takes the rule's threads for them
+                extra = {"threads": ns.threads} if "threads" in inspect.signature(runner).parameters else {}
+                runner(json.loads(ns.config), *ns.args, **extra)
     except Exception:  # the traceback is in the log; logged() said where
         return 1
     return 0

@@ -502,23 +502,47 @@ def test_the_batch_changes_the_fit_by_rounding_only(scene):
 
 def test_the_shake_reuses_the_images_of_particles_that_stayed(scene, monkeypatch):
     """A particle's images depend on its position alone: where a shake kept a particle where it was, the next
-    shake takes its seven images from the cache instead of rendering them. The fit is the one without the cache
-    (up to the rounding of a patch's scratch, sized by its batch), with fewer images rendered; the cache is
-    bounded (``_CACHE_BYTES``: 0 keeps none) and the last iteration keeps none."""
+    shake takes its seven images from the cache instead of rendering them. Without the chord method
+    (``_CHORD`` 0) the fit is the one without the cache (up to the rounding of a patch's scratch, sized by its
+    batch), with fewer images rendered; the cache is bounded (``_CACHE_BYTES``: 0 keeps none) and the last
+    iteration keeps none. With the chord method (the default) more images are reused, the particles the same
+    within 0.05 voxel."""
     from lfstudy.reconstruct.ipr import shake
 
     _, inputs = scene
     kw = {"iterations": 4, "residual_candidates": 2}
+    chord = ipr_particles(inputs, **kw)
+    monkeypatch.setattr(shake, "_CHORD", 0.0)
     cached = ipr_particles(inputs, **kw)
     monkeypatch.setattr(shake, "_CACHE_BYTES", 0.0)
     plain = ipr_particles(inputs, **kw)
     assert plain.attrs["particle_images_reused"] == 0
-    assert cached.attrs["particle_images_reused"] > 0
+    assert 0 < cached.attrs["particle_images_reused"] < chord.attrs["particle_images_reused"]
     assert cached.attrs["particle_images"] + cached.attrs["particle_images_reused"] == plain.attrs["particle_images"]
-    assert cached.sizes["particle"] == plain.sizes["particle"] >= 8
+    assert cached.sizes["particle"] == plain.sizes["particle"] == chord.sizes["particle"] >= 8
     for v in ("x", "y", "z", "intensity"):
         np.testing.assert_allclose(cached[v].values, plain[v].values, rtol=0, atol=1e-8)
     np.testing.assert_allclose(cached.attrs["residual_norm"], plain.attrs["residual_norm"], rtol=1e-9)
+    vox = np.array(inputs.grid.voxel_size()[::-1])
+    for a, v in enumerate(("x", "y", "z")):
+        assert np.abs(chord[v].values - plain[v].values).max() < 0.05 * vox[a]
+
+
+def test_a_recentred_block_keeps_the_trials_and_refuses_light_outside_its_patch():
+    """The chord method's block: the first image replaced by the new one (another patch, cropped into the block's),
+    the trials kept; None where the new image has light outside the block's patch."""
+    from lfstudy.reconstruct.ipr.shake import _recentred
+
+    block = np.arange(3 * 4 * 5, dtype=float)  # three 4 x 5 images in the patch at row 10, column 20
+    new = np.zeros((3, 3))
+    new[1, 1] = 7.0  # lit at sensor (12, 22): inside
+    out = _recentred(block, 10, 20, np.array([4, 5]), new.ravel(), (11, 21, 3, 3))
+    centre = np.zeros((4, 5))
+    centre[2, 2] = 7.0
+    assert np.array_equal(out[:20], centre.ravel()) and np.array_equal(out[20:], block[20:])
+    new[2, 2] = 1.0  # lit at sensor (13, 23): inside
+    assert _recentred(block, 10, 20, np.array([4, 5]), new.ravel(), (11, 21, 3, 3)) is not None
+    assert _recentred(block, 10, 20, np.array([4, 5]), new.ravel(), (12, 22, 3, 3)) is None  # (14, 24): outside
 
 
 def test_a_cached_image_is_used_only_at_its_own_position_and_model():
@@ -527,7 +551,7 @@ def test_a_cached_image_is_used_only_at_its_own_position_and_model():
     from lfstudy.reconstruct.ipr.shake import _Cached
 
     model, tr = ImageModel(), np.array([[0.01, 0.0, 0.0], [-0.01, 0.0, 0.0]])
-    c = _Cached(np.array([0.1, 0.2, 0.3]), tr, model, 0, 0, np.array([2, 2]), np.zeros(12))
+    c = _Cached(np.array([0.1, 0.2, 0.3]), np.array([0.1, 0.2, 0.3]), tr, model, 0, 0, np.array([2, 2]), np.zeros(12))
     assert c.valid(np.array([0.1, 0.2, 0.3]), tr.copy(), model)
     assert not c.valid(np.array([0.1, 0.2, 0.3 + 1e-12]), tr, model)
     assert not c.valid(np.array([0.1, 0.2, 0.3]), tr * 2, model)

@@ -105,6 +105,7 @@ class Block:
     note: str = ""  # plain text, escaped on output
     case: str | None = None  # per-case blocks are grouped under their case id
     title: str = ""  # the per-case group's heading (default: the case id)
+    rendered: str = ""  # the block's HTML already rendered (a figure drawn in a worker process)
 
 
 # ---------------------------------------------------------------- helpers
@@ -410,6 +411,7 @@ def report_blocks(
     *,
     max_cases: int = 50,
     progress: bool = True,
+    workers: int = 1,
 ) -> Iterator[Block]:
     """Every block of the report, section by section (figures are built lazily, one at a time).
 
@@ -425,8 +427,15 @@ def report_blocks(
         Per-case sections drawn for at most this many cases (all stay in the tables).
     progress : bool
         Show a tqdm progress bar over the per-case figures.
+    workers : int
+        Processes drawing the per-case figures (1: drawn here, one after the other); with more, they are drawn
+        while this process builds the sections above them, and yielded already rendered (``Block.rendered``).
     """
     cfg = dict(cfg)
+    if workers > 1 and min(len(case_dirs), max_cases) > 1:  # drawn by a pool from now on, while the sections above
+        cases = _pooled_case_blocks(case_dirs, cfg, max_cases=max_cases, progress=progress, workers=workers)
+    else:
+        cases = _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
     yield from _answer_blocks(study, cfg)
     yield from _tolerance_blocks(study, _names(study, cfg))
     names = _names(study, cfg)
@@ -437,7 +446,7 @@ def report_blocks(
     yield from _thesis_blocks(study, cfg, names)
     yield from _representative_blocks(study, case_dirs, cfg)
     titles = _case_titles(study, names)
-    for b in _case_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress):
+    for b in cases:
         b.title = titles.get(b.case or "", "")
         yield b
     yield from _legend_blocks(study)
@@ -1529,53 +1538,105 @@ def _legend_blocks(study: xr.Dataset) -> Iterator[Block]:
     yield Block("legend", "columns", html=_table(pd.DataFrame(rows), index=False))
 
 
+def _truncated(n: int, max_cases: int) -> Iterator[Block]:
+    if n > max_cases:
+        yield Block(
+            "cases",
+            "truncated",
+            note=f"Per-case figures drawn for the first {max_cases} of {n} cases; every case is in the tables above.",
+        )
+
+
 def _case_blocks(
     study: xr.Dataset, case_dirs: Mapping[str, CaseFiles], cfg: Mapping[str, Any], *, max_cases: int, progress: bool
 ) -> Iterator[Block]:
     from tqdm.auto import tqdm
 
+    k = _threshold_k(cfg)
+    items = list(case_dirs.items())
+    yield from _truncated(len(items), max_cases)
+    for cid, d in tqdm(items[:max_cases], desc="report: cases", unit="case", disable=not progress):
+        yield from _one_case_blocks(cid, d, k)
+
+
+def _threshold_k(cfg: Mapping[str, Any]) -> float:
+    return float(cfg.get("reconstruct", {}).get("threshold", {}).get("k", 3.0))
+
+
+def _one_case_blocks(cid: str, d: CaseFiles, k: float) -> Iterator[Block]:
+    """The per-case blocks of case ``cid`` (its files ``d``; ``k`` the threshold's σ factor of the histogram)."""
     from lfstudy.study import figures as rf
 
-    k = float(cfg.get("reconstruct", {}).get("threshold", {}).get("k", 3.0))
-    items = list(case_dirs.items())
-    if len(items) > max_cases:
-        yield Block(
-            "cases",
-            "truncated",
-            note=f"Per-case figures drawn for the first {max_cases} of "
-            f"{len(items)} cases; every case is in the tables above.",
-        )
-    for cid, d in tqdm(items[:max_cases], desc="report: cases", unit="case", disable=not progress):
-        if not _exists(d):
-            yield _na("cases", "dir", "Case files", "missing", case=cid)
-            continue
-        try:
-            piv = _open(d, "piv.zarr").load()
-        except Exception as exc:
-            piv = None
-            yield _na("cases", "piv", "PIV result", f"{type(exc).__name__}: {exc}"[:200], case=cid)
-        try:
-            err = _open(d, "errors.zarr").load()
-        except Exception:
-            err = None
-        if piv is not None:
-            yield from piv_figure_blocks("cases", piv, err, case=cid)
-            yield _try(
-                "cases",
-                "error_map",
-                "Middle x–y slice: the measured vectors beside the error magnitude against the known flow.",
-                "vector and error slice",
-                lambda piv=piv, err=err: rf.vector_error_slice(piv, err),
-                case=cid,
-            )
+    if not _exists(d):
+        yield _na("cases", "dir", "Case files", "missing", case=cid)
+        return
+    try:
+        piv = _open(d, "piv.zarr").load()
+    except Exception as exc:
+        piv = None
+        yield _na("cases", "piv", "PIV result", f"{type(exc).__name__}: {exc}"[:200], case=cid)
+    try:
+        err = _open(d, "errors.zarr").load()
+    except Exception:
+        err = None
+    if piv is not None:
+        yield from piv_figure_blocks("cases", piv, err, case=cid)
         yield _try(
             "cases",
-            "intensity",
-            f"Focal-stack intensities, threshold mean + {k:g}σ (Figs 5.17, 7.13–7.14).",
-            "intensity histogram",
-            lambda d=d: rf.intensity_histogram(np.asarray(_open(d, "stack_a.zarr", "").values), k=k),
+            "error_map",
+            "Middle x–y slice: the measured vectors beside the error magnitude against the known flow.",
+            "vector and error slice",
+            lambda piv=piv, err=err: rf.vector_error_slice(piv, err),
             case=cid,
         )
+    yield _try(
+        "cases",
+        "intensity",
+        f"Focal-stack intensities, threshold mean + {k:g}σ (Figs 5.17, 7.13–7.14).",
+        "intensity histogram",
+        lambda d=d: rf.intensity_histogram(np.asarray(_open(d, "stack_a.zarr", "").values), k=k),
+        case=cid,
+    )
+
+
+def _rendered_case_blocks(cid: str, d: CaseFiles, k: float) -> list[Block]:
+    """:func:`_one_case_blocks` with each figure drawn into its HTML (``Block.rendered``): a worker's task."""
+    out = []
+    for b in _one_case_blocks(cid, d, k):
+        if b.figure is not None:
+            b.rendered = _render(b)
+            b.figure = None
+        out.append(b)
+    return out
+
+
+def _pooled_case_blocks(
+    case_dirs: Mapping[str, CaseFiles], cfg: Mapping[str, Any], *, max_cases: int, progress: bool, workers: int
+) -> Iterator[Block]:
+    """:func:`_case_blocks`, each case drawn by one of ``workers`` processes: submitted here (so the pool draws them
+    while the caller builds the report's other sections), yielded in case order, rendered. The processes fork
+    from a server that imported this module once (``forkserver``: no copy of the caller's threads)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm.auto import tqdm
+
+    items = list(case_dirs.items())
+    k = _threshold_k(cfg)
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload([__name__])
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(items[:max_cases])), mp_context=ctx)
+    futures = [pool.submit(_rendered_case_blocks, cid, d, k) for cid, d in items[:max_cases]]
+
+    def collect() -> Iterator[Block]:
+        try:
+            yield from _truncated(len(items), max_cases)
+            for f in tqdm(futures, desc="report: cases", unit="case", disable=not progress):
+                yield from f.result()
+        finally:
+            pool.shutdown(cancel_futures=True)
+
+    return collect()
 
 
 # ------------------------------------------------------------------ output
@@ -1597,6 +1658,8 @@ summary{cursor:pointer}code{background:#f4f4f4;padding:0 3px}
 
 
 def _render(b: Block) -> str:
+    if b.rendered:
+        return b.rendered
     if b.figure is not None:
         data = base64.b64encode(_png(b.figure)).decode("ascii")
         alt = html.escape(b.caption or b.name)
@@ -1617,6 +1680,7 @@ def write_report(
     *,
     max_cases: int = 50,
     progress: bool = True,
+    workers: int = 1,
 ) -> Path:
     """Write the self-contained HTML report of a study (atomically).
 
@@ -1635,6 +1699,8 @@ def write_report(
         At most this many per-case sections with figures.
     progress : bool
         tqdm progress bar over the per-case figures.
+    workers : int
+        Processes drawing the per-case figures (:func:`report_blocks`); the page is the same whatever their number.
 
     Returns
     -------
@@ -1645,7 +1711,7 @@ def write_report(
 
     name = str(cfg.get("name", "study"))
     ver = html.escape(str(study.attrs.get("lfstudy_version", __version__)))
-    blocks = report_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress)
+    blocks = report_blocks(study, case_dirs, cfg, max_cases=max_cases, progress=progress, workers=workers)
     intro = (
         f"Generated {time.strftime('%Y-%m-%d %H:%M')} by lfstudy {ver}. Method: Lynch (2011), "
         "Development of a 3-D Fluid Velocimetry Technique based on Light Field Imaging."
