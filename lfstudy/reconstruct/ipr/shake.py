@@ -17,8 +17,8 @@ Gauss–Newton step moved a particle less than ``_CHORD`` δ from where its tria
 they converge: 64–93 % move less than 0.05 voxel from the 4th iteration on, demo frame), the next shake keeps
 those trials too, with the image at its new position (the chord method: the Jacobian of the trials' base, a
 fraction of δ away; the move is still chosen on the exact residual, among exact images whose positions are
-known). Measured (demo camera, 480 × 480 px at 0.005 ppp, seeds 31–36, one thread): 17.5 % of the images reused
-without the chord, 25 % with it; the images' CPU 11.5 → 9.0 s a fit; found 83.7 → 83.4 %, ghosts 14.4 → 14.4 %,
+known). Measured (demo camera, 480 × 480 px at 0.005 ppp, seeds 31–36, one thread): 10–12 % of the images reused
+without the chord, 24–26 % with it; the images' CPU 11.5 → 9.0 s a fit; found 83.7 → 83.4 %, ghosts 14.4 → 14.4 %,
 x,y RMS 0.00502 → 0.00504 mm, z 0.0336 → 0.0337 mm (the seeds' spread is larger than these differences).
 """
 
