@@ -129,6 +129,21 @@ def test_write_report_self_contained(study_dirs, tmp_path):
         assert base64.b64decode(b64)[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_the_report_is_the_same_whatever_its_workers(study_dirs, tmp_path):
+    """Per-case figures drawn by two processes (while the main one builds the other sections) give the page one
+    process gives, byte for byte but the generation time; the missing and partial cases' notes included, and a
+    truncated list of cases says so."""
+    study, dirs, cfg = study_dirs
+    pages = []
+    for workers in (1, 2):
+        out = write_report(
+            study, dirs, cfg, tmp_path / f"r{workers}.html", progress=False, max_cases=7, workers=workers
+        )
+        pages.append(re.sub(r"Generated \d{4}-\d\d-\d\d \d\d:\d\d", "", out.read_text()))
+    assert pages[0] == pages[1]
+    assert "not available" in pages[1] and "Per-case figures drawn for the first 7 of 8" in pages[1]
+
+
 def test_best_designs_picks_lowest_rms(study_dirs):
     study = study_dirs[0]
     best = best_designs(study)
