@@ -434,6 +434,7 @@ def main() -> None:
                 f"    IPR {t_ipr:.1f} s (x{t_ipr / t_ref:.2f} the defaults; CPU {c_ipr:.1f} s): "
                 f"MART candidates {a['seconds_mart']:.1f} s "
                 f"({a['mart_volumes']} volumes), {a['particle_images']} particle images {a['seconds_patches']:.1f} s "
+                f"(and {a.get('particle_images_reused', 0)} reused from the shake's cache) "
                 f"({1e3 * a['seconds_patches'] / max(a['particle_images'], 1):.2f} ms each), "
                 f"fit {a['seconds_fit']:.1f} s, rest {rest:.1f} s; "
                 f"full frame at this cost per particle {full / 60:.0f} min; peak RSS {rss:.2f} GB\n"

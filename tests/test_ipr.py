@@ -552,10 +552,10 @@ def test_a_cached_image_is_used_only_at_its_own_position_and_model():
 
     model, tr = ImageModel(), np.array([[0.01, 0.0, 0.0], [-0.01, 0.0, 0.0]])
     c = _Cached(np.array([0.1, 0.2, 0.3]), np.array([0.1, 0.2, 0.3]), tr, model, 0, 0, np.array([2, 2]), np.zeros(12))
-    assert c.valid(np.array([0.1, 0.2, 0.3]), tr.copy(), model)
-    assert not c.valid(np.array([0.1, 0.2, 0.3 + 1e-12]), tr, model)
-    assert not c.valid(np.array([0.1, 0.2, 0.3]), tr * 2, model)
-    assert not c.valid(np.array([0.1, 0.2, 0.3]), tr, ImageModel())
+    assert c.valid([0.1, 0.2, 0.3], tr, model) and c.valid([0.1, 0.2, 0.3], tr.copy(), model)
+    assert not c.valid([0.1, 0.2, 0.3 + 1e-12], tr, model)
+    assert not c.valid([0.1, 0.2, 0.3], tr * 2, model)
+    assert not c.valid([0.1, 0.2, 0.3], tr, ImageModel())
 
 
 def test_polish_screen_skips_only_sharp_minima(monkeypatch):

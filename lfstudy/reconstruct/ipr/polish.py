@@ -72,7 +72,7 @@ def _stencil_drops(
     for s in range(0, len(pos), per):
         sl = slice(s, s + per)
         cand = (pos[sl][:, None, :] + stencil[None]).reshape(-1, 3)
-        buf, offs, r0, c0, shp = images.patches(cand)
+        buf, offs, r0, c0, shp = images.patches(cand, slot=0)
         t0 = time.perf_counter()
         _stencil(res, images.mask, buf, offs, r0, c0, shp, k, amp[sl] * 1.0, drop[sl])
         images.clock["fit"] += time.perf_counter() - t0

@@ -63,9 +63,14 @@ class _Cached:
     shape: np.ndarray
     block: np.ndarray
 
-    def valid(self, pos: np.ndarray, trials: np.ndarray, model: Any) -> bool:
-        """Whether these images are the particle's at ``pos`` (same bits) with the trials ``trials``."""
-        return model is self.model and np.array_equal(pos, self.pos) and np.array_equal(trials, self.trials)
+    def valid(self, pos: list[float], trials: np.ndarray, model: Any) -> bool:
+        """Whether these images are the particle's at ``pos`` (x, y, z [mm]: the same floats) with the trials
+        ``trials``."""
+        return (
+            model is self.model
+            and pos == self.pos.tolist()
+            and (trials is self.trials or np.array_equal(trials, self.trials))
+        )
 
 
 @dataclass
@@ -117,29 +122,35 @@ class _Particles:
 def _batch_images(
     images: _FitImages, pos: np.ndarray, tr: np.ndarray, cache: np.ndarray
 ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
-    """:meth:`_FitImages.patches` of the particles at ``pos`` with the trials ``tr``, the images of those whose
-    ``cache`` entry is valid taken from it instead of rendered (same layout), and the trials' base per particle
-    (``pos`` where rendered)."""
-    hit = np.array([c is not None and c.valid(q, tr, images.model) for c, q in zip(cache, pos)], dtype=bool)
-    if not hit.any():
-        return images.patches(pos, tr), pos
+    """:meth:`_FitImages.patches` of the particles at ``pos`` with the trials ``tr`` (laid out as it lays them out,
+    in :meth:`_FitImages.scratch`'s slot 0: valid until its next use), the images of those whose ``cache`` entry
+    is valid copied from it instead of rendered, and the trials' base per particle (``pos`` where rendered)."""
+    keys = pos.tolist()
+    hit = np.array([c is not None and c.valid(q, tr, images.model) for c, q in zip(cache, keys)], dtype=bool)
     n, k = len(pos), 1 + len(tr)
     images.clock["reused"] += int(hit.sum()) * k
     base = pos.copy()
-    r0, c0 = np.zeros(n, np.int64), np.zeros(n, np.int64)
-    shp = np.zeros((n, 2), np.int64)
-    blocks: list[np.ndarray] = [np.zeros(0)] * n
+    miss = np.nonzero(~hit)[0]
+    box = np.zeros((n, 4), np.int64)  # r0, c0, rows, cols
+    if len(miss):
+        box[miss] = images.boxes(pos[miss])
     for i in np.nonzero(hit)[0]:
         c = cache[i]
-        base[i], r0[i], c0[i], shp[i], blocks[i] = c.base, c.r0, c.c0, c.shape, c.block
-    miss = np.nonzero(~hit)[0]
-    if len(miss):
-        buf, offs, r0[miss], c0[miss], shp[miss] = images.patches(pos[miss], tr)
-        for j, i in enumerate(miss):
-            blocks[i] = buf[offs[j] : offs[j + 1]]
+        base[i], box[i] = c.base, (c.r0, c.c0, *c.shape)
     offsets = np.zeros(n + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum(shp[:, 0] * shp[:, 1] * k)
-    return (np.concatenate(blocks), offsets, r0, c0, shp), base
+    offsets[1:] = np.cumsum(box[:, 2] * box[:, 3] * k)
+    buf = images.scratch(int(offsets[-1]), 0)
+    for i in np.nonzero(hit)[0]:
+        buf[offsets[i] : offsets[i + 1]] = cache[i].block
+    if len(miss):
+        _, _, r0, c0, shp = images.patches(pos[miss], tr, into=(buf, offsets[miss]))
+        if not (np.array_equal(r0, box[miss, 0]) and np.array_equal(c0, box[miss, 1])):
+            raise RuntimeError("shake: the rendered patches are not the boxes laid out for them (a bug)")
+        if not np.array_equal(shp, box[miss, 2:]):
+            raise RuntimeError("shake: the rendered patches are not the boxes laid out for them (a bug)")
+    # contiguous, as particle_patches returns them (the kernels' compiled signatures)
+    r0, c0, shp = (np.ascontiguousarray(a) for a in (box[:, 0], box[:, 1], box[:, 2:]))
+    return (buf, offsets, r0, c0, shp), base
 
 
 def _recentred(
@@ -152,7 +163,9 @@ def _recentred(
     im = img.reshape(bh, bw)
     ra, rb = max(r0, br0), min(r0 + h, br0 + bh)
     ca, cb = max(c0, bc0), min(c0 + w, bc0 + bw)
-    if ra >= rb or ca >= cb or im[ra - br0 : rb - br0, ca - bc0 : cb - bc0].sum() != im.sum():
+    if ra >= rb or ca >= cb:
+        return None
+    if np.count_nonzero(im[ra - br0 : rb - br0, ca - bc0 : cb - bc0]) != np.count_nonzero(im):
         return None
     out = block.copy()
     centre = out[: h * w].reshape(h, w)
@@ -202,7 +215,7 @@ def _shake_step(
         _sweep(lin, mask, buf, offs, r0, c0, shp, amp[sl].copy(), delta, mstep, lm, True, central, out[sl])
         clock["fit"] += time.perf_counter() - t0
         step = pos[sl] + out[sl, :3]
-        bn, on, r0n, c0n, shpn = images.patches(step)
+        bn, on, r0n, c0n, shpn = images.patches(step, slot=1)
         t0 = time.perf_counter()
         _choose(res, mask, buf, offs, r0, c0, shp, 1 + nt, amp[sl], bn, on, r0n, c0n, shpn, pick[sl])
         clock["fit"] += time.perf_counter() - t0
