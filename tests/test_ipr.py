@@ -79,6 +79,26 @@ def test_particle_patches_are_the_exact_render():
     )
 
 
+def test_particle_patches_into_a_buffer_are_the_same_images():
+    """``into``: the images rendered at the caller's starts in its buffer (whatever was there: each patch is
+    zeroed first) are the ones of a new buffer, and the rest of the buffer is left alone; a buffer too small is
+    refused."""
+    pts = np.array([(0.33, -0.27, 0.1), (-0.52, 0.41, 1.7), (0.61, 0.48, -2.3)])
+    tr = np.array([[0.01, 0.0, 0.0], [0.0, 0.0, -0.05]])
+    buf, offs, r0, c0, shp = particle_patches(CAM, *pts.T, trials=tr, accuracy="fast")
+    sizes = np.diff(offs)
+    starts = np.concatenate([[5], 5 + np.cumsum(sizes[:-1] + 7)])  # gaps of 7 between the blocks
+    out = np.full(int(starts[-1] + sizes[-1] + 3), np.nan)
+    got, at, r0i, c0i, shpi = particle_patches(CAM, *pts.T, trials=tr, accuracy="fast", into=(out, starts))
+    assert got is out and np.array_equal(at, starts)
+    assert np.array_equal(r0i, r0) and np.array_equal(c0i, c0) and np.array_equal(shpi, shp)
+    for i in range(len(pts)):
+        assert np.array_equal(out[starts[i] : starts[i] + sizes[i]], buf[offs[i] : offs[i + 1]])
+    assert np.isnan(out[:5]).all() and np.isnan(out[-3:]).all() and np.isnan(out[starts[1] - 7 : starts[1]]).all()
+    with pytest.raises(ValueError, match="into"):
+        particle_patches(CAM, *pts.T, trials=tr, into=(np.zeros(10), starts))
+
+
 def test_fast_patches_are_within_their_stated_bound():
     """``accuracy="fast"`` (IPR's default images) against the exact quadrature, patch by patch and trial by
     trial: max |diff| <= 1e-4 of the patch's peak and |sum diff| <= 1e-5 of its sum, for particles in and out
