@@ -19,6 +19,7 @@ from lfstudy.reconstruct.grid import ReconstructionGrid, default_voxel_z
 from lfstudy.reconstruct.ipr.candidates import _REFINE_XY, _REFINE_Z
 from lfstudy.reconstruct.ipr.fit import ipr_particles
 from lfstudy.reconstruct.ipr.settings import IPRSettings
+from lfstudy.reconstruct.ipr.shake import _CACHE_BYTES
 from lfstudy.reconstruct.registry import ReconstructionInputs, ReconstructionMethod, ReconstructionSize
 from lfstudy.reconstruct.truth import render_truth
 
@@ -28,6 +29,9 @@ __all__ = ["IPR", "ipr", "particle_volume", "render_particles"]
 #: the defaults): a full demo frame 28.6 s for 1,467 particles (19.5 ms), Table 4.3 crops 300 x 300 px at 0.005 ppp
 #: 17-24 s for 450 (38-53 ms; ``benchmarks/bench_ipr.py``), the full Table 4.3 frame ~44-49 min for ~79,000 (33-37 ms)
 _SECONDS_PER_PARTICLE = 0.06
+#: the fit's two reused image buffers (_FitImages.scratch) at most: a shake batch of 64 particles' 7 images of ~40,000
+#: pixels (the full Table 4.3 frame's mean patch) with 25 % headroom, and the Gauss-Newton step's images
+_SCRATCH_BYTES = 1.25 * (64 * 7 * 40_000 * 8 + 64 * 40_000 * 8)
 
 #: The output volume's parameter (``reconstruct.ipr.blob_sigma``), besides the fit's (:class:`IPRSettings`).
 _BLOB_SIGMA = {
@@ -115,11 +119,15 @@ class IPR(ReconstructionMethod):
         float64 volumes: a MART volume's buffers and the peak search's copies) and three float64 copies of the
         raw frame the fit compares with. On the full Table 4.3 frame (33 planes) 7.16 GB with the process's
         0.3 GB, against the 7.18 GB peak ``benchmarks/bench_ipr.py --memory`` measured there (with its scene's
-        0.48 GB); the shake's patches (~0.15 GB a batch of 64 there) stay below the MART's peak."""
+        0.48 GB), before the shake kept images between iterations. Those live through the MART rounds, so their
+        bounds are added: the shake's image cache (``_CACHE_BYTES``, 256 MB) and the fit's two reused image
+        buffers (``_SCRATCH_BYTES``: a shake batch of 64 particles' 7 images, ~0.15 GB on the full frame, with the
+        buffer's 25 % headroom and the Gauss–Newton step's): 7.62 GB there, not measured."""
         nz = _REFINE_Z * size.n_planes
         nvox = _REFINE_XY * _REFINE_XY * _REFINE_Z * size.n_voxels
         tables = nz * size.n_lenslets * size.pixels_per_lenslet * (17 * 4 + 2 * 2)
-        return super().memory_bytes(size, params) + (tables + nvox * (4 * 4 + 6 * 8) + 3 * size.n_pixels * 8)
+        mart_part = tables + nvox * (4 * 4 + 6 * 8) + 3 * size.n_pixels * 8
+        return super().memory_bytes(size, params) + mart_part + _CACHE_BYTES + _SCRATCH_BYTES
 
     @classmethod
     def seconds(cls, size: ReconstructionSize, params: Mapping[str, Any] | None = None) -> float:
