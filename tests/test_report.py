@@ -129,10 +129,15 @@ def test_write_report_self_contained(study_dirs, tmp_path):
         assert base64.b64decode(b64)[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_the_report_is_the_same_whatever_its_workers(study_dirs, tmp_path):
+@pytest.mark.parametrize("forkserver", [True, False])
+def test_the_report_is_the_same_whatever_its_workers(study_dirs, tmp_path, monkeypatch, forkserver):
     """Per-case figures drawn by two processes (while the main one builds the other sections) give the page one
     process gives, byte for byte but the generation time; the missing and partial cases' notes included, and a
-    truncated list of cases says so."""
+    truncated list of cases says so. Also where there is no forkserver (Windows: the processes are spawned)."""
+    import multiprocessing
+
+    if not forkserver:
+        monkeypatch.setattr(multiprocessing, "get_all_start_methods", lambda: ["spawn"])
     study, dirs, cfg = study_dirs
     pages = []
     for workers in (1, 2):

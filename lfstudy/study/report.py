@@ -1615,7 +1615,8 @@ def _pooled_case_blocks(
 ) -> Iterator[Block]:
     """:func:`_case_blocks`, each case drawn by one of ``workers`` processes: submitted here (so the pool draws them
     while the caller builds the report's other sections), yielded in case order, rendered. The processes fork
-    from a server that imported this module once (``forkserver``: no copy of the caller's threads)."""
+    from a server that imported this module once (``forkserver``: no copy of the caller's threads; ``spawn``
+    where there is none)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
@@ -1623,8 +1624,11 @@ def _pooled_case_blocks(
 
     items = list(case_dirs.items())
     k = _threshold_k(cfg)
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload([__name__])
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload([__name__])
+    else:  # Windows: each process imports this module itself
+        ctx = mp.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=min(workers, len(items[:max_cases])), mp_context=ctx)
     futures = [pool.submit(_rendered_case_blocks, cid, d, k) for cid, d in items[:max_cases]]
 
