@@ -253,6 +253,14 @@ def particle_patches(
     return buf, offsets, r0, c0, np.stack([h, w], axis=1)
 
 
+def _block_offsets(box: np.ndarray, k: int) -> np.ndarray:
+    """Where each particle's ``k`` images start in a flat buffer of :func:`particle_patches`' layout, and its end:
+    (n + 1,), from the patches' boxes (row0, col0, rows, cols) (n, 4)."""
+    offsets = np.zeros(len(box) + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum(box[:, 2] * box[:, 3] * k)
+    return offsets
+
+
 class _FitImages:
     """The particle images of one fit: :func:`particle_patches` on the model camera ``cam`` with the fit's
     quadrature (``accuracy``) and current image model (``model``, replaced by the image calibration), ``batch``
@@ -287,20 +295,26 @@ class _FitImages:
         ``model`` is given (the calibration's trials); ``into`` as there, or with ``slot`` (and no ``model``) in that
         :meth:`scratch` slot (the images then valid until its next use)."""
         if slot is not None and model is None:  # laid out here, by the fit's model's boxes
-            k = 1 if trials is None else 1 + len(trials)
             box = self.boxes(pos)
-            offsets = np.zeros(len(pos) + 1, dtype=np.int64)
-            offsets[1:] = np.cumsum(box[:, 2] * box[:, 3] * k)
-            out = self.patches(pos, trials, into=(self.scratch(int(offsets[-1]), slot), offsets[:-1]))
-            if not np.array_equal(np.stack([out[2], out[3], *out[4].T], axis=1), box):
-                raise RuntimeError("_FitImages.patches: the rendered patches are not their boxes (a bug)")
-            return out[0], offsets, out[2], out[3], out[4]
+            offsets = _block_offsets(box, 1 if trials is None else 1 + len(trials))
+            buf = self.scratch(int(offsets[-1]), slot)
+            self.render_into(pos, trials, buf, offsets[:-1], box)
+            return buf, offsets, *(np.ascontiguousarray(a) for a in (box[:, 0], box[:, 1], box[:, 2:]))
         t0 = time.perf_counter()
         m = self.model if model is None else model
         out = particle_patches(self.cam, *pos.T, trials=trials, accuracy=self.accuracy, model=m, into=into)
         self.clock["patches"] += time.perf_counter() - t0
         self.clock["images"] += len(pos) * (1 if trials is None else 1 + len(trials))
         return out
+
+    def render_into(
+        self, pos: np.ndarray, trials: np.ndarray | None, buf: np.ndarray, starts: np.ndarray, box: np.ndarray
+    ) -> None:
+        """:meth:`patches` of the particles at ``pos`` into ``buf`` at ``starts``, laid out by their boxes ``box``
+        (:meth:`boxes`, (n, 4)); a RuntimeError (a bug) where the rendered patches are not those boxes."""
+        _, _, r0, c0, shp = self.patches(pos, trials, into=(buf, starts))
+        if not np.array_equal(np.stack([r0, c0, shp[:, 0], shp[:, 1]], axis=1), box):
+            raise RuntimeError("_FitImages: the rendered patches are not the boxes laid out for them (a bug)")
 
     def boxes(self, pos: np.ndarray) -> np.ndarray:
         """The sensor boxes (row0, col0, rows, cols) (n, 4) of the patches :meth:`patches` renders for the

@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 
 # The fit's Gauss-Seidel kernels (numba), shared with image_model.py.
 from lfstudy.reconstruct._shake_kernels import _choose, _sweep
-from lfstudy.reconstruct.ipr.patches import _FitImages
+from lfstudy.reconstruct.ipr.patches import _block_offsets, _FitImages
 
 _GHOST_FROM = 0  # first iteration after which faint particles are removed
 _SETTLE_RADIUS = 2.0  # shake_settle: a particle moved, added or removed within this many voxels wakes the settled
@@ -137,17 +137,12 @@ def _batch_images(
     for i in np.nonzero(hit)[0]:
         c = cache[i]
         base[i], box[i] = c.base, (c.r0, c.c0, *c.shape)
-    offsets = np.zeros(n + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum(box[:, 2] * box[:, 3] * k)
+    offsets = _block_offsets(box, k)
     buf = images.scratch(int(offsets[-1]), 0)
     for i in np.nonzero(hit)[0]:
         buf[offsets[i] : offsets[i + 1]] = cache[i].block
     if len(miss):
-        _, _, r0, c0, shp = images.patches(pos[miss], tr, into=(buf, offsets[miss]))
-        if not (np.array_equal(r0, box[miss, 0]) and np.array_equal(c0, box[miss, 1])):
-            raise RuntimeError("shake: the rendered patches are not the boxes laid out for them (a bug)")
-        if not np.array_equal(shp, box[miss, 2:]):
-            raise RuntimeError("shake: the rendered patches are not the boxes laid out for them (a bug)")
+        images.render_into(pos[miss], tr, buf, offsets[miss], box[miss])
     # contiguous, as particle_patches returns them (the kernels' compiled signatures)
     r0, c0, shp = (np.ascontiguousarray(a) for a in (box[:, 0], box[:, 1], box[:, 2:]))
     return (buf, offsets, r0, c0, shp), base
@@ -194,7 +189,8 @@ def _shake_step(
     finite-difference step and the largest move; ``cache`` (object (n,)) the particles' kept images
     (:class:`_Cached` or None). Returns the moved positions, their intensities, the sweep's output per particle
     (step, intensity, variances of x, y, z, relative residual, ...) and the new cache: with ``keep``, the images of
-    the particles that stayed where they were, up to ``_CACHE_BYTES``; else none.
+    the particles that stayed where they were and, with the chord method, of those the step kept near their trials'
+    base, up to ``_CACHE_BYTES``; else none.
     """
     lin = res.copy()
     out = np.zeros((len(pos), 9))
