@@ -81,7 +81,7 @@ def write_zarr(
     from zarr.codecs import ZstdCodec
 
     ds = obj.to_dataset(name=name or obj.name or "data") if isinstance(obj, xr.DataArray) else obj
-    ds = ds.copy()
+    ds = _variable_length_strings(ds.copy())
     ds.attrs = _jsonable_attrs(ds.attrs)
     for v in ds.variables.values():
         v.attrs = _jsonable_attrs(v.attrs)
@@ -106,6 +106,33 @@ def write_zarr(
         else:
             ds.to_zarr(tmp, mode="w", encoding=encoding, zarr_format=3, consolidated=True, write_empty_chunks=True)
     return path
+
+
+def _variable_length_strings(ds: xr.Dataset) -> xr.Dataset:
+    """``ds`` with its fixed-width strings (numpy ``<U``) as Python strings.
+
+    zarr 3 stores ``<U`` arrays as ``FixedLengthUTF32``, a data type without a Zarr v3 specification (zarr warns
+    that other libraries may not read it); object strings become the specified variable-length ``string``.
+    :func:`open_zarr` turns them back into ``<U``.
+    """
+    fixed = {k: v for k, v in ds.variables.items() if v.dtype.kind == "U"}
+    if not fixed:
+        return ds
+    new = {k: v.copy(data=np.asarray(v.values, dtype=object)) for k, v in fixed.items()}
+    coords = {k: v for k, v in new.items() if k in ds.coords}
+    return ds.assign_coords(coords).assign({k: v for k, v in new.items() if k not in coords})
+
+
+def _fixed_width_strings(ds: xr.Dataset) -> xr.Dataset:
+    """``ds`` with the variable-length strings zarr reads (numpy ``StringDType``) as ``<U``: the dtype they were
+    written from (:func:`_variable_length_strings`), which the rest of the code and xarray's indexes expect.
+    Strings are labels, small: they are read here."""
+    var = {k: v for k, v in ds.variables.items() if v.dtype.kind == "T"}
+    if not var:
+        return ds
+    new = {k: v.copy(data=np.asarray(v.values, dtype=object).astype(str)) for k, v in var.items()}
+    coords = {k: v for k, v in new.items() if k in ds.coords}
+    return ds.assign_coords(coords).assign({k: v for k, v in new.items() if k not in coords})
 
 
 #: Root attribute of a store whose every chunk :func:`write_zarr` wrote (stores of older versions lack it).
@@ -159,6 +186,7 @@ def open_zarr(path: str | Path, *, name: str | None = None) -> xr.Dataset | xr.D
                 "(deleted or lost; zarr would read them as fill values, NaN); delete the store and run again to "
                 "remake it"
             )
+    ds = _fixed_width_strings(ds)
     if name is not None and name not in ds:
         raise ValueError(f"zarr store {str(path)!r} has no variable {name!r} (it holds {', '.join(ds.data_vars)})")
     return ds[name] if name is not None else ds
