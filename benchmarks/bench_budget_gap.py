@@ -98,7 +98,7 @@ def main() -> None:
     ap.add_argument("--flow", default="hill")
     ap.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="config overrides (YAML values)")
     args = ap.parse_args()
-    from bench_uncertainty_resolution import _config
+    from bench_uncertainty import _config
 
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study import case as cl
@@ -106,7 +106,9 @@ def main() -> None:
     from lfstudy.study.metrics import case_errors
     from lfstudy.study.sweep import Sweep
 
-    cfg = _config(argparse.Namespace(config=args.config, set=args.set, add_flow=[], flows=[args.flow], ppp=None))
+    cfg = _config(
+        argparse.Namespace(config=args.config, set=args.set, sweep=[], flows=[args.flow], ppp=None, seed=None)
+    )
     case = next(iter(Sweep(cfg).cases()))
     cc = case_config(cfg, case)
     spec = cc["flow"]
