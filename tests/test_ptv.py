@@ -445,6 +445,51 @@ def test_paired_piv_drops_particles_fitted_in_one_frame_only(tmp_path):
         wf.run_piv(ccfg, va, vb, tmp_path / "p2.zarr", str(tmp_path / "depth.zarr"), paths["a"], paths["b"])
 
 
+def test_paired_piv_leaves_out_particles_whose_depth_the_fit_could_not_read(tmp_path):
+    """piv.paired_max_sigma_z: a third of the particles sit where the images hardly give depth (as near the
+    focal plane), and their sigma_z says so. Their fitted z in frame b reads a third of a voxel deep (a lateral
+    shift read as depth, as on the coarse demo designs: crosstalk). Left out (the default limit), w reads the
+    true zero; kept (a limit of 1000 voxels), w leans towards their error."""
+    from lfstudy import io
+    from lfstudy import workflow as wf
+
+    rng = np.random.default_rng(11)
+    coords = {"z": 0.5 + VOXEL[2] * np.arange(16), "y": VOXEL[1] * np.arange(40), "x": VOXEL[0] * np.arange(40)}
+    lo = np.array([coords[k][0] for k in "xyz"])
+    hi = np.array([coords[k][-1] for k in "xyz"])
+    true = lo + rng.random((300, 3)) * (hi - lo)
+    shift = np.array([1.3, -0.7, 0.0]) * VOXEL
+    blind = rng.random(len(true)) < 1 / 3
+    paths = {}
+    for f, pts in (("a", true), ("b", true + shift)):
+        fit = pts.copy()
+        fit[blind, 2] += VOXEL[2] / 3 if f == "b" else 0.0
+        sigma_z = np.where(blind, 0.5, 0.01) * VOXEL[2]
+        vol = _blobs(fit, coords).assign_attrs(blob_sigma_mm=list(0.8 * VOXEL[::-1]))
+        io.write_zarr(vol, tmp_path / f"volume_{f}.zarr", name="intensity")
+        lists = xr.Dataset({k: ("particle", fit[:, i]) for i, k in enumerate("xyz")})
+        lists = lists.assign(intensity=("particle", np.ones(len(fit))), sigma_z=("particle", sigma_z))
+        io.write_zarr(lists, tmp_path / f"p_{f}.zarr")
+        paths[f] = str(tmp_path / f"p_{f}.zarr")
+    piv = {"window": [8, 16, 16], "spacing": [4, 8, 8], "levels": 1, "mode": "offset", "subpixel": "auto"}
+    piv |= {"predictor_filter": 1.0, "uncertainty": "none", "particles": "paired", "ptv_search": 1.5}
+    va, vb = tmp_path / "volume_a.zarr", tmp_path / "volume_b.zarr"
+    w_rms = {}
+    for label, extra in (("default", {}), ("kept", {"paired_max_sigma_z": 1000.0})):
+        out = tmp_path / f"piv_{label}.zarr"
+        wf.run_piv({"stage_id": "t", "piv": piv | extra}, va, vb, out, "", paths["a"], paths["b"])
+        res = io.open_zarr(out).load()
+        ok = res.valid.values & res.piv_valid.values
+        assert ok.mean() > 0.9
+        w_rms[label] = float(np.sqrt(np.mean(res.w_mm.values[ok] ** 2)))
+        left_out = (res.attrs["paired_depth_unknown_a"], res.attrs["paired_depth_unknown_b"])
+        assert left_out == ((int(blind.sum()),) * 2 if label == "default" else (0, 0))
+        assert res.attrs["paired_particles_a"] == len(true)
+    assert res.attrs["paired_max_sigma_z_mm"] == pytest.approx(1000.0 * VOXEL[2])
+    assert w_rms["default"] < 0.02 * VOXEL[2]
+    assert w_rms["kept"] > 2 * w_rms["default"]
+
+
 def test_an_ipr_case_without_depth_calibration_pairs_its_particles_unless_told_otherwise():
     """piv.particles unset: paired for a method that fits particles with the depth calibration off; unset (none)
     for MART and for IPR with the calibration on; an explicit none or ptv is kept."""

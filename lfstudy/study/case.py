@@ -574,6 +574,23 @@ def case_ptv(
     return res
 
 
+#: ``piv.paired_max_sigma_z`` where unset [z voxels]: the paired PIV leaves out the fitted particles whose depth
+#: uncertainty exceeds it. On the demo (uniform_x, 0.25 mm z voxels) 0.08 took IPR's RMS error 0.0143 -> 0.0101 mm
+#: on M -0.8, pitch 0.0888 at seed 7 (where it was chosen) and 0.0207 -> 0.0115 at seed 8 (held out), within
+#: 0.0006 elsewhere but on the coarsest design at seed 7 (0.0236 -> 0.0313) and M -1, pitch 0.0888 at seed 8
+#: (0.0065 -> 0.0071); docs/config.md.
+PAIRED_MAX_SIGMA_Z = 0.08
+
+
+def _depth_known(particles: xr.Dataset, limit_mm: float) -> xr.Dataset:
+    """The fitted particles whose depth uncertainty (``sigma_z``, the fit's covariance) is at most ``limit_mm``;
+    a list without ``sigma_z`` (not a fit's) whole."""
+    if "sigma_z" not in particles:
+        return particles
+    keep = np.asarray(particles["sigma_z"].values, dtype=float) <= limit_mm
+    return particles if keep.all() else particles.isel(particle=np.nonzero(keep)[0])
+
+
 def case_paired_piv(
     ccfg: Mapping[str, Any],
     piv: xr.Dataset,
@@ -593,10 +610,15 @@ def case_paired_piv(
     particles alone, as the reconstruction rendered them (each a Gaussian of the volume's
     ``blob_sigma_mm``, :func:`lfstudy.reconstruct.truth.render_truth`), and WIDIM runs once more.
 
+    Before the pairing, the particles whose depth the fit could not read (its ``sigma_z`` above
+    ``piv.paired_max_sigma_z`` z voxels, :data:`PAIRED_MAX_SIGMA_Z` where unset) are left out: near the focal
+    plane a particle's image hardly changes with depth (:mod:`lfstudy.reconstruct.ipr.bound`), so its depth
+    error, independent in the two frames, would go into w.
+
     Parameters
     ----------
     ccfg : Mapping
-        The case's config (its ``piv`` section: the WIDIM settings and ``ptv_search``).
+        The case's config (its ``piv`` section: the WIDIM settings, ``ptv_search`` and ``paired_max_sigma_z``).
     piv : xarray.Dataset
         WIDIM between the reconstructed volumes (:func:`case_piv`): the predictor of the pairing.
     a, b : xarray.DataArray
@@ -604,15 +626,17 @@ def case_paired_piv(
     particles_a, particles_b : xarray.Dataset
         The particle lists the reconstruction fitted (``volume_{a,b}.particles.zarr``).
     voxel : (dx, dy, dz), optional
-        The reconstruction grid's voxel size [mm]; default the PIV grid's.
+        The reconstruction grid's voxel size [mm]; default the PIV grid's for the pairing, the volume's for the
+        depth-uncertainty limit.
 
     Returns
     -------
     xarray.Dataset
         :func:`case_piv`'s result on the paired volumes; the first WIDIM's vectors kept as ``piv_u_mm``,
         ``piv_v_mm``, ``piv_w_mm``, ``piv_valid``; attrs ``particles`` ("paired"), ``paired_tracks``,
-        ``paired_particles_a``, ``paired_particles_b``, ``paired_rejected`` (tracks the median test
-        dropped) and ``paired_seconds`` (pairing and rendering).
+        ``paired_particles_a``, ``paired_particles_b`` (the fitted lists' sizes), ``paired_max_sigma_z_mm``
+        and ``paired_depth_unknown_a``, ``paired_depth_unknown_b`` (the particles it left out),
+        ``paired_rejected`` (tracks the median test dropped) and ``paired_seconds`` (pairing and rendering).
     """
     import time
 
@@ -624,6 +648,10 @@ def case_paired_piv(
             "piv.particles = 'paired': the volumes carry no blob_sigma_mm (they are not a particle list's volumes)"
         )
     t0 = time.perf_counter()
+    n_a, n_b = int(particles_a.sizes["particle"]), int(particles_b.sizes["particle"])
+    dz = float(voxel[2]) if voxel is not None else volume_voxel(a)[2]
+    limit = float(ccfg["piv"].get("paired_max_sigma_z", PAIRED_MAX_SIGMA_Z)) * dz
+    particles_a, particles_b = (_depth_known(p, limit) for p in (particles_a, particles_b))
     tracks = _tracks(ccfg, piv, particles_a, particles_b, voxel)
     coords = {d: a[d].values for d in ("z", "y", "x")}
 
@@ -641,8 +669,11 @@ def case_paired_piv(
     res.attrs.update(
         particles="paired",
         paired_tracks=int(tracks.sizes["track"]),
-        paired_particles_a=int(particles_a.sizes["particle"]),
-        paired_particles_b=int(particles_b.sizes["particle"]),
+        paired_particles_a=n_a,
+        paired_particles_b=n_b,
+        paired_max_sigma_z_mm=limit,
+        paired_depth_unknown_a=n_a - int(particles_a.sizes["particle"]),
+        paired_depth_unknown_b=n_b - int(particles_b.sizes["particle"]),
         paired_rejected=int(tracks.attrs["n_rejected"]),
         paired_seconds=seconds,
     )
