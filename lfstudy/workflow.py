@@ -286,12 +286,14 @@ def run_errors(
     on the true volumes) and the error budget. For a method that fits particles (``ipr``) the
     particle lists written beside both volumes (``volume_a.particles.zarr``, ``volume_b...``) are
     scored against the true particles too (:func:`lfstudy.study.particle_metrics.particle_metrics`:
-    found, ghosts, the found particles' own crosstalk; needs ``particles_b``); ``fitted_a``, ``fitted_b``: their
-    paths where they are not beside ``volume`` (the study's frame a lives at the design, frame b at the flow)."""
+    found, ghosts, the found particles' own crosstalk; needs ``particles_b``), and the share of its particles the
+    paired PIV left out for want of depth (:func:`lfstudy.study.particle_metrics.depth_unknown_percent`);
+    ``fitted_a``, ``fitted_b``: their paths where they are not beside ``volume`` (the study's frame a lives at the
+    design, frame b at the flow)."""
     from lfstudy.reconstruct import gives_particles
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study.metrics import case_metrics, particles_per_cell
-    from lfstudy.study.particle_metrics import particle_metrics
+    from lfstudy.study.particle_metrics import depth_unknown_percent, particle_metrics
 
     spec = ccfg["flow"]
     cam = cl.case_camera(ccfg)
@@ -312,8 +314,11 @@ def run_errors(
             focus = (float(dof["z_near"][0]), float(dof["z_far"][0]))
             found.update(particle_metrics(fitted, [parts, parts_b], grid.voxel_size()[::-1], bounds, focus))
             print(f"particles: {found['found_percent']:.1f} % found, {found['ghost_percent']:.1f} % ghosts", flush=True)
+    piv_ds = io.open_zarr(piv).load()
+    if gives_particles(ccfg["reconstruct"]["method"]):
+        found["depth_unknown_percent"] = depth_unknown_percent(piv_ds.attrs)
     err = case_metrics(
-        io.open_zarr(piv).load(),
+        piv_ds,
         flow_from_config(spec),
         cam,
         io.open_array(volume),

@@ -129,3 +129,12 @@ def test_the_errors_stage_scores_the_lists_beside_an_ipr_case_s_volumes(tmp_path
         bounds = [(float(c[0]), float(c[-1])) for c in (g.x, g.y, g.z)]
         assert float(e["particles_per_cell"]) == pytest.approx(particles_per_cell(cl.case_camera(full), pa, bounds))
         assert 0.0 < float(e["particles_per_cell"]) < 1.0
+
+
+def test_depth_unknown_percent_reads_the_paired_pivs_attrs():
+    from lfstudy.study.particle_metrics import depth_unknown_percent
+
+    attrs = {"paired_depth_unknown_a": 30, "paired_depth_unknown_b": 10, "paired_particles_a": 100}
+    assert math.isnan(depth_unknown_percent(attrs))  # not a paired PIV's (or an older one's) attrs
+    assert depth_unknown_percent(attrs | {"paired_particles_b": 300}) == pytest.approx(10.0)
+    assert math.isnan(depth_unknown_percent(attrs | {"paired_particles_a": 0, "paired_particles_b": 0}))

@@ -671,9 +671,9 @@ def test_the_answer_names_a_cost_only_the_combination_of_imperfections_has():
         # 80 % of all is limited by the focal plane inside the volume; at 45 % against 80 % it is not
         (
             "focus_limited",
-            {"found_percent": [80.0, 80.0], "found_in_focus_percent": [60.0, 20.0]},
+            {"found_percent": [80.0, 80.0], "found_in_focus_percent": [60.0, 20.0], "depth_unknown_percent": [5, 40]},
             {"found_percent": [80.0, 80.0], "found_in_focus_percent": [60.0, 45.0]},
-            ("The focal plane limits", "particles.z_center"),
+            ("The focal plane limits", "particles.z_center", "<i>depth_unknown_percent</i> needs no truth"),
         ),
         # 0.3 particles per lenslet and depth cell: limited by the seeding, and by how much; at the limit itself not
         (

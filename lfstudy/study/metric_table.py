@@ -269,6 +269,13 @@ METRICS: tuple[Metric, ...] = (
         "ghost_percent", "percent", "fitted particles that are ghosts", True, {"budget"}, "quality",
         description="fitted particles with no true particle within half a voxel, both frames",
     ),
+    Metric(
+        "depth_unknown_percent", "percent", "fitted particles whose depth the images do not give", True,
+        {"budget"}, "quality",
+        description="fitted particles, both frames, whose depth uncertainty from the fit (sigma_z) exceeds "
+        "piv.paired_max_sigma_z, left out of the paired PIV: near the focal plane the images hold little depth "
+        "(lfstudy.reconstruct.ipr.bound); needs no truth (piv.particles paired only)",
+    ),
     Metric("particle_rms_x_mm", "mm", "position error x of the found particles", True, (), "error"),
     Metric("particle_rms_y_mm", "mm", "position error y of the found particles", True, (), "error"),
     Metric("particle_rms_z_mm", "mm", "position error z of the found particles", True, (), "error"),

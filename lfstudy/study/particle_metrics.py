@@ -15,6 +15,11 @@ reconstruction grid count as findable. ``found_in_focus_percent`` counts those w
 of field about the focal plane (eq. 4.18): there a particle's image is one lenslet's spot whose
 size changes only to second order with depth, and on the demo designs IPR misses 57–95 % of them
 (``particles.z_center`` moves the measured slab off the focal plane).
+
+``depth_unknown_percent`` needs no truth: the share of the fitted particles whose depth the fit could not read
+(``sigma_z`` above ``piv.paired_max_sigma_z``), which the paired PIV leaves out
+(:func:`lfstudy.study.case.case_paired_piv`); near the focal plane the images hold little depth
+(:mod:`lfstudy.reconstruct.ipr.bound`).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from lfstudy.study.metrics import crosstalk_z
 
-__all__ = ["FOUND_WITHIN", "particle_metrics"]
+__all__ = ["FOUND_WITHIN", "depth_unknown_percent", "particle_metrics"]
 
 #: A fitted particle within this many voxels (per-axis scaled distance) finds a true one.
 FOUND_WITHIN = 0.5
@@ -134,3 +139,15 @@ def particle_metrics(
     else:
         out["particle_bias_w_mm"] = out["particle_crosstalk_z"] = math.nan
     return out
+
+
+def depth_unknown_percent(piv_attrs: dict) -> float:
+    """The share [%] of both frames' fitted particles the paired PIV left out because the fit could not read
+    their depth (``paired_depth_unknown_a``/``_b`` of ``paired_particles_a``/``_b``, attrs of
+    :func:`lfstudy.study.case.case_paired_piv`'s result); NaN where the PIV did not pair particles."""
+    keys = ("paired_depth_unknown_a", "paired_depth_unknown_b", "paired_particles_a", "paired_particles_b")
+    if not all(k in piv_attrs for k in keys):
+        return math.nan
+    unknown = int(piv_attrs["paired_depth_unknown_a"]) + int(piv_attrs["paired_depth_unknown_b"])
+    total = int(piv_attrs["paired_particles_a"]) + int(piv_attrs["paired_particles_b"])
+    return 100.0 * unknown / total if total else math.nan

@@ -983,6 +983,14 @@ def _budget_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None) ->
             "plane (eq. 4.18), where a particle's image is one lenslet's spot whose size changes only to second "
             "order with depth: far below found_percent, the focal plane inside the volume limits the design, and "
             "a volume off it (<code>particles.z_center</code>) avoids that."
+            + (
+                " <i>depth_unknown_percent</i> needs no truth: the share of the fitted particles whose depth the "
+                "fit could not read (its sigma_z above <code>piv.paired_max_sigma_z</code>), left out of the paired "
+                "PIV. Near the focal plane the images themselves hold little depth (their Cramér–Rao bound, "
+                "<code>lfstudy.reconstruct.ipr.bound</code>): a high share is the design's, not the fit's."
+                if "depth_unknown_percent" in bt
+                else ""
+            )
             if "found_percent" in bt
             else ""
         )
