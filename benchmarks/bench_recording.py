@@ -54,6 +54,10 @@ same, grid.z_range unset (-7 ... +9 mm)  86.8; +.0010/.0146,     79.0; +.0001/.0
                                          -.0222/.0401 (-11.1 %)  -.0158/.0301 (-7.9 %)   -.0144/.0224 (-7.2 %)
 =======================================  ======================  ======================  =====================
 
+The paired PIV without the particles whose depth the fit could not read (``piv.paired_max_sigma_z``, 3bf3c38; run
+2026-12-03, ``--methods ipr``, 1 thread, against 2b29782 in the same session): 592 x 400, 0.002 ppp, seed 0: 100;
++.0002/.0025, -.0181/.0239 (-9.1 %) -> 100; +.0002/.0024, -.0140/.0206 (-7.0 %); 343 -> 333 tracks.
+
 The polish run by run (Gauss–Seidel, 9b7a2d5) and 64 particles a call, against the code before them (29bec82), the
 same recordings, ``--methods ipr --threads 1``, quiet machine (valid %; median / RMS error [mm] of u, w; median w in %
 of the true w; CPU s), paired: 592 x 400, 0.002 ppp, seed 0: 100; -.0002/.0030, -.0177/.0233 (-8.9 %), 56 s ->
