@@ -292,6 +292,12 @@ def _blobs(xyz: np.ndarray, coords: dict[str, np.ndarray]) -> xr.DataArray:
     return xr.DataArray(gaussian_filter(vol, 0.8).astype(np.float32), coords=coords, dims=("z", "y", "x"))
 
 
+def _scene(rng: np.random.Generator, n: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """A 16 x 40 x 40 voxel grid's coords and ``n`` particles (x, y, z) [mm] seeded uniformly inside it."""
+    coords = {"z": 0.5 + VOXEL[2] * np.arange(16), "y": VOXEL[1] * np.arange(40), "x": VOXEL[0] * np.arange(40)}
+    return coords, _particles(rng, n, [(coords[k][0], coords[k][-1]) for k in "xyz"])
+
+
 def test_the_piv_stage_tracks_the_particle_lists(tmp_path):
     """run_piv with piv.particles ptv: WIDIM on the volumes, then the lists tracked about it; the result
     is the errors stage's input (u..w, valid, unc, final_window), WIDIM's vectors beside it."""
@@ -299,10 +305,7 @@ def test_the_piv_stage_tracks_the_particle_lists(tmp_path):
     from lfstudy import workflow as wf
 
     rng = np.random.default_rng(2)
-    coords = {"z": 0.5 + VOXEL[2] * np.arange(16), "y": VOXEL[1] * np.arange(40), "x": VOXEL[0] * np.arange(40)}
-    lo = np.array([coords[k][0] for k in "xyz"])
-    hi = np.array([coords[k][-1] for k in "xyz"])
-    a = lo + rng.random((260, 3)) * (hi - lo)
+    coords, a = _scene(rng, 260)
     shift = np.array([1.3, -0.7, 0.4]) * VOXEL
     b = a + shift
     paths = {}
@@ -412,10 +415,7 @@ def test_paired_piv_drops_particles_fitted_in_one_frame_only(tmp_path):
     from lfstudy import workflow as wf
 
     rng = np.random.default_rng(5)
-    coords = {"z": 0.5 + VOXEL[2] * np.arange(16), "y": VOXEL[1] * np.arange(40), "x": VOXEL[0] * np.arange(40)}
-    lo = np.array([coords[k][0] for k in "xyz"])
-    hi = np.array([coords[k][-1] for k in "xyz"])
-    a = lo + rng.random((300, 3)) * (hi - lo)
+    coords, a = _scene(rng, 300)
     shift = np.array([1.3, -0.7, 0.0]) * VOXEL
     b = a + shift
     b[rng.random(len(b)) < 0.2, 2] += VOXEL[2]  # misplaced in depth
@@ -454,10 +454,7 @@ def test_paired_piv_leaves_out_particles_whose_depth_the_fit_could_not_read(tmp_
     from lfstudy import workflow as wf
 
     rng = np.random.default_rng(11)
-    coords = {"z": 0.5 + VOXEL[2] * np.arange(16), "y": VOXEL[1] * np.arange(40), "x": VOXEL[0] * np.arange(40)}
-    lo = np.array([coords[k][0] for k in "xyz"])
-    hi = np.array([coords[k][-1] for k in "xyz"])
-    true = lo + rng.random((300, 3)) * (hi - lo)
+    coords, true = _scene(rng, 300)
     shift = np.array([1.3, -0.7, 0.0]) * VOXEL
     blind = rng.random(len(true)) < 1 / 3
     paths = {}
