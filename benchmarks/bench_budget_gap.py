@@ -12,8 +12,9 @@ prints the candidates:
 * the volume's edges: the error and the filter on interior vectors (a 3x3x3 erosion of the grid)
   against the grid's faces;
 * the truth volumes' blob size: the truth averaged over the window widened by a Gaussian of the
-  truth blobs' σ (and σ/√2, the width of an image's autocorrelation), its correlation r and
-  least-squares slope k with the error; and the oracle rerun with blobs half as large;
+  oracle particles' σ (and σ/√2, the width of an image's autocorrelation), its correlation r and
+  least-squares slope k with the error; and the oracle rerun with its particles as long as Q's truth σ
+  (as it was rendered before 2026-12-03; ``benchmarks/bench_particle_sigma.py`` for every design);
 * the windows' particle sampling: the mean true displacement of the particles inside each window
   minus the truth at its centre;
 * the deformation's own filter: the oracle rerun with ``piv.predictor_filter`` 0 (the predictor
@@ -21,9 +22,10 @@ prints the candidates:
 
     python benchmarks/bench_budget_gap.py [--config config/demo.yaml] [--flow hill] [--set PATH=VALUE ...]
 
-Findings (run 2026-11-28 on 2 loaded cores, NUMBA_NUM_THREADS=1; demo M -1, p 0.0888, 0.005 ppp,
-the study's seed, depth calibration off; final window 4 x 8 x 8 voxels = 1.0 x 0.71 x 0.71 mm,
-grid 7 x 9 x 12; truth blobs σ 0.355 mm in z, 0.044 mm in x, y):
+Findings (run 2026-11-28, when the oracle's particles were Q's truth σ, as long in z as the camera's depth of
+focus; since 2026-12-03 they are half a voxel per axis, ``piv.particle_sigma``; on 2 loaded cores,
+NUMBA_NUM_THREADS=1; demo M -1, p 0.0888, 0.005 ppp, the study's seed, depth calibration off; final window 4 x
+8 x 8 voxels = 1.0 x 0.71 x 0.71 mm, grid 7 x 9 x 12; truth blobs σ 0.355 mm in z, 0.044 mm in x, y):
 
 * oracle RMS x / y / z / total 0.0055 / 0.0051 / 0.0340 / 0.0348 mm; top-hat filter 0.0038 /
   0.0040 / 0.0097 / 0.0112 mm (the issue's 0.011 against 0.035). The z error follows the top-hat
@@ -130,9 +132,10 @@ def main() -> None:
         )
         return o, e
 
-    sigma = np.array(cl.truth_sigma(cl.case_camera(cc)))
-    print(f"{case.case_id}: truth blobs σ z, y, x {np.round(sigma, 4)} mm")
+    truth = np.array(cl.truth_sigma(cl.case_camera(cc)))
     o, e = oracle("as configured")
+    sigma = np.array(o.attrs["particle_sigma_mm"])
+    print(f"{case.case_id}: the oracle's particles σ z, y, x {np.round(sigma, 4)} mm (Q's truth {np.round(truth, 4)})")
     grid = cl.case_grid(cc)
     vox = [float(np.median(np.diff(getattr(grid, d)))) for d in DIMS]
     win = [int(v) for v in o.attrs["final_window"]]
@@ -169,12 +172,12 @@ def main() -> None:
         f"particles per window median {np.median(count):.0f}: their mean displacement − truth {_tot(part, ok):.4f} mm"
     )
     oracle("predictor_filter 0", predictor_filter=0.0)
-    orig = cl.truth_sigma
-    cl.truth_sigma = lambda cam: tuple(s / 2 for s in orig(cam))
+    orig = cl.particle_sigma
+    cl.particle_sigma = lambda _c, _v: tuple(truth)  # as the oracle rendered them before 2026-12-03
     try:
-        oracle("truth blobs half as large")
+        oracle("particles as long as Q's truth")
     finally:
-        cl.truth_sigma = orig
+        cl.particle_sigma = orig
 
 
 if __name__ == "__main__":

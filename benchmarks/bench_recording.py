@@ -367,7 +367,7 @@ def diagnose(out: Path, config: Path, truth: dict, shift: tuple[float, float, fl
         res = cl.case_paired_piv(cfg, piv, vols[0], vols[1], parts[0], parts[1], voxel=voxel)
         print(f"    piv.particles paired: {res.attrs['paired_tracks']} tracks; {_errors(res, shift)}")
     coords = {d: vols[0][d].values for d in ("z", "y", "x")}
-    sig = [float(v) for v in vols[0].attrs["blob_sigma_mm"]]
+    sig = cl.particle_sigma(cfg, cl.volume_voxel(vols[0]))  # as the paired PIV renders the fitted particles
     oracle = [vols[0].copy(data=render_truth(coords, truth[n], sigma_mm=sig).astype(np.float32)) for n in "ab"]
     res = cl.case_piv(cfg, *oracle)
     print(f"    the true particles as the same blobs (oracle): {_errors(res, shift)}")

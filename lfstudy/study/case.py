@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import functools
 import zlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -32,6 +32,8 @@ __all__ = [
     "case_camera",
     "case_planes",
     "truth_sigma",
+    "PARTICLE_SIGMA",
+    "particle_sigma",
     "case_particles",
     "case_displaced",
     "case_illuminated",
@@ -109,6 +111,24 @@ def truth_sigma(camera: PlenopticCamera) -> tuple[float, float, float]:
 
     dxy = camera.lenslet_pitch / abs(camera.magnification)
     return (default_voxel_z(camera), dxy / 2.0, dxy / 2.0)
+
+
+#: ``piv.particle_sigma`` where unset [voxels per axis]: σ of each particle in the volumes the PIV correlates where
+#: they are rendered from particle lists (the oracle's true volumes, :func:`oracle_volumes`; the paired particles',
+#: :func:`case_paired_piv`). Half a voxel makes a particle image about two voxels across (4σ), as the lateral truth
+#: σ is on a grid of one voxel per lenslet. Q's truth σ (:func:`truth_sigma`) is the camera's depth of focus
+#: instead: 1.4-3.7 z voxels on the demo's 0.25 mm z voxels, against its 4-voxel-deep final window, and the
+#: correlation of such images reads w at 0.30-0.74 of its size (the oracle on the demo's Hill vortex, seeds 7 and
+#: 8; at half a voxel 0.97-1.00, w RMS 0.027-0.068 -> 0.008-0.011 mm; benchmarks/bench_particle_sigma.py).
+PARTICLE_SIGMA = 0.5
+
+
+def particle_sigma(ccfg: Mapping[str, Any], voxel: Sequence[float]) -> tuple[float, float, float]:
+    """σ (z, y, x) [mm] of a particle in the PIV's particle volumes: ``piv.particle_sigma`` voxels per axis
+    (:data:`PARTICLE_SIGMA` where unset) of ``voxel`` (dx, dy, dz) [mm]."""
+    k = float((ccfg.get("piv") or {}).get("particle_sigma", PARTICLE_SIGMA))
+    dx, dy, dz = (float(v) for v in voxel)
+    return (k * dz, k * dy, k * dx)
 
 
 def case_particles(ccfg: Mapping[str, Any], *, seed: int | None = None) -> xr.Dataset:
@@ -606,8 +626,9 @@ def case_paired_piv(
     them) is a ghost or a real particle fitted at the wrong place in one frame only: in the volumes it
     correlates with nothing, or with the wrong particle, and biases the vectors (on the coarse demo
     designs a lateral shift read as depth motion). The volumes are rendered again from the paired
-    particles alone, as the reconstruction rendered them (each a Gaussian of the volume's
-    ``blob_sigma_mm``, :func:`lfstudy.reconstruct.truth.render_truth`), and WIDIM runs once more.
+    particles alone, each a Gaussian of :func:`particle_sigma` (half a voxel per axis where
+    ``piv.particle_sigma`` is unset; :func:`lfstudy.reconstruct.truth.render_truth`), as :func:`oracle_volumes`
+    renders the true particles, so that a perfect particle list gives the oracle; and WIDIM runs once more.
 
     Before the pairing, the particles whose depth the fit could not read (its ``sigma_z`` above
     ``piv.paired_max_sigma_z`` z voxels, :data:`PAIRED_MAX_SIGMA_Z` where unset) are left out: near the focal
@@ -621,7 +642,7 @@ def case_paired_piv(
     piv : xarray.Dataset
         WIDIM between the reconstructed volumes (:func:`case_piv`): the predictor of the pairing.
     a, b : xarray.DataArray
-        The reconstructed volumes (coords and ``blob_sigma_mm`` of a particle method's volume).
+        The reconstructed volumes (coords, and the ``blob_sigma_mm`` that marks a particle method's volume).
     particles_a, particles_b : xarray.Dataset
         The particle lists the reconstruction fitted (``volume_{a,b}.particles.zarr``).
     voxel : (dx, dy, dz), optional
@@ -635,19 +656,20 @@ def case_paired_piv(
         ``piv_v_mm``, ``piv_w_mm``, ``piv_valid``; attrs ``particles`` ("paired"), ``paired_tracks``,
         ``paired_particles_a``, ``paired_particles_b`` (the fitted lists' sizes), ``paired_max_sigma_z_mm``
         and ``paired_depth_unknown_a``, ``paired_depth_unknown_b`` (the particles it left out),
-        ``paired_rejected`` (tracks the median test dropped) and ``paired_seconds`` (pairing and rendering).
+        ``paired_rejected`` (tracks the median test dropped), ``particle_sigma_mm`` (σ z, y, x of the paired
+        volumes' particles) and ``paired_seconds`` (pairing and rendering).
     """
     import time
 
     from lfstudy.reconstruct.truth import render_truth
 
-    sig = a.attrs.get("blob_sigma_mm")
-    if sig is None:
+    if a.attrs.get("blob_sigma_mm") is None:
         raise ValueError(
             "piv.particles = 'paired': the volumes carry no blob_sigma_mm (they are not a particle list's volumes)"
         )
     t0 = time.perf_counter()
     n_a, n_b = int(particles_a.sizes["particle"]), int(particles_b.sizes["particle"])
+    sig = particle_sigma(ccfg, volume_voxel(a))
     dz = float(voxel[2]) if voxel is not None else volume_voxel(a)[2]
     limit = float(ccfg["piv"].get("paired_max_sigma_z", PAIRED_MAX_SIGMA_Z)) * dz
     particles_a, particles_b = (_depth_known(p, limit) for p in (particles_a, particles_b))
@@ -655,8 +677,8 @@ def case_paired_piv(
     coords = {d: a[d].values for d in ("z", "y", "x")}
 
     def paired(vol: xr.DataArray, parts: xr.Dataset, rows: np.ndarray) -> xr.DataArray:
-        data = render_truth(coords, parts.isel(particle=rows), sigma_mm=[float(v) for v in sig])
-        return vol.copy(data=data.astype(vol.dtype))
+        data = render_truth(coords, parts.isel(particle=rows), sigma_mm=sig)
+        return vol.copy(data=data.astype(vol.dtype)).assign_attrs(blob_sigma_mm=list(sig))
 
     va = paired(a, particles_a, tracks.index_a.values)
     vb = paired(b, particles_b, tracks.index_b.values)
@@ -671,6 +693,7 @@ def case_paired_piv(
         paired_particles_a=n_a,
         paired_particles_b=n_b,
         paired_max_sigma_z_mm=limit,
+        particle_sigma_mm=list(sig),
         paired_depth_unknown_a=n_a - int(particles_a.sizes["particle"]),
         paired_depth_unknown_b=n_b - int(particles_b.sizes["particle"]),
         paired_rejected=int(tracks.attrs["n_rejected"]),
@@ -706,9 +729,12 @@ def oracle_volumes(
 ) -> tuple[xr.DataArray, xr.DataArray]:
     """The true particle volumes of both frames on the case's reconstruction grid.
 
-    Each particle is the Gaussian Q uses (:func:`truth_sigma`), integrated over the voxels of the
-    grid (:func:`lfstudy.study.metrics.render_truth`): what a perfect reconstruction would hand to
-    the PIV. DataArrays like a reconstructed volume (float32, the grid's coords and attrs).
+    Each particle is a Gaussian of :func:`particle_sigma` (half a voxel per axis where ``piv.particle_sigma`` is
+    unset), integrated over the voxels of the grid (:func:`lfstudy.study.metrics.render_truth`): what a perfect
+    particle reconstruction would hand to the PIV, rendered as the paired PIV renders the fitted particles
+    (:func:`case_paired_piv`). Not Q's truth σ (:func:`truth_sigma`): its depth of focus, several z voxels on a
+    fine z grid, would make the oracle read w short (:data:`PARTICLE_SIGMA`). DataArrays like a reconstructed
+    volume (float32, the grid's coords and attrs, ``blob_sigma_mm``).
 
     The particles are lit as in the images (:func:`case_illuminated`; their diameters are in their
     intensities already): a perfect reconstruction returns the light each particle sent. A particle
@@ -719,12 +745,12 @@ def oracle_volumes(
 
     cam = case_camera(ccfg)
     grid = case_grid(ccfg, cam)
-    sigma = truth_sigma(cam)
+    sigma = particle_sigma(ccfg, grid.voxel_size()[::-1])
     coords = {"z": grid.z, "y": grid.y, "x": grid.x}
 
     def volume(p: xr.Dataset) -> xr.DataArray:
         data = render_truth(coords, case_illuminated(ccfg, p), sigma_mm=sigma).astype(np.float32)
-        return grid.volume(data, method="truth", truth_sigma_mm=list(sigma))
+        return grid.volume(data, method="truth", blob_sigma_mm=list(sigma))
 
     return volume(particles_a), volume(particles_b)
 
@@ -746,8 +772,8 @@ def oracle_piv(
     a, b = oracle_volumes(ccfg, particles_a, particles_b)
     res = case_piv(ccfg, a, b, progress=progress)
     res.attrs.update(
-        oracle="the case's PIV on the true particle volumes (each particle a Gaussian of truth_sigma_mm)",
-        truth_sigma_mm=a.attrs["truth_sigma_mm"],
+        oracle="the case's PIV on the true particle volumes (each particle a Gaussian of particle_sigma_mm)",
+        particle_sigma_mm=a.attrs["blob_sigma_mm"],
         oracle_seconds=time.perf_counter() - t0,
     )
     return res

@@ -155,7 +155,8 @@ def _per_axis(
 
 _ORACLE = (
     "of the oracle: the case's PIV (same grid, windows and passes) run on the true particle volumes of both "
-    "frames, each particle the Gaussian Q uses (truth_sigma_mm); the best any reconstruction could hand to the "
+    "frames, each particle a Gaussian of piv.particle_sigma voxels (half a voxel), as the paired PIV renders the "
+    "fitted particles; the best any particle reconstruction could hand to the "
     "PIV. No depth calibration applies to it (its volumes are true, w is read as is)"
 )
 _ADDED = (

@@ -38,7 +38,10 @@ _BLOB_SIGMA = {
     "type": "number",
     "minimum": 0,
     "maximum": 5,
-    "description": "sigma [voxels] of the output volume's particles; 0: the case's truth sigma",
+    "description": (
+        "sigma [voxels] of the output volume's particles; 0: the case's truth sigma (Q's). The paired PIV renders "
+        "the particles again with piv.particle_sigma"
+    ),
 }
 
 
