@@ -1253,8 +1253,10 @@ SIGMA_OFF = 1.5
 
 #: Said where σ of w is too small on some design and the study correlated circularly (docs/config.md, piv.zero_pad).
 ZERO_PAD_HINT = (
-    "A circular correlation in windows a few voxels deep reads depth motion that varies across the window short, "
-    "and σ cannot see it; piv.zero_pad: true is the measured alternative (docs/config.md)."
+    "A circular correlation of particle images long in depth (a MART volume's) in windows a few voxels deep reads "
+    "depth motion that varies across the window short, and σ cannot see it; piv.zero_pad: true is the measured "
+    "alternative (docs/config.md); a particle method's paired volumes are rendered half a voxel deep for this "
+    "reason (piv.particle_sigma)."
 )
 
 
