@@ -1,7 +1,7 @@
 """σ of the particles in the PIV's particle volumes (``piv.particle_sigma``) against a finished study (issues 38, 39).
 
-Reproduces: the figures of ``lfstudy.study.case.PARTICLE_SIGMA`` (its comment), ``piv.particle_sigma`` in
-lfstudy/schema.yaml and docs/config.md § "The particles the PIV correlates".
+Reproduces: docs/config.md § "The particles the PIV correlates (`piv.particle_sigma`)"; lfstudy/schema.yaml
+(``piv.particle_sigma``); lfstudy/study/case.py (the comment of ``PARTICLE_SIGMA``).
 
 Reads a finished study (the README's first command writes ``results/demo``) and, for every case whose
 reconstruction fitted particles (``volume_a.particles.zarr``), reruns from the stored particle lists:
