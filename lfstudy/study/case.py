@@ -647,7 +647,7 @@ def case_paired_piv(
         The particle lists the reconstruction fitted (``volume_{a,b}.particles.zarr``).
     voxel : (dx, dy, dz), optional
         The reconstruction grid's voxel size [mm]; default the PIV grid's for the pairing, the volume's for the
-        depth-uncertainty limit.
+        depth-uncertainty limit and the particles' σ.
 
     Returns
     -------
@@ -669,9 +669,9 @@ def case_paired_piv(
         )
     t0 = time.perf_counter()
     n_a, n_b = int(particles_a.sizes["particle"]), int(particles_b.sizes["particle"])
-    sig = particle_sigma(ccfg, volume_voxel(a))
-    dz = float(voxel[2]) if voxel is not None else volume_voxel(a)[2]
-    limit = float(ccfg["piv"].get("paired_max_sigma_z", PAIRED_MAX_SIGMA_Z)) * dz
+    vox = voxel if voxel is not None else volume_voxel(a)
+    sig = particle_sigma(ccfg, vox)
+    limit = float(ccfg["piv"].get("paired_max_sigma_z", PAIRED_MAX_SIGMA_Z)) * float(vox[2])
     particles_a, particles_b = (_depth_known(p, limit) for p in (particles_a, particles_b))
     tracks = _tracks(ccfg, piv, particles_a, particles_b, voxel)
     coords = {d: a[d].values for d in ("z", "y", "x")}
