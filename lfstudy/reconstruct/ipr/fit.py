@@ -28,7 +28,7 @@ from lfstudy.reconstruct.ipr.candidates import (
     _residual_candidates,
 )
 from lfstudy.reconstruct.ipr.patches import _FitImages
-from lfstudy.reconstruct.ipr.polish import _polish, _scan_depths
+from lfstudy.reconstruct.ipr.polish import _START_SWEEPS, _polish, _scan_depths
 from lfstudy.reconstruct.ipr.settings import IPRSettings
 from lfstudy.reconstruct.ipr.shake import _GHOST_FROM, _near_grid, _Particles, _remove_ghosts, _shake, _unwoken
 from lfstudy.reconstruct.ipr.split import _split
@@ -142,8 +142,8 @@ def ipr_particles(
     bar = tqdm(total=s.iterations, desc="IPR", unit="it", disable=not progress)
     # the residual is kept exact incrementally: every image subtracted or added back is the exact one
     res = data.copy()
-    if len(p):  # intensities of the candidates first (positions fixed)
-        p.inten = images.fit_intensity(p.xyz, res, -1.0)
+    if len(p):  # intensities of the candidates first (positions fixed); a warm start's jointly (_START_SWEEPS)
+        p.inten = images.fit_intensity(p.xyz, res, -1.0, 1 if start is None else _START_SWEEPS)
         if start is not None:  # a warm start's depths from this frame's own data, not the start's
             p.xyz, p.inten = _scan_depths(images, p.xyz, p.inten, res, vox)
     for it in range(s.iterations):

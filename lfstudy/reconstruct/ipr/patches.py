@@ -332,18 +332,27 @@ class _FitImages:
             _accumulate_masked(res, self.mask, buf, offs, r0, c0, shp, amp[sl] * 1.0, sign)
             self.clock["fit"] += time.perf_counter() - t0
 
-    def fit_intensity(self, pos: np.ndarray, res: np.ndarray, floor: float) -> np.ndarray:
+    def fit_intensity(self, pos: np.ndarray, res: np.ndarray, floor: float, sweeps: int = 1) -> np.ndarray:
         """Intensities of new particles at ``pos`` (Gauss–Seidel on ``res``, which keeps the images of those
         brighter than ``floor``: the others are added back once all are fitted, so the result does not depend
-        on the batches)."""
+        on the batches).
+
+        ``sweeps`` > 1 repeats the Gauss–Seidel sweep over all of them (each sweep adds a particle's image back
+        before refitting it, so the intensities converge to the joint least-squares fit of overlapping images;
+        each sweep renders the images again). One sweep gives the first particle of an overlapping group its
+        neighbours' light too: at the true positions of a dense field it leaves a third of the image unexplained
+        (``_START_SWEEPS``)."""
         out = np.zeros((len(pos), 2))
+        cur = np.zeros(len(pos))
         mask = self.mask
-        for s in range(0, len(pos), self.batch):
-            sl = slice(s, s + self.batch)
-            buf, offs, r0, c0, shp = self.patches(pos[sl], slot=0)
-            t0 = time.perf_counter()
-            _choose(res, mask, buf, offs, r0, c0, shp, 1, np.zeros(len(shp)), buf, offs, r0, c0, shp, out[sl])
-            self.clock["fit"] += time.perf_counter() - t0
+        for _ in range(max(1, int(sweeps))):
+            for s in range(0, len(pos), self.batch):
+                sl = slice(s, s + self.batch)
+                buf, offs, r0, c0, shp = self.patches(pos[sl], slot=0)
+                t0 = time.perf_counter()
+                _choose(res, mask, buf, offs, r0, c0, shp, 1, cur[sl], buf, offs, r0, c0, shp, out[sl])
+                cur[sl] = out[sl, 1]
+                self.clock["fit"] += time.perf_counter() - t0
         back = (out[:, 1] <= floor) & (out[:, 1] != 0.0)
         if back.any():
             self.add_images(pos[back], out[back, 1], res, 1.0)

@@ -172,6 +172,13 @@ def _polish_run(
 #: a warm start's depth scan: offsets along z [voxels] at which each started particle's exact residual drop is
 #: evaluated before the shake (``_scan_depths``)
 _START_SCAN = tuple(np.arange(-2.0, 2.01, 0.25))
+#: a warm start's intensities: Gauss–Seidel sweeps over all its particles (:meth:`_FitImages.fit_intensity`), before
+#: and after the depth scan. At the true positions of a demo frame (M -0.8, pitch 0.1184 mm, 0.005 ppp, exact
+#: noiseless images) one sweep leaves 0.362 of the image unexplained, 2 sweeps 0.141, 10 0.016, 20 0.008; the
+#: shake, started from one sweep's intensities, then moved the true particles off (77.5 % kept within half a
+#: voxel, 14.2 % ghosts), from 20 sweeps' it kept them (89.8 %, 4.1 %). Each sweep renders the start's images
+#: once more (10 sweeps of a 1,536-particle start: ~15,000 images, against ~200,000 in the fit)
+_START_SWEEPS = 10
 
 
 def _scan_depths(
@@ -190,7 +197,7 @@ def _scan_depths(
     drop = _stencil_drops(images, pos, amp, res, stencil)[:, : len(stencil)]
     moved = pos + stencil[np.argmax(drop, axis=1)]
     images.add_images(pos, amp, res, 1.0)
-    return moved, images.fit_intensity(moved, res, -1.0)
+    return moved, images.fit_intensity(moved, res, -1.0, _START_SWEEPS)
 
 
 def _polish(
