@@ -380,8 +380,9 @@ def _designs_where(table: pd.DataFrame, hit: pd.Series) -> list[str]:
 PER_CELL = "particles_per_cell"
 #: Above this many particles per lenslet and depth cell the seeding limits a particle fit: on the demo designs at
 #: 0.005 ppp IPR started from the true positions kept 91-97 % of the particles at 0.06-0.15 and 75 % at 0.30
-#: (benchmarks/bench_ipr_density.py); on the Table 4.3 camera (7 mm deep) IPR found 88-94 % at 0.001 ppp (0.02),
-#: 79-87 % at 0.005 ppp (0.10) and 56-64 % at 0.01 ppp (0.20).
+#: (benchmarks/bench_ipr_density.py, one intensity sweep, no residual rounds); with a warm start's joint intensities
+#: 87-96 % and 80.5 % (benchmarks/bench_ipr_depth_slope.py); on the Table 4.3 camera (7 mm deep) IPR found 88-94 % at
+#: 0.001 ppp (0.02), 79-87 % at 0.005 ppp (0.10) and 56-64 % at 0.01 ppp (0.20).
 DENSITY_LIMITED = 0.2
 
 

@@ -1,0 +1,156 @@
+"""Where IPR's depths go: one frame of a finished study refitted from other images or from the truth (issue 39).
+
+Reproduces: lfstudy/reconstruct/ipr/polish.py (``_START_SWEEPS``: what a warm start's joint intensities hold of the
+truth); lfstudy/study/designs.py (``DENSITY_LIMITED``: the share of the true particles a fit from the truth keeps).
+
+Reads a finished study (the README's first command writes ``results/demo``): frame a of one design, its true
+particles (``particles_a.zarr``), its recorded image (``raw_a.zarr``, the study's Monte-Carlo rays) and the design's
+calibrated lenslet centres. Fits it again with :func:`lfstudy.reconstruct.ipr.ipr_particles` (the config's
+settings, one thread) once per ``--runs`` entry ``IMAGES:START``:
+
+* ``IMAGES``: ``mc`` the study's own image; ``exact`` the exact renderer's expected image of the same particles
+  (the fit's own model, no noise: an inverse crime, the upper bound of what the images hold); ``noisy`` the exact
+  image with the case's photon shot noise (one photon per ray, as the Monte-Carlo image has) — ``noisy`` against
+  ``mc`` separates the photon noise from any difference between the two renderers;
+* ``START``: ``cold`` the fit as the study runs it (MART's candidates); ``truth`` a warm start at the true positions
+  (``start=``; its depth scan and joint intensities, then the usual iterations and residual rounds): what the fit
+  keeps of a correct answer.
+
+Printed per run: particles fitted, found and ghosts (the study's criterion, half a voxel per scaled axis), the
+least-squares slope and offset of the fitted z on the true z of the particles matched laterally (nearest true
+particle within half a lateral voxel, whatever its depth), the RMS of their depth error, the mean depth error in
+eight 0.5 mm bands from the grid's near end to its far end, the relative residual per iteration and the CPU time.
+
+    python benchmarks/bench_ipr_depth_slope.py [--results results/demo] [--config config/demo.yaml]
+        [--design mag~-0.8/fnum~matched/pitch~0.1184] [--runs mc:cold exact:cold noisy:truth ...] [--set k=v ...]
+
+Findings (run 2026-12-03 on 2 cores, loaded; the demo study of 08508ba, seed 7, frame a; M -0.8, pitch 0.1184 mm
+unless said; found / ghosts %, slope):
+
+* The depth compression is not the renderer and not the calibrated grid: ``mc:cold`` 28.6 / 64.3, slope 0.841;
+  ``exact:cold`` (no noise, the fit's own model) 31.2 / 63.7, slope 0.854. The calibrated centres sit on the true
+  lattice (pitch 16.0842 px against 16.0842 nominal). The residual of the cold exact fit stops at 0.14 of the image
+  (25 iterations instead of 10: 0.12, found 35.0 %): the fit does not find the noise-free answer it could hold.
+* From the truth (``truth`` starts, before the joint intensities; joint intensities through a script's patch of
+  ``_START_SWEEPS``, 20 sweeps, no depth scan): one intensity sweep left 0.36 of the exact image unexplained and the
+  shake then moved the true particles off (exact 77.5 / 14.2, ``mc`` 73.4 / 18.6); 20 sweeps left 0.008 (exact)
+  and the fit kept 89.8 / 4.1 (exact), 82.9 / 12.2 (``mc``), 82.0 / 12.5 (``noisy``). With the study's photon noise
+  the slope from the truth is 0.938 (``mc``) and 0.945 (``noisy``) against 0.979 without noise, the far bands
+  pulled 0.1 mm (0.4 voxel) towards focus: the noise, not the renderer, makes the rest of the compression.
+* ``truth`` with the product's warm start (depth scan, now 10 joint sweeps), ``mc`` images, before -> after c26159b,
+  found / ghosts: M -0.8 p 0.1184 65.3 / 27.2 -> 80.5 / 14.2; M -0.8 p 0.0888 80.9 / 15.3 -> 87.0 / 10.8;
+  M -1 p 0.1184 85.4 / 11.5 -> 92.9 / 5.2; M -1 p 0.0888 94.3 / 4.7 -> 96.2 / 3.4.
+* Tried on the cold fit of the coarsest design, no gain (found / ghosts): 10-20 joint sweeps for MART's candidates
+  30.5-32.6 / 63-65; a depth scan of every candidate over +-2 voxels 28.3 / 67.2 and over the whole slab (+-8)
+  25.8 / 70.3; a shake that moves a particle only where the residual drops by more than twice the patch's residual
+  variance 30.1 / 65.7 (from the truth it kept 87.2 / 7.2). The cold fit's shortfall on this design is its
+  candidates and the depth its images hold near focus (``bench_position_bound.py``: 0.4-1.8 z voxels there), not
+  its intensities or its moves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+_BAND_MM = 0.5
+
+
+def _setting(text: str) -> tuple[str, object]:
+    import yaml
+
+    k, v = text.split("=", 1)
+    return k, yaml.safe_load(v)
+
+
+def _score(truth, fit, grid) -> str:
+    from scipy.spatial import cKDTree
+
+    from lfstudy.study.particle_metrics import _match
+
+    vox = np.array(grid.voxel_size()[::-1])
+    t = np.column_stack([truth[k].values for k in "xyz"])
+    f = np.column_stack([fit[k].values for k in "xyz"])
+    ok, _, ghost = _match(t, f, vox)
+    dist, j = cKDTree(t[:, :2] / vox[:2]).query(f[:, :2] / vox[:2])
+    lat = dist < 0.5
+    zt, zf = t[j[lat], 2], f[lat, 2]
+    slope, off = np.polyfit(zt, zf, 1) if lat.sum() > 2 else (np.nan, np.nan)
+    z0, z1 = float(grid.z[0]), float(grid.z[-1])
+    edges = np.arange(z0, z1 + 1e-9, _BAND_MM)
+    band = np.digitize(zt, edges)
+    means = " ".join(
+        f"{np.mean(zf[band == b] - zt[band == b]):+.3f}" if (band == b).sum() > 3 else "  -   "
+        for b in range(1, len(edges))
+    )
+    return (
+        f"{len(f)} fitted; found {100 * ok.mean():.1f} %, ghosts {100 * ghost.mean():.1f} %; z on true z: slope "
+        f"{slope:.3f}, offset {off:+.4f} mm ({lat.sum()} matched laterally), rms {np.sqrt(np.mean((zf - zt) ** 2)):.4f}"
+        f" mm\n    mean z error per {_BAND_MM:g} mm band from z = {z0:g} mm: {means}"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", type=Path, default=ROOT / "results" / "demo", help="a finished study's results")
+    ap.add_argument("--config", type=Path, default=ROOT / "config" / "demo.yaml", help="its config")
+    ap.add_argument("--design", default="mag~-0.8/fnum~matched/pitch~0.1184", help="the design's path in results")
+    ap.add_argument("--ppp", default="0.005", help="the seeding level's path element (ppp~...)")
+    ap.add_argument("--runs", nargs="+", default=["mc:cold", "exact:cold", "mc:truth"], metavar="IMAGES:START")
+    ap.add_argument("--set", nargs="*", default=[], metavar="K=V", help="ipr_particles settings for every run")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+
+    import numba
+
+    from lfstudy import io
+    from lfstudy.lightfield import register
+    from lfstudy.reconstruct import ReconstructionInputs
+    from lfstudy.reconstruct.ipr import ipr_particles
+    from lfstudy.study import case as cl
+    from lfstudy.study.config import case_config, load_config
+
+    numba.set_num_threads(args.threads)
+    cfg = load_config(args.config)
+    flow = next(iter(cfg["flows"]))
+    ccfg = case_config(cfg, f"{args.design}/ppp~{args.ppp}/flow~{flow}")
+    cam = cl.case_camera(ccfg)
+    grid = cl.case_grid(ccfg, cam)
+    where = args.results / args.design / f"ppp~{args.ppp}"
+    parts = args.design.split("/")
+    centers = io.open_zarr(args.results / "calib" / parts[0] / parts[-1] / "centers.zarr").load()
+    truth = io.open_zarr(where / "particles_a.zarr").load()
+    kw = {k: v for k, v in dict(ccfg["reconstruct"].get("ipr", {})).items() if k != "blob_sigma"}
+    changed = dict(_setting(s) for s in args.set)
+    kw |= changed
+    n = truth.sizes["particle"]
+    print(f"{args.results} {args.design}, frame a: {n} true particles; the config's IPR settings, changed: {changed}")
+    for run in args.runs:
+        images, start = run.split(":")
+        if images == "mc":
+            raw = io.open_array(where / "raw_a.zarr").load()
+        elif images in ("exact", "noisy"):
+            c2 = copy.deepcopy(ccfg)
+            c2["raytrace"]["method"] = "exact"
+            c2["sensor"]["shot_noise"] = images == "noisy"
+            raw = cl.case_image(c2, truth, "a", illuminate=False)
+        else:
+            raise SystemExit(f"--runs {run!r}: IMAGES is mc, exact or noisy")
+        if start not in ("cold", "truth"):
+            raise SystemExit(f"--runs {run!r}: START is cold or truth")
+        inputs = ReconstructionInputs(lightfield=register(raw, centers, cam), centers=centers, camera=cam, grid=grid)
+        warm = np.column_stack([truth[k].values for k in "xyz"]) if start == "truth" else None
+        c0 = time.process_time()
+        fit = ipr_particles(inputs, start=warm, **kw)
+        cpu = time.process_time() - c0
+        res = ", ".join(f"{r:.3f}" for r in fit.attrs["residual_norm"])
+        print(f"  {run}: {_score(truth, fit, grid)}\n    residual {res}; CPU {cpu:.1f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
