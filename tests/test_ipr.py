@@ -689,7 +689,7 @@ def test_a_warm_start_fits_its_intensities_jointly():
     (intensities 0.5-1.5, exact images, no noise) one Gauss-Seidel sweep gives the first particle of each
     overlapping group its neighbours' light and leaves much of the image unexplained; the warm start's
     ``_START_SWEEPS`` sweeps converge towards the joint fit: the residual falls several-fold and the
-    intensities come close to the true ones. One sweep is what it was (the cold fit's candidates)."""
+    intensities come close to the true ones."""
     from lfstudy.reconstruct.ipr.patches import _FitImages
     from lfstudy.reconstruct.ipr.polish import _START_SWEEPS
 
