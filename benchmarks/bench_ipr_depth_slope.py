@@ -61,13 +61,6 @@ ROOT = Path(__file__).resolve().parents[1]
 _BAND_MM = 0.5
 
 
-def _setting(text: str) -> tuple[str, object]:
-    import yaml
-
-    k, v = text.split("=", 1)
-    return k, yaml.safe_load(v)
-
-
 def _score(truth, fit, grid) -> str:
     from scipy.spatial import cKDTree
 
@@ -102,11 +95,14 @@ def main() -> None:
     ap.add_argument("--design", default="mag~-0.8/fnum~matched/pitch~0.1184", help="the design's path in results")
     ap.add_argument("--ppp", default="0.005", help="the seeding level's path element (ppp~...)")
     ap.add_argument("--runs", nargs="+", default=["mc:cold", "exact:cold", "mc:truth"], metavar="IMAGES:START")
-    ap.add_argument("--set", nargs="*", default=[], metavar="K=V", help="ipr_particles settings for every run")
+    ap.add_argument(
+        "--set", nargs="*", default=[], metavar="K=V", help="ipr_particles settings for every run (K=V,K2=V2 too)"
+    )
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
 
     import numba
+    from bench_ipr import _setting
 
     from lfstudy import io
     from lfstudy.lightfield import register
@@ -126,7 +122,9 @@ def main() -> None:
     centers = io.open_zarr(args.results / "calib" / parts[0] / parts[-1] / "centers.zarr").load()
     truth = io.open_zarr(where / "particles_a.zarr").load()
     kw = {k: v for k, v in dict(ccfg["reconstruct"].get("ipr", {})).items() if k != "blob_sigma"}
-    changed = dict(_setting(s) for s in args.set)
+    changed: dict[str, object] = {}
+    for text in args.set:  # bench_ipr's parsing of ipr_particles keywords (k=v or k=v,k2=v2)
+        changed |= _setting(text)
     kw |= changed
     n = truth.sizes["particle"]
     print(f"{args.results} {args.design}, frame a: {n} true particles; the config's IPR settings, changed: {changed}")
