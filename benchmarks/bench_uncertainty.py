@@ -311,11 +311,15 @@ def _table(cfg: dict[str, Any], out: Path) -> None:
     print("z (on its own):")
     for line in zrows:
         print(line)
-    print("\nunresolved flag (percent flagged, hit of > 2σ, false of the flags < σ):")
+    print(
+        "\nunresolved flag over the full windows (percent flagged, hit of > 2σ, false of the flags < σ), and the "
+        "valid vectors of partial windows:"
+    )
     for c, e in rows:
         print(
             f"{names[c.case_id]:<{w}}  {float(e.get('unresolved_percent', np.nan)):5.1f} %  hit "
-            f"{float(e.get('unresolved_hit', np.nan)):.2f}  false {float(e.get('unresolved_false', np.nan)):.2f}"
+            f"{float(e.get('unresolved_hit', np.nan)):.2f}  false {float(e.get('unresolved_false', np.nan)):.2f}  "
+            f"partial {float(e.get('partial_percent', np.nan)):5.1f} %"
         )
     print("\nthe budget's filter term against the oracle (total RMS, mm):")
     for c, e in rows:

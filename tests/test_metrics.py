@@ -616,3 +616,24 @@ def test_unresolved_scores_hit_and_false_against_the_true_filter():
     # > 2σ: vectors 2, 3 (one flagged); flagged: 0, 2, 4, of which 0 is below σ (4 is between: either is fine)
     assert pct == pytest.approx(50.0) and hit == pytest.approx(0.5) and false == pytest.approx(1 / 3)
     assert math.isnan(unresolved_scores(np.zeros(6, bool), filt, sig, valid)[2])
+
+
+def test_partial_windows_are_counted_apart_from_the_unresolved_scores():
+    """A partial window (piv 'partial') measures its seeded part, not the box: partial_percent counts the valid
+    vectors of such windows, and the unresolved scores are over the full windows only."""
+    piv = synthetic_piv(4.5, 0.0, 0.0)
+    shape = piv["u"].shape
+    for c in "uvw":
+        piv[f"unc_{c}"] = (("z", "y", "x"), np.full(shape, 0.05))
+    partial = np.zeros(shape, bool)
+    partial[0] = True
+    flag = partial.copy()  # every partial window flagged (the product never does; the scores must not count them)
+    flag[1, 0, :3] = True
+    piv["partial"] = (("z", "y", "x"), partial)
+    piv["unresolved"] = (("z", "y", "x"), flag)
+    err = case_errors(piv, UniformFlow((0.5625, 0.0, 0.0)))
+    n_full = int((~partial).sum())
+    assert float(err["partial_percent"]) == pytest.approx(100.0 * partial.sum() / partial.size)
+    assert float(err["unresolved_percent"]) == pytest.approx(100.0 * 3 / n_full)
+    assert float(err["unresolved_false"]) == 1.0  # a uniform flow: no filtering, every flag false
+    assert math.isnan(float(case_errors(piv.drop_vars("partial"), UniformFlow((0.5625, 0, 0)))["partial_percent"]))

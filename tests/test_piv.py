@@ -590,8 +590,12 @@ def test_unresolved_flags_curvature_beyond_sigma_and_not_a_uniform_field():
     np.testing.assert_allclose(est[2], 4.0 / 24.0 * 0.2)  # (16/8)² / 24 × Δ²u
     assert np.all(est[:2] == 0)
     sig = np.full(field.shape, 0.02)
-    assert unresolved(field, sig, (8, 16, 16), (4, 8, 8)).all()  # 0.033 > 0.02
-    assert not unresolved(field, sig * 2, (8, 16, 16), (4, 8, 8)).any()  # 0.033 < 0.04
+    assert unresolved(field, sig, (8, 16, 16), (4, 8, 8), factor=1.0).all()  # 0.033 > 0.02
+    assert not unresolved(field, sig * 2, (8, 16, 16), (4, 8, 8), factor=1.0).any()  # 0.033 < 0.04
+    assert unresolved(field, sig * 2, (8, 16, 16), (4, 8, 8)).all()  # the default: 0.033 > 0.5 x 0.04
+    part = np.zeros(quad.shape, bool)
+    part[0] = True
+    assert not unresolved(field, sig, (8, 16, 16), (4, 8, 8), partial=part)[0].any()  # a partial window: never
     assert not unresolved(field, np.full(field.shape, np.nan), (8, 16, 16), (4, 8, 8)).any()  # no σ: no flag
     with pytest.raises(ValueError, match="factor"):
         unresolved(field, sig, (8, 16, 16), (4, 8, 8), factor=0.0)
@@ -601,3 +605,30 @@ def test_unresolved_flags_curvature_beyond_sigma_and_not_a_uniform_field():
     print("flagged", float(res["unresolved"].mean()))
     assert float(res["unresolved"].mean()) < 0.2  # a uniform shift
     assert "unresolved" not in widim(a, b, window=16, spacing=8, uncertainty=None)
+
+
+def test_partial_windows_are_the_ones_reaching_past_the_seeded_slab():
+    """A slab seeded in the middle planes of z: the windows that reach past its faces are partial (truth-free,
+    from the volumes' mean per plane), the others not; widim stores them and never flags them unresolved."""
+    from lfstudy.piv.engine import grid_nodes
+    from lfstudy.piv.resolution import partial_windows, seeded_planes
+
+    prof = np.zeros(40)
+    prof[10:30] = 1.0 + 0.1 * np.sin(np.arange(20))  # seeded planes 10-29, uneven
+    prof[9] = prof[30] = 0.3  # a blurred face: below half the level
+    np.testing.assert_array_equal(np.flatnonzero(seeded_planes(prof)), np.arange(10, 30))
+    assert seeded_planes(np.zeros(5)).all()  # no level: nothing to tell apart
+    nodes = [grid_nodes(40, 8, 4), grid_nodes(16, 8, 4)]
+    part = partial_windows([prof, np.ones(16)], nodes, (8, 8))
+    inside = [(n >= 10 - 1) & (n + 8 <= 30 + 1) for n in nodes[0]]  # at most 1 of 8 planes outside
+    np.testing.assert_array_equal(part[:, 0], ~np.array(inside))
+    assert (part == part[:, :1]).all()  # y is seeded throughout
+    with pytest.raises(ValueError, match="inside"):
+        partial_windows([prof, np.ones(16)], nodes, (8, 8), inside=0.0)
+    a, b = particle_pair((40, 32, 32), (0.3, 0.5, -0.4), density=0.02, seed=3)
+    a[:10], a[30:], b[:10], b[30:] = 0.0, 0.0, 0.0, 0.0
+    res = widim(a, b, window=8, spacing=4)
+    p = res["partial"].values
+    assert p.dtype == bool and p.any() and not p.all()
+    np.testing.assert_array_equal(p.any(axis=(1, 2)), p.all(axis=(1, 2)))  # whole z planes of windows
+    assert not (res["unresolved"].values & p).any()

@@ -901,6 +901,13 @@ def test_median_uncertainty_and_summary_without_sigma():
     ds["unc_w"] = (("z", "y", "x"), sigma[None])
     assert uncertainty_summary(ds) == "uncertainty: median σ of the 5 valid vectors of all pairs: w 0.25 voxel"
     assert float(pair_metrics(ds)["unc_median_w"]) == pytest.approx(0.25)
+    assert "partial_percent" not in pair_metrics(ds)  # no flags in the result: no figure
+    part = np.array([[True, False, False], [False, False, True]])
+    flag = np.array([[True, True, False], [True, False, False]])  # a partial window is never flagged by widim
+    ds = ds.assign(partial=(("z", "y", "x"), part[None]), unresolved=(("z", "y", "x"), flag[None]))
+    m = pair_metrics(ds)
+    assert float(m["partial_percent"]) == pytest.approx(40.0)  # 2 of the 5 valid vectors
+    assert float(m["unresolved_percent"]) == pytest.approx(100.0 / 3)  # of the 3 valid full windows: (0, 1)
 
 
 def test_empty_windows_are_counted_apart():
@@ -1082,3 +1089,8 @@ def test_uncertainty_maps_mark_the_unresolved_vectors():
     assert "red x: unresolved, 2 of 20 vectors" in fig._suptitle.get_text()
     assert len(fig.axes[0].collections) == 2  # the σ map and the crosses
     assert "red x" not in uncertainty_maps(piv.drop_vars("unresolved"))._suptitle.get_text()
+    part = np.zeros(shape, bool)
+    part[:, 3] = True  # the row y = 3 reaches past the seeded region: five windows on the slice
+    fig = uncertainty_maps(piv.assign(partial=(("z", "y", "x"), part)))
+    assert "grey dot: partial window, 5 of 20" in fig._suptitle.get_text()
+    assert len(fig.axes[0].collections) == 3  # the σ map, the crosses and the dots

@@ -39,7 +39,7 @@ from scipy import ndimage
 from tqdm.auto import tqdm
 
 from lfstudy.piv.deform import deform, dense_predictor, spline_coefficients
-from lfstudy.piv.resolution import unresolved
+from lfstudy.piv.resolution import partial_windows, unresolved
 from lfstudy.piv.subpixel import three_point
 from lfstudy.piv.uncertainty import METHODS as _UNC_METHODS
 from lfstudy.piv.uncertainty import window_uncertainty
@@ -99,6 +99,18 @@ def _count_nonfinite(inp: _Input) -> int:
         (n,) = dask.compute((~_dask_isfinite(inp.data)).sum())
         return int(n)
     return int(np.count_nonzero(~np.isfinite(inp.data)))
+
+
+def _plane_profiles(ia: _Input, ib: _Input) -> list[np.ndarray]:
+    """Per axis, the mean of both frames' intensity over each plane (one streaming pass where they are dask)."""
+    nd = ia.data.ndim
+    both = ia.data + ib.data
+    sums = [both.mean(axis=tuple(k for k in range(nd) if k != j)) for j in range(nd)]
+    if ia.is_dask or ib.is_dask:
+        import dask
+
+        sums = list(dask.compute(*sums))
+    return [np.asarray(p, dtype=np.float64) for p in sums]
 
 
 def _dask_isfinite(arr: Any) -> Any:
@@ -908,7 +920,9 @@ def widim(
         ``u, v[, w]`` (voxels), ``valid``, ``peak``, optional ``u_mm, v_mm[, w_mm]``,
         with ``uncertainty``: ``unc_u, unc_v[, unc_w]`` (voxels, NaN where the vector
         is invalid or replaced), ``unresolved`` (bool: the final window's filtering of
-        the measured field likely exceeds σ, :func:`lfstudy.piv.resolution.unresolved`)
+        the measured field likely exceeds σ, :func:`lfstudy.piv.resolution.unresolved`),
+        ``partial`` (bool: the final window lies partly outside the seeded region,
+        :func:`lfstudy.piv.resolution.partial_windows`; never ``unresolved``)
         and, with physical coordinates, ``unc_u_mm`` etc.,
         window-centre coordinates ``x, y[, z]`` (physical if available, else voxel
         index) and ``x_index, y_index[, z_index]``, and per-pass ``corrector_rms``,
@@ -1022,12 +1036,14 @@ def widim(
     bar.total = bar.n  # converged early: the bar ends full, at the passes actually run
     bar.refresh()
     bar.close()
-    flag = None
+    flag = partial = None
     if sigma is not None:  # a replaced vector has no uncertainty of its own
         sigma = np.where(valid, sigma, np.nan)
-        # truth-free: where the final window's filtering of the measured field likely exceeds σ (issue 38)
-        flag = unresolved(field, sigma, st.sizes[-1][0], st.sizes[-1][1])
-    ds = _to_dataset(field, valid, peak, centres, ia, shape, st, history, sigma, flag)
+        # truth-free: windows partly outside the seeded region, and where the final window's filtering of the
+        # measured field likely exceeds σ (issue 38)
+        partial = partial_windows(_plane_profiles(ia, ib), nodes, st.sizes[-1][0])
+        flag = unresolved(field, sigma, st.sizes[-1][0], st.sizes[-1][1], partial=partial)
+    ds = _to_dataset(field, valid, peak, centres, ia, shape, st, history, sigma, flag, partial)
     ds.attrs["uncertainty"] = uncertainty or "none"
     return ds
 
@@ -1057,6 +1073,7 @@ def _to_dataset(
     history: _History,
     sigma: np.ndarray | None = None,
     flag: np.ndarray | None = None,
+    partial: np.ndarray | None = None,
 ) -> xr.Dataset:
     nd = len(shape)
     dims = _DIMS3[-nd:]
@@ -1120,7 +1137,19 @@ def _to_dataset(
             flag.astype(bool),
             {
                 "long_name": "the final window's filtering likely exceeds the uncertainty (truth-free: the measured "
-                "field's curvature x L^2/24 above UNRESOLVED_FACTOR sigma in a component, lfstudy.piv.resolution)",
+                "field's curvature x L^2/24 above UNRESOLVED_FACTOR sigma in a component, lfstudy.piv.resolution; "
+                "never on a partial window)",
+                "units": "1",
+            },
+        )
+    if partial is not None:
+        data_vars["partial"] = (
+            dims,
+            partial.astype(bool),
+            {
+                "long_name": "the final window lies partly outside the seeded region (truth-free: less than "
+                "SEEDED_INSIDE of its length along an axis in the planes of at least half the seeded level, "
+                "lfstudy.piv.resolution): it measures its seeded part, not the box about its centre",
                 "units": "1",
             },
         )

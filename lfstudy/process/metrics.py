@@ -208,7 +208,10 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
         ``unc_<c>``), ``divergence_rms``, ``divergence_mean`` (valid vectors),
         ``divergence_norm`` (RMS divergence over √3 times the RMS of the
         full displacement gradient: 0 for a solenoidal field, 1 for a pure
-        isotropic expansion).
+        isotropic expansion); where the result holds the flags of
+        :mod:`lfstudy.piv.resolution`, ``partial_percent`` (valid vectors whose window
+        reaches past the seeded region) and ``unresolved_percent`` (valid vectors of full
+        windows flagged unresolved, of the valid full-window vectors).
     """
     valid = piv["valid"].values.astype(bool)
     ok = valid if valid.any() else np.zeros_like(valid)
@@ -249,6 +252,18 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
                     units,
                     f"median standard uncertainty of the {d} displacement (valid vectors)",
                 )
+    if "partial" in piv:
+        part = piv["partial"].values.astype(bool)
+        out["partial_percent"] = _scalar(
+            100.0 * float(part[ok].mean()) if ok.any() else np.nan, "percent", "valid vectors of partial windows"
+        )
+        if "unresolved" in piv:
+            full = ok & ~part
+            out["unresolved_percent"] = _scalar(
+                100.0 * float(piv["unresolved"].values.astype(bool)[full].mean()) if full.any() else np.nan,
+                "percent",
+                "valid full-window vectors flagged unresolved",
+            )
     try:
         div = divergence(piv, dt)
     except ValueError:

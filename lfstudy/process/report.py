@@ -170,7 +170,9 @@ def _pair_blocks(
                 "Standard uncertainty σ of each component per vector, middle x–y slice (colour scales over the "
                 "whole field); blank: invalid or replaced vector. Red crosses: vectors flagged unresolved, "
                 "where the measured field's curvature says the final window's averaging of the flow likely "
-                f"exceeds σ (σ covers the random error of what a window measures, not that averaging). "
+                "exceeds σ (σ covers the random error of what a window measures, not that averaging). Grey dots: "
+                "windows partly outside the seeded region (they measure their seeded part, not the box about "
+                "their centre; never flagged unresolved). "
                 f"{calibration_note(piv.attrs)}",
                 "uncertainty maps",
                 lambda one=one: rf.uncertainty_maps(one),

@@ -760,8 +760,9 @@ def uncertainty_maps(piv: xr.Dataset) -> Figure:
     """Maps of the per-vector standard uncertainty σ of u, v, w on the middle x–y slice, one colour
     scale per component (over the whole field, so the slice reads against every depth); blank: no σ
     (invalid or replaced vector). Vectors the PIV flags ``unresolved`` (the final window's filtering
-    of the flow likely exceeds σ, :mod:`lfstudy.piv.resolution`) carry a red cross. A measurement
-    without a known flow sees where it can trust its vectors.
+    of the flow likely exceeds σ, :mod:`lfstudy.piv.resolution`) carry a red cross, those of windows
+    partly outside the seeded region (``partial``) a grey dot. A measurement without a known flow sees
+    where it can trust its vectors.
 
     Raises
     ------
@@ -775,9 +776,11 @@ def uncertainty_maps(piv: xr.Dataset) -> Figure:
     axes = fig.subplots(1, len(comps), squeeze=False)[0]
     sel = {"z": piv.sizes["z"] // 2} if "z" in piv.dims else {}
     where = "".join(f" at {d} = {float(piv[d][i]):+.2f} mm" for d, i in sel.items())
-    flagged = None
+    flagged = partial = None
     if "unresolved" in piv:
         flagged = np.asarray(piv["unresolved"].isel(sel).transpose("y", "x").values, bool)
+    if "partial" in piv:
+        partial = np.asarray(piv["partial"].isel(sel).transpose("y", "x").values, bool)
     for a, (axn, c) in zip(axes, comps):
         sigma, unit = _sigma_of(piv, c)
         assert sigma is not None
@@ -792,11 +795,16 @@ def uncertainty_maps(piv: xr.Dataset) -> Figure:
         if flagged is not None and flagged.any():  # the truth-free flag: the window's filtering may exceed σ
             yy, xx = np.nonzero(flagged)
             a.scatter(piv["x"].values[xx], piv["y"].values[yy], marker="x", s=14, c="red", linewidths=0.8)
+        if partial is not None and partial.any():  # the window reaches past the seeded region
+            yy, xx = np.nonzero(partial)
+            a.scatter(piv["x"].values[xx], piv["y"].values[yy], marker=".", s=10, c="0.5")
         a.set_title(f"σ of {c} ({axn})", fontsize=9)
         a.set_xlabel("x [mm]")
         a.set_aspect("equal")
     axes[0].set_ylabel("y [mm]")
     flags = f"; red x: unresolved, {int(flagged.sum())} of {flagged.size} vectors" if flagged is not None else ""
+    if partial is not None and partial.any():
+        flags += f"; grey dot: partial window, {int(partial.sum())} of {partial.size}"
     fig.suptitle(f"Per-vector standard uncertainty{where} (blank: invalid or replaced vector{flags})")
     return fig
 

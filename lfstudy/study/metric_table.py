@@ -363,19 +363,26 @@ METRICS: tuple[Metric, ...] = (
                description="unc_ratio_{ax} with the error against the truth at the window centre (the window's "
                "filtering counted as error)"),
     Metric(
-        "unresolved_percent", "percent", "valid vectors flagged unresolved", None, (), "quality",
-        description="valid vectors the PIV flags 'unresolved' (piv.zarr: the window's filtering of the measured "
-        "field likely exceeds σ; truth-free, lfstudy.piv.resolution)",
+        "unresolved_percent", "percent", "full-window vectors flagged unresolved", None, (), "quality",
+        description="of the valid vectors whose window is not partial, the share the PIV flags 'unresolved' "
+        "(piv.zarr: the window's filtering of the measured field likely exceeds σ; truth-free, "
+        "lfstudy.piv.resolution)",
     ),
     Metric(
         "unresolved_hit", "1", "share of the true filter errors > 2σ flagged", False, (), "quality",
-        description="of the valid vectors whose true filtering (window-averaged − point truth) exceeds 2σ in any "
-        "component, the share flagged unresolved (1: the flag misses none); NaN where there are none",
+        description="of the valid full-window vectors whose true filtering (window-averaged − point truth) exceeds "
+        "2σ in any component, the share flagged unresolved (1: the flag misses none); NaN where there are none",
     ),
     Metric(
         "unresolved_false", "1", "share of the flags on true filter errors < σ", True, (), "quality",
-        description="of the valid vectors flagged unresolved, the share whose true filtering is below σ in every "
-        "component (0: no false flag); NaN where none is flagged",
+        description="of the valid full-window vectors flagged unresolved, the share whose true filtering is below σ "
+        "in every component (0: no false flag); NaN where none is flagged",
+    ),
+    Metric(
+        "partial_percent", "percent", "valid vectors of partial windows", None, (), "quality",
+        description="valid vectors whose final window lies partly outside the seeded region (piv.zarr 'partial': "
+        "truth-free, from the volumes' mean intensity per plane, lfstudy.piv.resolution.partial_windows); they "
+        "measure their seeded part, and the unresolved scores leave them out",
     ),
     Metric("true_mag_mm", "mm", "mean magnitude of the true displacement", None, (), "displacement"),
     Metric("n_vectors", "1", "number of PIV vectors", None, (), "count"),

@@ -300,7 +300,9 @@ def case_errors(
           shift of a uniform flow, NaN for any other;
         - ``unresolved_percent``, ``unresolved_hit``, ``unresolved_false``
           (:func:`unresolved_scores`): the PIV's truth-free ``unresolved`` flag against the
-          true filtering (NaN without the flag, σ or ``final_window``);
+          true filtering, over the valid vectors whose windows are not ``partial`` (NaN without
+          the flag, σ or ``final_window``); ``partial_percent``: valid vectors whose window lies
+          partly outside the seeded region (the PIV's ``partial``, NaN without it);
         - ``n_vectors``, ``n_valid``, ``valid_percent``.
 
         With no valid vector every statistic is NaN and ``valid_percent`` is 0
@@ -395,13 +397,20 @@ def case_errors(
     ft = math.sqrt(sum(float(out[f"filter_rms_{ax}_mm"]) ** 2 for ax in axes)) if n_valid else math.nan
     out["filter_rms_total_mm"] = _scalar(ft)
     scores = (math.nan,) * 3
+    partial = piv["partial"].transpose(*dims).values.astype(bool) if "partial" in piv else None
     if "unresolved" in piv and filt is not None:
         sig = {ax: _uncertainty_mm(piv, AXES[ax], dims, step_b[ax]) for ax in axes}
         if all(v is not None for v in sig.values()):
             flag = piv["unresolved"].transpose(*dims).values.astype(bool)
-            scores = unresolved_scores(flag, {ax: filt[ax] for ax in axes}, sig, fin)
+            # a partial window measures its seeded part, not the box the filter term averages over: the flag is
+            # judged on the full windows
+            full = fin & ~partial if partial is not None else fin
+            scores = unresolved_scores(flag, {ax: filt[ax] for ax in axes}, sig, full)
     for name, v in zip(("unresolved_percent", "unresolved_hit", "unresolved_false"), scores):
         out[name] = _scalar(v)
+    out["partial_percent"] = _scalar(
+        100.0 * float(np.count_nonzero(partial & fin)) / n_valid if partial is not None and n_valid else math.nan
+    )
     mag = np.sqrt(sum(np.broadcast_to(true_mm[ax], zeros.shape) ** 2 for ax in axes))
     true_mag = float(mag[fin].mean()) if n_valid else math.nan
     out["true_mag_mm"] = _scalar(true_mag)
