@@ -144,7 +144,11 @@ def test_study_runs_end_to_end(study_dir):
         assert float(sel["filter_rms_total_mm"]) == pytest.approx(0.0, abs=1e-12)
         assert float(sel["rest_rms_total_mm"]) == pytest.approx(oracle)
         assert float(sel["unc_coverage_x"]) == float(sel["unc_coverage_point_x"])  # window truth = point truth
-        assert 0.0 <= float(sel["unresolved_percent"]) <= 100.0
+        # the flag is scored on the full windows; here MART's intensity peaks at the focal plane of a 12-plane grid
+        # and both windows in z read as partial (lfstudy.piv.resolution.SEEDED_LEVEL): then there is no score
+        part, flagged = float(sel["partial_percent"]), float(sel["unresolved_percent"])
+        assert 0.0 <= part <= 100.0
+        assert (0.0 <= flagged <= 100.0) if part < 100.0 else np.isnan(flagged)
     assert (out / "study.csv").read_text().count("\n") == 1 + len(expand_cases(cfg))
     header = (out / "study.csv").read_text().splitlines()[0].split(",")
     assert {"oracle_rms_total_mm", "oracle_rms_z_mm", "recon_added_rms_total_mm", "crosstalk_z"} <= set(header)
