@@ -37,9 +37,9 @@ Findings (2026-12-03, 2 cores, the code of this file's commit; 1600 x 1200 px cr
 
 * **Partial windows.** The seeded slab is 7 mm deep and the grid's z planes of windows sit at -5.25 ... +6.75 mm:
   the planes at -5.25, -3.25, +2.75 and +4.75 mm reach past a face (0-69 % of their 4 mm inside), so 67 % of the
-  valid vectors are partial; the planes at -1.25 and +0.75 mm are full. Every false flag of the Hill oracle at
-  factor 1 before this (98-119 per case, false 0.49-0.63) lay on those face planes, and 96-107 of them had a real
-  error above 2σ: the face's curvature, not the filter's.
+  valid vectors are partial; the planes at -1.25 and +0.75 mm are full. Of the Hill oracle's false flags at
+  factor 1 before this (98-119 per case, false 0.49-0.63), all but 0-4 lay on those face planes, and 96-107 had a
+  real error above 2σ: the face's curvature, not the filter's.
 * **The flag on the full windows**, flagged % / hit / false. Without the 1-2-1 mean of the estimate, at factor
   0.5: Hill 0.001 72-73 % / 0.83-0.88 / 0.07-0.12, 0.005 73-78 % / 0.94 / 0.07-0.09; Lamb-Oseen 92-98 % /
   0.97-0.99 / 0.03-0.05; the uniform shift 11-23 % flagged (at 0.75 Hill's hit 0.69-0.82, at 1 0.50-0.69). With
