@@ -104,13 +104,13 @@ def _count_nonfinite(inp: _Input) -> int:
 def _plane_profiles(ia: _Input, ib: _Input) -> list[np.ndarray]:
     """Per axis, the mean of both frames' intensity over each plane (one streaming pass where they are dask)."""
     nd = ia.data.ndim
-    both = ia.data + ib.data
-    sums = [both.mean(axis=tuple(k for k in range(nd) if k != j)) for j in range(nd)]
+    # each frame reduced on its own: no volume-sized sum of the two is made
+    means = [d.mean(axis=tuple(k for k in range(nd) if k != j)) for j in range(nd) for d in (ia.data, ib.data)]
     if ia.is_dask or ib.is_dask:
         import dask
 
-        sums = list(dask.compute(*sums))
-    return [np.asarray(p, dtype=np.float64) for p in sums]
+        means = list(dask.compute(*means))
+    return [np.asarray(means[2 * j], np.float64) + np.asarray(means[2 * j + 1], np.float64) for j in range(nd)]
 
 
 def _dask_isfinite(arr: Any) -> Any:
@@ -1131,28 +1131,24 @@ def _to_dataset(
         valid.astype(bool),
         {"long_name": "passed the normalised median test at the final pass (not replaced)", "units": "1"},
     )
-    if flag is not None:
-        data_vars["unresolved"] = (
-            dims,
-            flag.astype(bool),
-            {
-                "long_name": "the final window's filtering likely exceeds the uncertainty (truth-free: the measured "
-                "field's curvature x L^2/24 above UNRESOLVED_FACTOR sigma in a component, lfstudy.piv.resolution; "
-                "never on a partial window)",
-                "units": "1",
-            },
-        )
-    if partial is not None:
-        data_vars["partial"] = (
-            dims,
-            partial.astype(bool),
-            {
-                "long_name": "the final window lies partly outside the seeded region (truth-free: less than "
-                "SEEDED_INSIDE of its length along an axis in the planes of at least half the seeded level, "
-                "lfstudy.piv.resolution): it measures its seeded part, not the box about its centre",
-                "units": "1",
-            },
-        )
+    flags = (
+        (
+            "unresolved",
+            flag,
+            "the final window's filtering likely exceeds the uncertainty (truth-free: the measured field's curvature "
+            "x L^2/24 above UNRESOLVED_FACTOR sigma in a component, lfstudy.piv.resolution; never on a partial window)",
+        ),
+        (
+            "partial",
+            partial,
+            "the final window lies partly outside the seeded region (truth-free: less than SEEDED_INSIDE of its "
+            "length along an axis in the planes of at least half the seeded level, lfstudy.piv.resolution): it "
+            "measures its seeded part, not the box about its centre",
+        ),
+    )
+    for name, values, long_name in flags:
+        if values is not None:
+            data_vars[name] = (dims, values.astype(bool), {"long_name": long_name, "units": "1"})
     data_vars["peak"] = (
         dims,
         peak,

@@ -28,8 +28,8 @@ range larger than the seeding) measures the displacement of its seeded part, not
 centre, and the face puts a curvature into the measured field that is not the flow's.
 :func:`partial_windows` marks such windows from the volumes alone: the planes of each axis whose mean
 intensity is at least half the profile's level, and those between them (:func:`seeded_planes`), are
-the seeded region, and a
-window with less than ``SEEDED_INSIDE`` (7/8) of its length inside along some axis is partial. They are
+the seeded region, and a window with less than ``SEEDED_INSIDE`` (7/8) of its length inside along some
+axis is partial. They are
 stored as ``partial`` and never flagged ``unresolved``; the study judges the flag on the full windows.
 The profile is the reconstruction's: MART's intensity also peaks at the focal plane, so on a grid hardly
 deeper than its windows every window can read as partial where the seeding fills it (the tiny test
@@ -58,12 +58,21 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.ndimage import convolve1d
 
-__all__ = ["filter_estimate", "unresolved", "seeded_planes", "partial_windows", "UNRESOLVED_FACTOR", "SEEDED_INSIDE"]
+__all__ = [
+    "filter_estimate",
+    "unresolved",
+    "seeded_planes",
+    "partial_windows",
+    "UNRESOLVED_FACTOR",
+    "SEEDED_INSIDE",
+    "SEEDED_LEVEL",
+]
 
-#: A vector is unresolved where its 1-2-1 mean of ``|filter_estimate|`` exceeds ``UNRESOLVED_FACTOR · σ`` in any
-#: component. The estimate reads 2-3x short where the window is as large as the flow's structure and the mean takes
-#: a little more of it, hence 0.3 (chosen on the thesis camera's oracles and reconstructions, 1.3-1.5x fewer flags
-#: on a uniform shift than half of σ without the mean: benchmarks/bench_unresolved.py).
+#: A vector is unresolved where the 1-2-1 mean of its ``filter_estimate`` exceeds ``UNRESOLVED_FACTOR · σ`` in
+#: absolute value in any component. The estimate reads 2-3x short where the window is as large as the flow's
+#: structure and the mean takes a little more of it, hence 0.3 (chosen on the thesis camera's oracles and
+#: reconstructions, 1.3-1.5x fewer flags on a uniform shift than half of σ without the mean:
+#: benchmarks/bench_unresolved.py).
 UNRESOLVED_FACTOR = 0.3
 #: The mean of the estimate over each vector and its neighbours along each grid axis (weights 1/4, 1/2, 1/4): a
 #: curvature of the flow is coherent over several vectors, the second differences of the vectors' random errors
