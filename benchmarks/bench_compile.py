@@ -28,6 +28,26 @@ commit                                          exact   patches  montecarlo  mar
 now: compiled once, called by both kernels      53.0    12.2     11.9        10.1  90.2
 ==============================================  ======  =======  ==========  ====  ==========
 
+Numba compiles a helper once per literal argument: ``_nodes`` took three copies (swap ``True`` / ``False``, the zone 2
+and an int), ``_nodes_vec``, ``_cut``, ``_u_partial``, ``_setup_axis`` and ``_axis_angles`` two each, and every copy
+was optimised again in each kernel that links it. The constants now pass through ``_flag`` / ``_index`` (run-time
+values) and each helper compiles once (2026-12-03, ``--threads 1``, the same md5s, two alternating runs each, the
+machine ~1.7x slower than in the table above; load 1 from the runs themselves):
+
+==============================================  ===========  =======  ==========  ===========  ===========
+commit                                          exact        patches  montecarlo  mart         child wall
+==============================================  ===========  =======  ==========  ===========  ===========
+e0e2e27: literal constants                      90.1 / 93.7  28.1 /   26.9 /      17.7 / 17.4  166.3 /
+                                                             28.0     28.4                     171.3
+now: one compile per helper                     66.2 / 75.8  21.2 /   26.8 /      16.7 / 16.4  134.4 /
+                                                             23.0     25.8                     144.7
+==============================================  ===========  =======  ==========  ===========  ===========
+
+IPR's patches compiled first (``--order patches``, its helpers then compile with it): 84.5 -> 59.7 s of CPU. The
+demo's ``warm`` job (``lfstudy.study.warm`` on its first case, cold cache, one thread): 151-178 s -> 137 s, its IPR
+part 124-148 -> 104 s. An image costs the same (``bench_particle_image.py``, fast images 0.267-0.280 against
+0.265-0.285 ms, the same values).
+
 In the cold suite of 2a95f55 the two kernels compiled in 125.6 and 101.1 s beside the other worker. The render and
 patch times are the same within the machine's noise (1500 particles, 600 x 600 px, best of 6: render 0.29-0.38 s,
 1500 patches with two trials 0.98-1.62 s, both commits).

@@ -251,6 +251,22 @@ __all__ = ["render_exact", "render_pinhole_exact", "exact_memory_estimate"]
 # array argument, a third of the kernel's time (perf, Table 4.3 camera); the result is bit-identical.
 _helper = njit(cache=True, _nrt=False)
 
+
+# The constants passed to the helpers go through these two, so that each helper is compiled once: numba
+# compiles a function once per literal argument (``_nodes`` with swap ``True`` and with ``False``, zone 2 and an int),
+# and on a fresh clone each copy costs its compile, and again in every kernel that links it.
+@_helper
+def _flag(v):  # pragma: no cover - jitted
+    """``v`` as a run-time ``bool`` (a comparison's result is never a literal)."""
+    return v != 0
+
+
+@_helper
+def _index(v):  # pragma: no cover - jitted
+    """``v`` as a run-time integer."""
+    return v + 0
+
+
 _PIECES = 16  # kernel calls per render (progress granularity; does not change the result)
 _K = 6.0  # Gaussian support cut-off in σ (tails beyond: Φ(−6) ≈ 1e-9)
 _KS = 4.5  # half-width of the σs-bands of the blurred square, in σs (dropped tail ∫ ≤ 8e-7·σs per unit length)
@@ -1166,13 +1182,13 @@ def _flush(bt, curx, cury, sc, work, cnt):  # pragma: no cover - jitted
     vec = sc[_S_SL] > 0.0 and (sc[_S_SM] > 0.0 or bt == 0)
     if bt < 2:
         if vec:
-            _nodes_vec(curx, cury, sc, False, work, bt, bt == 1, cnt)
+            _nodes_vec(curx, cury, sc, _flag(False), work, bt, bt == 1, cnt)
         else:
-            _nodes(curx, cury, sc, False, work, bt, _MID, bt == 1, cnt)
+            _nodes(curx, cury, sc, _flag(False), work, bt, _index(_MID), bt == 1, cnt)
     elif vec:
-        _nodes_vec(cury, curx, sc, True, work, bt, True, cnt)
+        _nodes_vec(cury, curx, sc, _flag(True), work, bt, _flag(True), cnt)
     else:
-        _nodes(cury, curx, sc, True, work, bt, _MID, True, cnt)
+        _nodes(cury, curx, sc, _flag(True), work, bt, _index(_MID), _flag(True), cnt)
     ncnt[bt] = 0
 
 
@@ -1293,7 +1309,7 @@ def _arc(curx, cury, sc, work, ia, cnt):  # pragma: no cover - jitted
         for _ in range(m):
             if ncnt[bt] + ng > cap:  # flush a full batch
                 if corner:
-                    _nodes(cury, curx, sc, True, work, bt, zy, True, cnt)
+                    _nodes(cury, curx, sc, _flag(True), work, bt, zy, _flag(True), cnt)
                     ncnt[bt] = 0
                 else:
                     _flush(bt, curx, cury, sc, work, cnt)
@@ -1318,7 +1334,7 @@ def _arc(curx, cury, sc, work, ia, cnt):  # pragma: no cover - jitted
         c0 = c1
         s0 = s1
     if corner and ncnt[bt] > 0:  # numeric antiderivatives carried along this piece: done now
-        _nodes(cury, curx, sc, True, work, bt, zy, True, cnt)
+        _nodes(cury, curx, sc, _flag(True), work, bt, zy, _flag(True), cnt)
         ncnt[bt] = 0
 
 
@@ -1374,7 +1390,7 @@ def _boundary(curx, nangx, cury, nangy, sc, work, cnt):  # pragma: no cover - ji
                 s0 = max(cy - h, ay[_A_LO] - by)
                 s1 = min(cy + h, ay[_A_HI] + by)
                 if s1 > s0:
-                    _cut(curx, cury, sc, False, work, v, s0, s1, sign)
+                    _cut(curx, cury, sc, _flag(False), work, v, s0, s1, sign)
     # The top edge of the blurred square inside the bands (y-antiderivative: V is full there).
     y0 = ay[_A_HI] + by
     if abs(y0 - cy) < rho:
@@ -1395,7 +1411,7 @@ def _boundary(curx, nangx, cury, nangy, sc, work, cnt):  # pragma: no cover - ji
             xl = max(b0, cx - hx)
             xr = min(b1, cx + hx)
             if xr > xl:
-                _cut(cury, curx, sc, True, work, y0, xl, xr, 1.0)
+                _cut(cury, curx, sc, _flag(True), work, y0, xl, xr, 1.0)
     # Carries: cells wholly below a node take their full share.
     for j in range(ny):
         acc = 0.0
@@ -1691,7 +1707,7 @@ def _lenslet_axes(geo, sc, li, lj, sa, sb, nsub, spot, curx, cury, tmp):  # prag
         return -1, 0, 0
     _axis_tables(ax, sc, lamx, fullx, tmp)
     _axis_tables(ay, sc, lamy, fully, tmp)
-    return 1, _axis_angles(ax, sc[_S_RHO], angx, True), _axis_angles(ay, sc[_S_RHO], angy, False)
+    return 1, _axis_angles(ax, sc[_S_RHO], angx, _flag(True)), _axis_angles(ay, sc[_S_RHO], angy, _flag(False))
 
 
 @njit(inline="always", cache=True)
@@ -1712,8 +1728,8 @@ def _rotated_axes(geo, sc, li, lj, spot, curx, cury, tmp):  # pragma: no cover -
     dx, dy = _scatter_offset(geo, li, lj)
     cx = gr * (cr * gcx - sr * gcy + geo[_G_OX] + dx) + heff * t0x + shx
     cy = gr * (sr * gcx + cr * gcy + geo[_G_OY] + dy) + heff * t0y + shy
-    _setup_axis(ax, sc, cx, g0x, u1, u1 + pl, False, False, 0.0, -geo[_G_HW])
-    _setup_axis(ay, sc, cy, g0y, v1, v1 + pl, False, False, 0.0, -geo[_G_HH])
+    _setup_axis(ax, sc, cx, g0x, u1, u1 + pl, _flag(False), _flag(False), 0.0, -geo[_G_HW])
+    _setup_axis(ay, sc, cy, g0y, v1, v1 + pl, _flag(False), _flag(False), 0.0, -geo[_G_HH])
     if ax[_A_N] > lamx.shape[0] or ay[_A_N] > lamy.shape[0]:
         return False
     _axis_tables(ax, sc, lamx, fullx, tmp)
@@ -1840,8 +1856,8 @@ def _render_particle(geo, rotated, x, y, z, w, scr, chunk, cnt):  # pragma: no c
         cnt[_ST_BIG] += 1.0
         return
     fac0 = w / (math.pi * sc[_S_RHO] * sc[_S_RHO])  # uniform over the aperture image
-    _axis_pass(geo, sc, spot, True, j0, j1, perlens, curx, cols, tmp, cnt)
-    _axis_pass(geo, sc, spot, False, i0, i1, perlens, cury, rows, tmp, cnt)
+    _axis_pass(geo, sc, spot, _flag(True), j0, j1, perlens, curx, cols, tmp, cnt)
+    _axis_pass(geo, sc, spot, _flag(False), i0, i1, perlens, cury, rows, tmp, cnt)
     facx = cols[5]
     facy = rows[5]
     pl = geo[_G_PL]
