@@ -105,7 +105,8 @@ def _sums(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover - com
                         s[o + 2] += dc
                         s[o + 3] += dc * dc
                         s[o + 4] += 1.0
-        out[w] = s
+        for q in range(18):  # element by element: a slice assignment compiles numba's shape check and its message
+            out[w, q] = s[q]
     return out
 
 
@@ -117,8 +118,15 @@ def _dc_factor(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:  # pra
     n, nz, ny, nx = a.shape
     out = np.ones((n, 3))
     for w in numba.prange(n):
-        ma = a[w].mean()
-        mb = b[w].mean()
+        ma = 0.0  # float64 sums of the float32 windows, as _sums (array.mean() summed in float32)
+        mb = 0.0
+        for i in range(nz):
+            for j in range(ny):
+                for q in range(nx):
+                    ma += a[w, i, j, q]
+                    mb += b[w, i, j, q]
+        ma /= nz * ny * nx
+        mb /= nz * ny * nx
         for k in range(3):
             ez = 1 if k == 0 else 0
             ey = 1 if k == 1 else 0
@@ -135,8 +143,20 @@ def _dc_factor(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:  # pra
                         a1 = a[w, i + ez, j + ey, q + ex] - ma
                         b1 = b[w, i + ez, j + ey, q + ex] - mb
                         d[i, j, q] = a0 * b1 - a1 * b0
-            d -= d.mean()
-            v0 = (d * d).sum() / d.size
+            # explicit loops, not array expressions: inside the prange each would compile as a parfor of its own
+            dm = 0.0
+            for i in range(mz):
+                for j in range(my):
+                    for q in range(mx):
+                        dm += d[i, j, q]
+            dm /= d.size
+            v0 = 0.0
+            for i in range(mz):
+                for j in range(my):
+                    for q in range(mx):
+                        d[i, j, q] -= dm
+                        v0 += d[i, j, q] * d[i, j, q]
+            v0 /= d.size
             if v0 <= 0.0:
                 continue
             # every lag of every axis in one sweep over the field (the counts are the overlaps' sizes)
