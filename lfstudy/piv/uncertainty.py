@@ -56,21 +56,27 @@ METHODS = ("correlation", "moment", "independent")
 _MAX_LAG = 4
 
 
+@numba.njit(cache=True)
+def _window_means(a: np.ndarray, b: np.ndarray, w: int) -> tuple[float, float]:  # pragma: no cover - compiled
+    """Means of window ``w`` of ``a`` and of ``b`` (n, Z, Y, X), summed in float64 (the windows are float32)."""
+    _, nz, ny, nx = a.shape
+    ma = 0.0
+    mb = 0.0
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                ma += a[w, i, j, k]
+                mb += b[w, i, j, k]
+    return ma / (nz * ny * nx), mb / (nz * ny * nx)
+
+
 @numba.njit(parallel=True, cache=True)
 def _sums(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Per window (n, Z, Y, X): [Σa², Σb², C0, then per axis (C+, C-, ΣΔC, ΣΔC², count)]."""
     n, nz, ny, nx = a.shape
     out = np.zeros((n, 18))
     for w in numba.prange(n):
-        ma = 0.0
-        mb = 0.0
-        for i in range(nz):
-            for j in range(ny):
-                for k in range(nx):
-                    ma += a[w, i, j, k]
-                    mb += b[w, i, j, k]
-        ma /= nz * ny * nx
-        mb /= nz * ny * nx
+        ma, mb = _window_means(a, b, w)
         s = np.zeros(18)
         for i in range(nz):
             for j in range(ny):
@@ -118,15 +124,7 @@ def _dc_factor(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:  # pra
     n, nz, ny, nx = a.shape
     out = np.ones((n, 3))
     for w in numba.prange(n):
-        ma = 0.0  # float64 sums of the float32 windows, as _sums (array.mean() summed in float32)
-        mb = 0.0
-        for i in range(nz):
-            for j in range(ny):
-                for q in range(nx):
-                    ma += a[w, i, j, q]
-                    mb += b[w, i, j, q]
-        ma /= nz * ny * nx
-        mb /= nz * ny * nx
+        ma, mb = _window_means(a, b, w)
         for k in range(3):
             ez = 1 if k == 0 else 0
             ey = 1 if k == 1 else 0
