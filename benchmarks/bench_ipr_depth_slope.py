@@ -48,7 +48,14 @@ unless said; found / ghosts %, slope):
   all 18.1, 33.3, 14.2, 11.8, residual 0.136. The same images hold half the cold fit's depth error away from focus
   (the single-particle bound there: 5.8 um median, ``bench_position_bound.py``): the cold fit stops in a worse
   minimum (its ghosts carry the light of the particles it missed), and that scatter is the w error of the study's
-  lateral shift (0.0155 mm on this design against an oracle of 0.0011).
+  lateral shift (0.0155 mm on this design against an oracle of 0.0011). Which of its errors holds the fit there:
+  warm starts (``ipr_particles(start=...)``, a script's, same images and settings) from the stored cold fit
+  (222 ghosts, 317 true particles missed) gave, found / ghosts %, z RMS all / >= 1 mm [um], residual: restarted as
+  it is 81.8 / 14.8, 31.6 / 21.3, 0.152; without its ghosts (an oracle's removal) 84.8 / 11.7, 31.8 / 21.6, 0.153;
+  with the missed particles added (an oracle's) 88.9 / 12.0, 29.3 / 18.9, 0.138. The missing particles, whose
+  light the neighbours take, hold the depths off more than the ghosts do; a second pass of the fit from its own
+  answer (the warm start's depth scan and joint intensities, then the iterations and rounds again) takes a fifth
+  off the far particles' depth error for a second fit's CPU (66.6 s against 70.3).
 * Tried on the cold fit of the coarsest design, no gain (found / ghosts): 10-20 joint sweeps for MART's candidates
   30.5-32.6 / 63-65; a depth scan of every candidate over +-2 voxels 28.3 / 67.2 and over the whole slab (+-8)
   25.8 / 70.3; a shake that moves a particle only where the residual drops by more than twice the patch's residual
