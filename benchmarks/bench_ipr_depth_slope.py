@@ -85,17 +85,15 @@ def _score(truth, fit, grid) -> str:
     vox = np.array(grid.voxel_size()[::-1])
     t = np.column_stack([truth[k].values for k in "xyz"])
     f = np.column_stack([fit[k].values for k in "xyz"])
-    ok, _, ghost = _match(t, f, vox)
+    ok, nearest, ghost = _match(t, f, vox)
     # the depth error of the found particles (their nearest fit, within half a voxel), by distance from focus
-    _, nearest = cKDTree(f / vox).query(t[ok] / vox)
-    ez, zf_true = f[nearest, 2] - t[ok, 2], np.abs(t[ok, 2])
-    bands = ((0.0, 0.4), (0.4, 1.0), (1.0, np.inf))
-    found_rms = " ".join(
-        f"|z| {lo:g}-{hi:g} mm {1e3 * np.sqrt(np.mean(ez[(zf_true >= lo) & (zf_true < hi)] ** 2)):.1f}"
-        if ((zf_true >= lo) & (zf_true < hi)).sum() > 3
-        else f"|z| {lo:g}-{hi:g} mm -"
-        for lo, hi in bands
-    )
+    ez, depth = f[nearest[ok], 2] - t[ok, 2], np.abs(t[ok, 2])
+    found_rms = []
+    for lo, hi in ((0.0, 0.4), (0.4, 1.0), (1.0, np.inf)):
+        inside = (depth >= lo) & (depth < hi)
+        found_rms.append(
+            f"|z| {lo:g}-{hi:g} mm " + (f"{1e3 * np.sqrt(np.mean(ez[inside] ** 2)):.1f}" if inside.sum() > 3 else "-")
+        )
     dist, j = cKDTree(t[:, :2] / vox[:2]).query(f[:, :2] / vox[:2])
     lat = dist < 0.5
     zt, zf = t[j[lat], 2], f[lat, 2]
@@ -111,7 +109,8 @@ def _score(truth, fit, grid) -> str:
         f"{len(f)} fitted; found {100 * ok.mean():.1f} %, ghosts {100 * ghost.mean():.1f} %; z on true z: slope "
         f"{slope:.3f}, offset {off:+.4f} mm ({lat.sum()} matched laterally), rms {np.sqrt(np.mean((zf - zt) ** 2)):.4f}"
         f" mm\n    mean z error per {_BAND_MM:g} mm band from z = {z0:g} mm: {means}"
-        f"\n    z error of the found particles, RMS [um]: all {1e3 * np.sqrt(np.mean(ez**2)):.1f}; {found_rms}"
+        f"\n    z error of the found particles, RMS [um]: all {1e3 * np.sqrt(np.mean(ez**2)):.1f}; "
+        + " ".join(found_rms)
     )
 
 

@@ -102,7 +102,8 @@ def _count_nonfinite(inp: _Input) -> int:
 
 
 def _plane_profiles(ia: _Input, ib: _Input) -> list[np.ndarray]:
-    """Per axis, the mean of both frames' intensity over each plane (one streaming pass where they are dask)."""
+    """Per axis, the sum of the two frames' mean intensities over each plane (one streaming pass where they are
+    dask; :func:`lfstudy.piv.resolution.seeded_planes` reads it relative to its own level, so the scale is free)."""
     nd = ia.data.ndim
     # each frame reduced on its own: no volume-sized sum of the two is made
     means = [d.mean(axis=tuple(k for k in range(nd) if k != j)) for j in range(nd) for d in (ia.data, ib.data)]
@@ -110,7 +111,7 @@ def _plane_profiles(ia: _Input, ib: _Input) -> list[np.ndarray]:
         import dask
 
         means = list(dask.compute(*means))
-    return [np.asarray(means[2 * j], np.float64) + np.asarray(means[2 * j + 1], np.float64) for j in range(nd)]
+    return [np.asarray(ma, np.float64) + np.asarray(mb, np.float64) for ma, mb in zip(means[::2], means[1::2])]
 
 
 def _dask_isfinite(arr: Any) -> Any:

@@ -29,8 +29,8 @@ centre, and the face puts a curvature into the measured field that is not the fl
 :func:`partial_windows` marks such windows from the volumes alone: the planes of each axis whose mean
 intensity is at least half the profile's level, and those between them (:func:`seeded_planes`), are
 the seeded region, and a window with less than ``SEEDED_INSIDE`` (7/8) of its length inside along some
-axis is partial. They are
-stored as ``partial`` and never flagged ``unresolved``; the study judges the flag on the full windows.
+axis is partial. They are stored as ``partial`` and never flagged ``unresolved``; the study judges the
+flag on the full windows.
 The profile is the reconstruction's: MART's intensity also peaks at the focal plane, so on a grid hardly
 deeper than its windows every window can read as partial where the seeding fills it (the tiny test
 camera's two windows in z; ``SEEDED_LEVEL``).
