@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from lfstudy.piv.ptv import bin_tracks, match_particles, predict, validate_tracks
+from lfstudy.piv.ptv import bin_tracks, depth_weights, match_particles, predict, validate_tracks
 from lfstudy.simulate.flows import HillVortex
 
 VOXEL = np.array([0.0888, 0.0888, 0.25])  # x, y, z [mm]: the demo design's reconstruction grid
@@ -508,3 +508,98 @@ def test_an_ipr_case_without_depth_calibration_pairs_its_particles_unless_told_o
         cfg["sweep"] = {"ppp": [0.004], "reconstruct.method": ["ipr"], "depth_calibration.enabled": [False]}
         sweep = Sweep(cfg)
         assert [sweep.apply(c)["piv"]["particles"] for c in sweep.cases()] == [explicit]
+
+
+def _tracks_of(xyz: np.ndarray, d: np.ndarray) -> xr.Dataset:
+    """Tracks at midpoints ``xyz`` (n, 3) [mm] with displacements ``d`` (n, 3) [mm]."""
+    names = ("x", "y", "z", "u_mm", "v_mm", "w_mm")
+    return xr.Dataset({k: ("track", v) for k, v in zip(names, [*xyz.T, *d.T])})
+
+
+def test_depth_weights_follow_the_tracks_scatter_by_distance_from_focus():
+    """Tracks within 0.5 mm of the focal plane (z = 0) scatter 4x more in w than the rest: their weight, the best
+    band's variance over theirs, is about 1/16 (the u, v scatter is the same everywhere and adds a little), the
+    far tracks' about 1; the bands' scatter is reported."""
+    rng = np.random.default_rng(3)
+    n = 1200
+    xyz = rng.uniform([0.0, 0.0, -2.0], [3.5, 3.5, 2.0], (n, 3))
+    near = np.abs(xyz[:, 2]) < 0.5
+    sd = np.column_stack([np.full(n, 0.002), np.full(n, 0.002), np.where(near, 0.04, 0.01)])
+    d = np.array([0.1, 0.0, 0.0]) + rng.normal(size=(n, 3)) * sd
+    w, info = depth_weights(_tracks_of(xyz, d), voxel=VOXEL)
+    assert len(info["depth_mm"]) == len(info["sd_mm"]) == 6
+    expected = (0.01**2 + 2 * 0.002**2) / (0.04**2 + 2 * 0.002**2)
+    assert np.median(w[np.abs(xyz[:, 2]) < 0.2]) == pytest.approx(expected, rel=0.5)
+    assert np.median(w[np.abs(xyz[:, 2]) > 1.0]) > 0.8
+    assert info["sd_mm"][0] > 3 * info["sd_mm"][-1]  # the band nearest focus scatters most
+    assert np.all((w > 0) & (w <= 1))
+
+
+def test_depth_weights_under_a_gradient_with_the_same_scatter_everywhere_stay_near_one():
+    """A linear shear (u grows with z, 0.03 mm per mm) with the same noise at every depth: inside the volume the
+    neighbours' median takes the flow's variation and the bands weigh about alike; at its edges (the far bands)
+    the neighbours lie to one side, the shear adds to the scatter and weighs them down, but not away (measured
+    0.42 at the edge, 0.7-1 inside, where the noise of the bands' estimates alone gives 0.71-1)."""
+    rng = np.random.default_rng(4)
+    n = 1200
+    xyz = rng.uniform([0.0, 0.0, -2.0], [3.5, 3.5, 2.0], (n, 3))
+    d = np.column_stack([0.1 + 0.03 * xyz[:, 2], np.zeros(n), np.zeros(n)]) + rng.normal(size=(n, 3)) * 0.005
+    w, _ = depth_weights(_tracks_of(xyz, d), voxel=VOXEL)
+    assert np.median(w[np.abs(xyz[:, 2]) < 1.5]) > 0.7 and w.min() > 0.3
+
+
+def test_depth_weights_without_enough_tracks_or_noise_are_one():
+    """Fewer tracks than two bands' worth, or tracks that agree exactly with their neighbours: every weight 1 (no
+    band to compare, nothing to weigh); a median of fewer than 3 neighbours is refused."""
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform([0.0, 0.0, -2.0], [3.5, 3.5, 2.0], (79, 3))
+    d = rng.normal(size=(79, 3)) * 0.01
+    w, info = depth_weights(_tracks_of(xyz, d), voxel=VOXEL)  # 79 tracks: one band of 40
+    assert np.all(w == 1.0) and info == {"depth_mm": [], "sd_mm": []}
+    xyz = rng.uniform([0.0, 0.0, -2.0], [3.5, 3.5, 2.0], (400, 3))
+    w, _ = depth_weights(_tracks_of(xyz, np.tile([0.1, 0.0, 0.0], (400, 1))), voxel=VOXEL)
+    assert np.all(w == 1.0)
+    with pytest.raises(ValueError, match="neighbours = 2"):
+        depth_weights(_tracks_of(xyz, d[:1].repeat(400, axis=0)), voxel=VOXEL, neighbours=2)
+
+
+def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
+    """piv.paired_weights: the particles in the first quarter of the depth read their depth with 0.3 voxel of
+    scatter in each frame (as near the focal plane), the rest with 0.02; the fit's sigma_z does not say so.
+    Weighted by depth (the default) WIDIM's w on the paired particles errs less than with every track alike, and
+    the result names the weights and the bands' scatter."""
+    from lfstudy import io
+    from lfstudy import workflow as wf
+
+    rng = np.random.default_rng(12)
+    coords, true = _scene(rng, 600)
+    shift = np.array([1.3, -0.7, 0.0]) * VOXEL
+    blind = true[:, 2] < 1.5
+    paths = {}
+    for f, pts in (("a", true), ("b", true + shift)):
+        fit = pts + rng.normal(size=pts.shape) * VOXEL * 0.02
+        fit[blind, 2] += rng.normal(size=int(blind.sum())) * 0.3 * VOXEL[2]
+        vol = _blobs(fit, coords).assign_attrs(blob_sigma_mm=list(0.8 * VOXEL[::-1]))
+        io.write_zarr(vol, tmp_path / f"volume_{f}.zarr", name="intensity")
+        lists = xr.Dataset({k: ("particle", fit[:, i]) for i, k in enumerate("xyz")})
+        lists = lists.assign(intensity=("particle", np.ones(len(fit))), sigma_z=("particle", np.full(len(fit), 1e-3)))
+        io.write_zarr(lists, tmp_path / f"p_{f}.zarr")
+        paths[f] = str(tmp_path / f"p_{f}.zarr")
+    # windows the volume's whole depth deep: each holds particles of both kinds, and the weights choose among them
+    piv = {"window": [16, 16, 16], "spacing": [8, 8, 8], "levels": 1, "mode": "offset", "subpixel": "auto"}
+    piv |= {"predictor_filter": 1.0, "uncertainty": "none", "particles": "paired", "ptv_search": 1.5}
+    va, vb = tmp_path / "volume_a.zarr", tmp_path / "volume_b.zarr"
+    w_rms = {}
+    for label, extra in (("default", {}), ("none", {"paired_weights": "none"})):
+        out = tmp_path / f"piv_{label}.zarr"
+        wf.run_piv({"stage_id": "t", "piv": piv | extra}, va, vb, out, "", paths["a"], paths["b"])
+        res = io.open_zarr(out).load()
+        ok = res.valid.values & res.piv_valid.values
+        assert ok.mean() > 0.9
+        w_rms[label] = float(np.sqrt(np.mean(res.w_mm.values[ok] ** 2)))
+        assert res.attrs["paired_weights"] == ("depth" if label == "default" else "none")
+    assert len(res.attrs["paired_weight_sd_mm"]) == 0 and res.attrs["paired_weight_min"] == 1.0
+    assert w_rms["default"] < 0.75 * w_rms["none"]
+    with pytest.raises(ValueError, match=r"piv\.paired_weights = 'inverse'"):
+        wf.run_piv({"stage_id": "t", "piv": piv | {"paired_weights": "inverse"}}, va, vb, tmp_path / "x.zarr", "",
+                   paths["a"], paths["b"])  # fmt: skip

@@ -635,10 +635,17 @@ def case_paired_piv(
     plane a particle's image hardly changes with depth (:mod:`lfstudy.reconstruct.ipr.bound`), so its depth
     error, independent in the two frames, would go into w.
 
+    With ``piv.paired_weights`` ``depth`` (the default) each track weighs in the correlation by the inverse of
+    the tracks' own displacement variance at its distance from the focal plane
+    (:func:`lfstudy.piv.ptv.depth_weights`): each of its two particles is rendered with the root of that weight
+    times its intensity. The fit's ``sigma_z`` misses most of the depth error near focus (the fit's choice of
+    minimum, not the minimum's width), which the tracks' scatter shows.
+
     Parameters
     ----------
     ccfg : Mapping
-        The case's config (its ``piv`` section: the WIDIM settings, ``ptv_search`` and ``paired_max_sigma_z``).
+        The case's config (its ``piv`` section: the WIDIM settings, ``ptv_search``, ``paired_max_sigma_z`` and
+        ``paired_weights``).
     piv : xarray.Dataset
         WIDIM between the reconstructed volumes (:func:`case_piv`): the predictor of the pairing.
     a, b : xarray.DataArray
@@ -657,10 +664,13 @@ def case_paired_piv(
         ``paired_particles_a``, ``paired_particles_b`` (the fitted lists' sizes), ``paired_max_sigma_z_mm``
         and ``paired_depth_unknown_a``, ``paired_depth_unknown_b`` (the particles it left out),
         ``paired_rejected`` (tracks the median test dropped), ``particle_sigma_mm`` (σ z, y, x of the paired
-        volumes' particles) and ``paired_seconds`` (pairing and rendering).
+        volumes' particles), ``paired_weights`` and the weights' bands (``paired_weight_depth_mm``: their median
+        |z|; ``paired_weight_sd_mm``: the tracks' displacement scatter there; ``paired_weight_min``: the least
+        weight) and ``paired_seconds`` (pairing and rendering).
     """
     import time
 
+    from lfstudy.piv.ptv import PAIRED_WEIGHTS, depth_weights
     from lfstudy.reconstruct.truth import render_truth
 
     if a.attrs.get("blob_sigma_mm") is None:
@@ -675,9 +685,21 @@ def case_paired_piv(
     particles_a, particles_b = (_depth_known(p, limit) for p in (particles_a, particles_b))
     tracks = _tracks(ccfg, piv, particles_a, particles_b, voxel)
     coords = {d: a[d].values for d in ("z", "y", "x")}
+    weighting = str(ccfg["piv"].get("paired_weights", PAIRED_WEIGHTS[0]))
+    if weighting not in PAIRED_WEIGHTS:
+        raise ValueError(f"piv.paired_weights = {weighting!r}; allowed values are {PAIRED_WEIGHTS}")
+    weights, bands = (
+        depth_weights(tracks, voxel=tracks.attrs["voxel_mm"])
+        if weighting == "depth"
+        else (np.ones(tracks.sizes["track"]), {"depth_mm": [], "sd_mm": []})
+    )
+    # a correlation weighs a pair by the product of its two images: each image gets the root of the track's weight
+    scale = np.sqrt(weights)
 
     def paired(vol: xr.DataArray, parts: xr.Dataset, rows: np.ndarray) -> xr.DataArray:
-        data = render_truth(coords, parts.isel(particle=rows), sigma_mm=sig)
+        sel = parts.isel(particle=rows)
+        amp = sel["intensity"].values if "intensity" in sel else np.ones(len(rows))
+        data = render_truth(coords, sel.assign(intensity=("particle", amp * scale)), sigma_mm=sig)
         return vol.copy(data=data.astype(vol.dtype)).assign_attrs(blob_sigma_mm=list(sig))
 
     va = paired(a, particles_a, tracks.index_a.values)
@@ -697,6 +719,10 @@ def case_paired_piv(
         paired_depth_unknown_a=n_a - int(particles_a.sizes["particle"]),
         paired_depth_unknown_b=n_b - int(particles_b.sizes["particle"]),
         paired_rejected=int(tracks.attrs["n_rejected"]),
+        paired_weights=weighting,
+        paired_weight_depth_mm=bands["depth_mm"],
+        paired_weight_sd_mm=bands["sd_mm"],
+        paired_weight_min=float(weights.min()) if len(weights) else 1.0,
         paired_seconds=seconds,
     )
     return res
