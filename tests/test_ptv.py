@@ -445,13 +445,44 @@ def test_paired_piv_drops_particles_fitted_in_one_frame_only(tmp_path):
         wf.run_piv(ccfg, va, vb, tmp_path / "p2.zarr", str(tmp_path / "depth.zarr"), paths["a"], paths["b"])
 
 
+#: WIDIM settings of the paired-PIV tests, less the window and its spacing
+_PAIRED = {"levels": 1, "mode": "offset", "subpixel": "auto", "predictor_filter": 1.0, "uncertainty": "none"}
+_PAIRED |= {"particles": "paired", "ptv_search": 1.5}
+
+
+def _write_fitted_frame(tmp_path, f: str, fit: np.ndarray, coords: dict, sigma_z: np.ndarray) -> str:
+    """Frame ``f``'s volume of the fitted particles ``fit`` (``volume_<f>.zarr``) and their list with depth
+    uncertainties ``sigma_z`` [mm] (``p_<f>.zarr``, whose path is returned), as the reconstruct stage writes them."""
+    from lfstudy import io
+
+    vol = _blobs(fit, coords).assign_attrs(blob_sigma_mm=list(0.8 * VOXEL[::-1]))
+    io.write_zarr(vol, tmp_path / f"volume_{f}.zarr", name="intensity")
+    lists = xr.Dataset({k: ("particle", fit[:, i]) for i, k in enumerate("xyz")})
+    lists = lists.assign(intensity=("particle", np.ones(len(fit))), sigma_z=("particle", sigma_z))
+    io.write_zarr(lists, tmp_path / f"p_{f}.zarr")
+    return str(tmp_path / f"p_{f}.zarr")
+
+
+def _paired_w_rms(tmp_path, piv: dict, label: str, paths: dict) -> tuple[xr.Dataset, float]:
+    """The piv stage on the frames :func:`_write_fitted_frame` wrote (``piv_<label>.zarr``): its result and the RMS
+    of w over the vectors valid in both WIDIMs (over 90 % of them)."""
+    from lfstudy import io
+    from lfstudy import workflow as wf
+
+    out = tmp_path / f"piv_{label}.zarr"
+    va, vb = tmp_path / "volume_a.zarr", tmp_path / "volume_b.zarr"
+    wf.run_piv({"stage_id": "t", "piv": piv}, va, vb, out, "", paths["a"], paths["b"])
+    res = io.open_zarr(out).load()
+    ok = res.valid.values & res.piv_valid.values
+    assert ok.mean() > 0.9
+    return res, float(np.sqrt(np.mean(res.w_mm.values[ok] ** 2)))
+
+
 def test_paired_piv_leaves_out_particles_whose_depth_the_fit_could_not_read(tmp_path):
     """piv.paired_max_sigma_z: a third of the particles sit where the images hardly give depth (as near the
     focal plane), and their sigma_z says so. Their fitted z in frame b reads a third of a voxel deep (a lateral
     shift read as depth, as on the coarse demo designs: crosstalk). Left out (the default limit), w reads the
     true zero; kept (a limit of 1000 voxels), w leans towards their error."""
-    from lfstudy import io
-    from lfstudy import workflow as wf
 
     rng = np.random.default_rng(11)
     coords, true = _scene(rng, 300)
@@ -461,24 +492,11 @@ def test_paired_piv_leaves_out_particles_whose_depth_the_fit_could_not_read(tmp_
     for f, pts in (("a", true), ("b", true + shift)):
         fit = pts.copy()
         fit[blind, 2] += VOXEL[2] / 3 if f == "b" else 0.0
-        sigma_z = np.where(blind, 0.5, 0.01) * VOXEL[2]
-        vol = _blobs(fit, coords).assign_attrs(blob_sigma_mm=list(0.8 * VOXEL[::-1]))
-        io.write_zarr(vol, tmp_path / f"volume_{f}.zarr", name="intensity")
-        lists = xr.Dataset({k: ("particle", fit[:, i]) for i, k in enumerate("xyz")})
-        lists = lists.assign(intensity=("particle", np.ones(len(fit))), sigma_z=("particle", sigma_z))
-        io.write_zarr(lists, tmp_path / f"p_{f}.zarr")
-        paths[f] = str(tmp_path / f"p_{f}.zarr")
-    piv = {"window": [8, 16, 16], "spacing": [4, 8, 8], "levels": 1, "mode": "offset", "subpixel": "auto"}
-    piv |= {"predictor_filter": 1.0, "uncertainty": "none", "particles": "paired", "ptv_search": 1.5}
-    va, vb = tmp_path / "volume_a.zarr", tmp_path / "volume_b.zarr"
+        paths[f] = _write_fitted_frame(tmp_path, f, fit, coords, np.where(blind, 0.5, 0.01) * VOXEL[2])
+    piv = {"window": [8, 16, 16], "spacing": [4, 8, 8], **_PAIRED}
     w_rms = {}
     for label, extra in (("default", {}), ("kept", {"paired_max_sigma_z": 1000.0})):
-        out = tmp_path / f"piv_{label}.zarr"
-        wf.run_piv({"stage_id": "t", "piv": piv | extra}, va, vb, out, "", paths["a"], paths["b"])
-        res = io.open_zarr(out).load()
-        ok = res.valid.values & res.piv_valid.values
-        assert ok.mean() > 0.9
-        w_rms[label] = float(np.sqrt(np.mean(res.w_mm.values[ok] ** 2)))
+        res, w_rms[label] = _paired_w_rms(tmp_path, piv | extra, label, paths)
         left_out = (res.attrs["paired_depth_unknown_a"], res.attrs["paired_depth_unknown_b"])
         assert left_out == ((int(blind.sum()),) * 2 if label == "default" else (0, 0))
         assert res.attrs["paired_particles_a"] == len(true)
@@ -568,8 +586,6 @@ def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
     scatter in each frame (as near the focal plane), the rest with 0.02; the fit's sigma_z does not say so.
     Weighted by depth (the default) WIDIM's w on the paired particles errs less than with every track alike, and
     the result names the weights and the bands' scatter."""
-    from lfstudy import io
-    from lfstudy import workflow as wf
 
     rng = np.random.default_rng(12)
     coords, true = _scene(rng, 600)
@@ -579,27 +595,14 @@ def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
     for f, pts in (("a", true), ("b", true + shift)):
         fit = pts + rng.normal(size=pts.shape) * VOXEL * 0.02
         fit[blind, 2] += rng.normal(size=int(blind.sum())) * 0.3 * VOXEL[2]
-        vol = _blobs(fit, coords).assign_attrs(blob_sigma_mm=list(0.8 * VOXEL[::-1]))
-        io.write_zarr(vol, tmp_path / f"volume_{f}.zarr", name="intensity")
-        lists = xr.Dataset({k: ("particle", fit[:, i]) for i, k in enumerate("xyz")})
-        lists = lists.assign(intensity=("particle", np.ones(len(fit))), sigma_z=("particle", np.full(len(fit), 1e-3)))
-        io.write_zarr(lists, tmp_path / f"p_{f}.zarr")
-        paths[f] = str(tmp_path / f"p_{f}.zarr")
+        paths[f] = _write_fitted_frame(tmp_path, f, fit, coords, np.full(len(fit), 1e-3))
     # windows the volume's whole depth deep: each holds particles of both kinds, and the weights choose among them
-    piv = {"window": [16, 16, 16], "spacing": [8, 8, 8], "levels": 1, "mode": "offset", "subpixel": "auto"}
-    piv |= {"predictor_filter": 1.0, "uncertainty": "none", "particles": "paired", "ptv_search": 1.5}
-    va, vb = tmp_path / "volume_a.zarr", tmp_path / "volume_b.zarr"
+    piv = {"window": [16, 16, 16], "spacing": [8, 8, 8], **_PAIRED}
     w_rms = {}
     for label, extra in (("default", {}), ("none", {"paired_weights": "none"})):
-        out = tmp_path / f"piv_{label}.zarr"
-        wf.run_piv({"stage_id": "t", "piv": piv | extra}, va, vb, out, "", paths["a"], paths["b"])
-        res = io.open_zarr(out).load()
-        ok = res.valid.values & res.piv_valid.values
-        assert ok.mean() > 0.9
-        w_rms[label] = float(np.sqrt(np.mean(res.w_mm.values[ok] ** 2)))
+        res, w_rms[label] = _paired_w_rms(tmp_path, piv | extra, label, paths)
         assert res.attrs["paired_weights"] == ("depth" if label == "default" else "none")
     assert len(res.attrs["paired_weight_sd_mm"]) == 0 and res.attrs["paired_weight_min"] == 1.0
     assert w_rms["default"] < 0.75 * w_rms["none"]
     with pytest.raises(ValueError, match=r"piv\.paired_weights = 'inverse'"):
-        wf.run_piv({"stage_id": "t", "piv": piv | {"paired_weights": "inverse"}}, va, vb, tmp_path / "x.zarr", "",
-                   paths["a"], paths["b"])  # fmt: skip
+        _paired_w_rms(tmp_path, piv | {"paired_weights": "inverse"}, "inverse", paths)
