@@ -483,7 +483,6 @@ def test_paired_piv_leaves_out_particles_whose_depth_the_fit_could_not_read(tmp_
     focal plane), and their sigma_z says so. Their fitted z in frame b reads a third of a voxel deep (a lateral
     shift read as depth, as on the coarse demo designs: crosstalk). Left out (the default limit), w reads the
     true zero; kept (a limit of 1000 voxels), w leans towards their error."""
-
     rng = np.random.default_rng(11)
     coords, true = _scene(rng, 300)
     shift = np.array([1.3, -0.7, 0.0]) * VOXEL
@@ -586,7 +585,6 @@ def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
     scatter in each frame (as near the focal plane), the rest with 0.02; the fit's sigma_z does not say so.
     Weighted by depth (the default) WIDIM's w on the paired particles errs less than with every track alike, and
     the result names the weights and the bands' scatter."""
-
     rng = np.random.default_rng(12)
     coords, true = _scene(rng, 600)
     shift = np.array([1.3, -0.7, 0.0]) * VOXEL
@@ -598,11 +596,13 @@ def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
         paths[f] = _write_fitted_frame(tmp_path, f, fit, coords, np.full(len(fit), 1e-3))
     # windows the volume's whole depth deep: each holds particles of both kinds, and the weights choose among them
     piv = {"window": [16, 16, 16], "spacing": [8, 8, 8], **_PAIRED}
-    w_rms = {}
+    res, w_rms = {}, {}
     for label, extra in (("default", {}), ("none", {"paired_weights": "none"})):
-        res, w_rms[label] = _paired_w_rms(tmp_path, piv | extra, label, paths)
-        assert res.attrs["paired_weights"] == ("depth" if label == "default" else "none")
-    assert len(res.attrs["paired_weight_sd_mm"]) == 0 and res.attrs["paired_weight_min"] == 1.0
+        res[label], w_rms[label] = _paired_w_rms(tmp_path, piv | extra, label, paths)
+    depth, plain = res["default"].attrs, res["none"].attrs
+    assert depth["paired_weights"] == "depth" and plain["paired_weights"] == "none"
+    assert depth["paired_weight_sd_mm"][0] > 3 * depth["paired_weight_sd_mm"][-1] and depth["paired_weight_min"] < 0.1
+    assert len(plain["paired_weight_sd_mm"]) == 0 and plain["paired_weight_min"] == 1.0
     assert w_rms["default"] < 0.75 * w_rms["none"]
     with pytest.raises(ValueError, match=r"piv\.paired_weights = 'inverse'"):
         _paired_w_rms(tmp_path, piv | {"paired_weights": "inverse"}, "inverse", paths)
