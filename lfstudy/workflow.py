@@ -287,13 +287,14 @@ def run_errors(
     particle lists written beside both volumes (``volume_a.particles.zarr``, ``volume_b...``) are
     scored against the true particles too (:func:`lfstudy.study.particle_metrics.particle_metrics`:
     found, ghosts, the found particles' own crosstalk; needs ``particles_b``), and the share of its particles the
-    paired PIV left out for want of depth (:func:`lfstudy.study.particle_metrics.depth_unknown_percent`);
+    paired PIV left out for want of depth (:func:`lfstudy.study.particle_metrics.depth_unknown_percent`) and its
+    tracks' scatter nearest focus (:func:`lfstudy.study.particle_metrics.focus_scatter_ratio`);
     ``fitted_a``, ``fitted_b``: their paths where they are not beside ``volume`` (the study's frame a lives at the
     design, frame b at the flow)."""
     from lfstudy.reconstruct import gives_particles
     from lfstudy.simulate.flows import flow_from_config
     from lfstudy.study.metrics import case_metrics, particles_per_cell
-    from lfstudy.study.particle_metrics import depth_unknown_percent, particle_metrics
+    from lfstudy.study.particle_metrics import depth_unknown_percent, focus_scatter_ratio, particle_metrics
 
     spec = ccfg["flow"]
     cam = cl.case_camera(ccfg)
@@ -317,6 +318,7 @@ def run_errors(
     piv_ds = io.open_zarr(piv).load()
     if gives_particles(ccfg["reconstruct"]["method"]):
         found["depth_unknown_percent"] = depth_unknown_percent(piv_ds.attrs)
+        found["focus_scatter_ratio"] = focus_scatter_ratio(piv_ds.attrs)
     err = case_metrics(
         piv_ds,
         flow_from_config(spec),

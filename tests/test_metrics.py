@@ -344,9 +344,10 @@ def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
     paired = {"paired_depth_unknown_a": 0, "paired_depth_unknown_b": 1}
     paired |= {"paired_particles_a": 1, "paired_particles_b": 1}
     found["depth_unknown_percent"] = depth_unknown_percent(paired)
+    found["focus_scatter_ratio"] = 2.5  # focus_scatter_ratio(piv.attrs), as run_errors adds it
     out = case_metrics(case_piv, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle, extra=found)
     assert float(out["found_percent"]) == 100.0 and float(out["particle_crosstalk_z"]) == 0.0
-    assert float(out["depth_unknown_percent"]) == 50.0
+    assert float(out["depth_unknown_percent"]) == 50.0 and float(out["focus_scatter_ratio"]) == 2.5
     zero = pytest.approx(0, abs=1e-12)
     assert float(out["oracle_rms_total_mm"]) == zero and float(out["oracle_mean_x_mm"]) == pytest.approx(0.5625)
     assert float(out["recon_added_rms_total_mm"]) == pytest.approx(0.1 * VOX)  # all of the case's error

@@ -138,3 +138,13 @@ def test_depth_unknown_percent_reads_the_paired_pivs_attrs():
     assert math.isnan(depth_unknown_percent(attrs))  # not a paired PIV's (or an older one's) attrs
     assert depth_unknown_percent(attrs | {"paired_particles_b": 300}) == pytest.approx(10.0)
     assert math.isnan(depth_unknown_percent(attrs | {"paired_particles_a": 0, "paired_particles_b": 0}))
+
+
+def test_focus_scatter_ratio_reads_the_paired_pivs_weight_bands():
+    """The band nearest focus over the best band (not the farthest); NaN without depth weights or bands."""
+    from lfstudy.study.particle_metrics import focus_scatter_ratio
+
+    assert focus_scatter_ratio({"paired_weight_sd_mm": [0.045, 0.017, 0.018, 0.021]}) == pytest.approx(0.045 / 0.017)
+    assert focus_scatter_ratio({"paired_weight_sd_mm": [0.01, 0.02]}) == 1.0  # the band nearest focus is the best
+    for attrs in ({}, {"paired_weight_sd_mm": []}, {"paired_weight_sd_mm": [0.0, 0.0]}):
+        assert math.isnan(focus_scatter_ratio(attrs))

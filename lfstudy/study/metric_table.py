@@ -277,6 +277,14 @@ METRICS: tuple[Metric, ...] = (
         "piv.paired_max_sigma_z, left out of the paired PIV: near the focal plane the images hold little depth "
         "(lfstudy.reconstruct.ipr.bound); needs no truth (piv.particles paired only)",
     ),
+    Metric(
+        "focus_scatter_ratio", "1", "tracks' scatter nearest focus over the best depth band's", True,
+        {"budget"}, "quality",
+        description="the paired tracks' displacement scatter (robust, u, v and w) in the band of |z| nearest the "
+        "focal plane over the least of any band (piv.paired_weights depth, lfstudy.piv.ptv.depth_weights): well "
+        "above 1, the focal plane inside the volume limits the design's depth; needs no truth (the fit's sigma_z, "
+        "behind depth_unknown_percent, misses most of this error)",
+    ),
     Metric("particle_rms_x_mm", "mm", "position error x of the found particles", True, (), "error"),
     Metric("particle_rms_y_mm", "mm", "position error y of the found particles", True, (), "error"),
     Metric("particle_rms_z_mm", "mm", "position error z of the found particles", True, (), "error"),

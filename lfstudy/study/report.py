@@ -991,6 +991,15 @@ def _budget_blocks(study: xr.Dataset, names: Mapping[str, str] | None = None) ->
                 if "depth_unknown_percent" in bt
                 else ""
             )
+            + (
+                " <i>focus_scatter_ratio</i> needs no truth either: how many times more the paired tracks' "
+                "displacements scatter in the band of depth nearest the focal plane than in the best band. The fit's "
+                "sigma_z misses most of that error, so this ratio, well above 1, is the sign that the focal plane "
+                "inside the volume limits the design; the paired PIV weighs each track by the inverse of its band's "
+                "variance (<code>piv.paired_weights</code>)."
+                if "focus_scatter_ratio" in bt
+                else ""
+            )
             if "found_percent" in bt
             else ""
         )
