@@ -23,7 +23,7 @@ size changes only to second order with depth, and on the demo designs IPR misses
 displacements scatter in the band of |z| nearest the focal plane than in the best band (the paired PIV's depth
 weights, :func:`lfstudy.piv.ptv.depth_weights`). The fit's ``sigma_z`` misses most of that error (it is the
 minimum the fit chose, not the minimum's width), so the ratio, not the share above, shows where the focal plane
-limits a design: 2.5-4.6 on the demo's eight cases (seed 7).
+limits a design: 2.5-4.7 on the demo's eight cases (seed 7).
 """
 
 from __future__ import annotations
