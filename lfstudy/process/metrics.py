@@ -211,7 +211,10 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
         isotropic expansion); where the result holds the flags of
         :mod:`lfstudy.piv.resolution`, ``partial_percent`` (valid vectors whose window
         reaches past the seeded region) and ``unresolved_percent`` (valid vectors of full
-        windows flagged unresolved, of the valid full-window vectors).
+        windows flagged unresolved, of the valid full-window vectors); where the paired PIV weighed its tracks by
+        depth (``piv.paired_weights``), ``focus_scatter_ratio`` (the tracks' scatter in the band of |z| nearest the
+        focal plane over the best band's, :func:`lfstudy.study.particle_metrics.focus_scatter_ratio`: well above 1,
+        the focal plane inside the volume limits the recording's depth).
     """
     valid = piv["valid"].values.astype(bool)
     ok = valid if valid.any() else np.zeros_like(valid)
@@ -264,6 +267,12 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
                 "percent",
                 "valid full-window vectors flagged unresolved",
             )
+    if len(piv.attrs.get("paired_weight_sd_mm", [])):  # the paired PIV weighed its tracks by depth
+        from lfstudy.study.particle_metrics import focus_scatter_ratio
+
+        out["focus_scatter_ratio"] = _scalar(
+            focus_scatter_ratio(piv.attrs), "1", "paired tracks' scatter nearest focus over the best depth band's"
+        )
     try:
         div = divergence(piv, dt)
     except ValueError:
