@@ -670,7 +670,7 @@ def depth_weights(
     focal plane the image falls behind one to four lenslets and hardly changes with depth (the Cramér–Rao
     bound there is 0.4-1.8 z voxels on the demo designs, :mod:`lfstudy.reconstruct.ipr.bound`), so a fitted
     particle's depth errs there several times more than away from it, in each frame independently: on the demo
-    the tracks' w scatters 2.5-6× more in the band nearest focus than elsewhere. The fit's own ``sigma_z`` (its
+    the tracks' w scatters 2.5-4.7× more in the band nearest focus than elsewhere. The fit's own ``sigma_z`` (its
     covariance at the minimum it found) does not see this, since the error is the choice of minimum, not its
     width. The variance is measured on the tracks themselves, without the truth: each track's displacement less
     the median of its ``neighbours`` nearest tracks' (distance in voxels per axis: the residual of
@@ -740,8 +740,8 @@ def depth_weights(
         rk = r[band == k]
         var[k] = np.sum((1.4826 * np.median(np.abs(rk - np.median(rk, axis=0)), axis=0)) ** 2)
         mid[k] = np.median(depth[band == k])
-    # a scatter below a thousandth of a voxel is no PIV's: a band of tracks that agree with their planes (a noise-free
-    # field, up to rounding) weighs as the best, not infinitely more
+    # a scatter below a thousandth of a voxel is no PIV's: a band of tracks that agree with their neighbours (a
+    # noise-free field) weighs as the best, not infinitely more
     var = np.maximum(var, np.sum((_SCATTER_FLOOR * vox) ** 2))
     weights = np.min(var) / np.interp(depth, mid, var)
     return weights, {"depth_mm": mid.tolist(), "sd_mm": np.sqrt(var).tolist()}
