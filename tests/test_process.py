@@ -910,6 +910,8 @@ def test_median_uncertainty_and_summary_without_sigma():
     assert float(m["unresolved_percent"]) == pytest.approx(100.0 / 3)  # of the 3 valid full windows: (0, 1)
     # the paired PIV's depth weights (piv.paired_weights): the band nearest focus over the best band, truth-free
     assert "focus_scatter_ratio" not in m
+    ds.attrs.update(paired_weights="depth", paired_weight_sd_mm=[])  # too few tracks for bands: NaN, not absent
+    assert np.isnan(float(pair_metrics(ds)["focus_scatter_ratio"]))
     ds.attrs["paired_weight_sd_mm"] = [0.03, 0.01, 0.012]
     assert float(pair_metrics(ds)["focus_scatter_ratio"]) == pytest.approx(3.0)
 

@@ -212,9 +212,10 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
         :mod:`lfstudy.piv.resolution`, ``partial_percent`` (valid vectors whose window
         reaches past the seeded region) and ``unresolved_percent`` (valid vectors of full
         windows flagged unresolved, of the valid full-window vectors); where the paired PIV weighed its tracks by
-        depth (``piv.paired_weights``), ``focus_scatter_ratio`` (the tracks' scatter in the band of |z| nearest the
-        focal plane over the best band's, :func:`lfstudy.study.particle_metrics.focus_scatter_ratio`: well above 1,
-        the focal plane inside the volume limits the recording's depth).
+        depth (``piv.paired_weights`` ``depth``), ``focus_scatter_ratio`` (the tracks' scatter in the band of |z|
+        nearest the focal plane over the best band's, :func:`lfstudy.study.particle_metrics.focus_scatter_ratio`:
+        well above 1, the focal plane inside the volume limits the recording's depth; NaN with too few tracks for
+        two bands).
     """
     valid = piv["valid"].values.astype(bool)
     ok = valid if valid.any() else np.zeros_like(valid)
@@ -267,7 +268,7 @@ def pair_metrics(piv: xr.Dataset, ratio: xr.DataArray | None = None, *, dt: floa
                 "percent",
                 "valid full-window vectors flagged unresolved",
             )
-    if len(piv.attrs.get("paired_weight_sd_mm", [])):  # the paired PIV weighed its tracks by depth
+    if piv.attrs.get("paired_weights") == "depth":  # every pair alike (one config): NaN where too few tracks
         from lfstudy.study.particle_metrics import focus_scatter_ratio
 
         out["focus_scatter_ratio"] = _scalar(

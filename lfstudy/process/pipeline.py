@@ -435,6 +435,8 @@ def _pair_line(p: int, rec: Recording, m: xr.Dataset) -> str:
         line += f", peak ratio {float(m['peak_ratio_median']):.3g}"
     if "divergence_rms" in m:
         line += f", divergence {float(m['divergence_rms']):.3g} {m['divergence_rms'].attrs['units']} RMS"
+    if "focus_scatter_ratio" in m and np.isfinite(float(m["focus_scatter_ratio"])):
+        line += f", tracks' scatter nearest focus {float(m['focus_scatter_ratio']):.2g}x the best depth band's"
     sig = ", ".join(f"{c} {float(m[f'unc_median_{c}']):.3g}" for c in ("u", "v", "w") if f"unc_median_{c}" in m)
     if sig:
         line += f", median σ [voxel] {sig}"
