@@ -56,6 +56,15 @@ unless said; found / ghosts %, slope):
   light the neighbours take, hold the depths off more than the ghosts do; a second pass of the fit from its own
   answer (the warm start's depth scan and joint intensities, then the iterations and rounds again) takes a fifth
   off the far particles' depth error for a second fit's CPU (66.6 s against 70.3).
+* The leads that followed, tried on the finest design's cold fit (the demo study of 7f2235b, seed 7, frame a; a
+  script's patch of the fit, 1 thread): a depth scan of every fitted particle after the last shake (+-2 voxels in
+  0.25 steps, the others held fixed, in runs of non-overlapping patches, before the polish) moved 37 of 1,427
+  particles; found 79.4 -> 79.4 %, ghosts 15.6 -> 15.6 %, found particles' z RMS 34.6 -> 34.4 um (>= 1 mm 27.1 ->
+  27.0), CPU 40.4 -> 49.7 s: each misplaced depth is the best one given its neighbours. The ghosts are mostly those
+  misplaced particles: 92 % of the 222 lie within 1.5 voxels of a true particle, 91 % of those of one counted missed,
+  offset 0.64 z voxel against 0.15 laterally (median; M -0.8, p 0.0888: 81 %, 85 %, 0.69 z voxel). What is left is
+  a joint move of a particle and its line-of-sight neighbours; the PIV now weighs the tracks by the depth scatter
+  their band shows (``piv.paired_weights``, ``benchmarks/bench_paired_weights.py``).
 * Tried on the cold fit of the coarsest design, no gain (found / ghosts): 10-20 joint sweeps for MART's candidates
   30.5-32.6 / 63-65; a depth scan of every candidate over +-2 voxels 28.3 / 67.2 and over the whole slab (+-8)
   25.8 / 70.3; a shake that moves a particle only where the residual drops by more than twice the patch's residual
