@@ -589,6 +589,15 @@ def _signed_step(piv: xr.Dataset, ax: str, default: float) -> np.ndarray:
     return step.reshape(shp)
 
 
+def _neighbour_median(pos: np.ndarray, d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The displacements ``d`` (n, 3) of each track's ``k`` nearest other tracks (positions ``pos`` (n, 3) in
+    voxels per axis), (n, k, 3), and their median per component, (n, 3): the neighbourhood of the median test
+    (:func:`validate_tracks`) and of the depth weights' scatter (:func:`depth_weights`)."""
+    _, nb = cKDTree(pos).query(pos, k=k + 1)
+    dn = d[nb[:, 1:]]  # the track itself is its own nearest
+    return dn, np.median(dn, axis=1)
+
+
 def validate_tracks(
     tracks: xr.Dataset,
     *,
@@ -630,10 +639,7 @@ def validate_tracks(
         return tracks.assign_attrs(n_rejected=0)
     pos = positions(tracks) / vox
     d = np.column_stack([np.asarray(tracks[f"{c}_mm"].values, float) for c in _COMP]) / vox
-    _, nb = cKDTree(pos).query(pos, k=int(neighbours) + 1)
-    nb = nb[:, 1:]  # the track itself is its own nearest
-    dn = d[nb]  # (n, k, 3)
-    med = np.median(dn, axis=1)
+    dn, med = _neighbour_median(pos, d, int(neighbours))
     rm = np.median(np.abs(dn - med[:, None, :]), axis=1)
     bad = np.any(np.abs(d - med) / (rm + float(eps)) > float(threshold), axis=1)
     out = tracks.isel(track=np.flatnonzero(~bad))
@@ -730,8 +736,7 @@ def depth_weights(
         return np.ones(n), {"depth_mm": [], "sd_mm": []}
     pos = positions(tracks)
     d = np.column_stack([np.asarray(tracks[f"{c}_mm"].values, float) for c in _COMP])
-    _, nb = cKDTree(pos / vox).query(pos / vox, k=int(neighbours) + 1)
-    r = d - np.median(d[nb[:, 1:]], axis=1)  # the track itself is its own nearest
+    r = d - _neighbour_median(pos / vox, d, int(neighbours))[1]
     depth = np.abs(pos[:, 2])
     band = np.minimum(np.argsort(np.argsort(depth, kind="stable"), kind="stable") * nb_bands // n, nb_bands - 1)
     var = np.zeros(nb_bands)
