@@ -204,7 +204,13 @@ def particle_window_truth(piv: Any, pa: Any, pb: Any, min_particles: int = 3) ->
     return {ax: mean[:, j].reshape(shape) for j, ax in enumerate(dims)}
 
 
-def analyse_case(cfg: dict[str, Any], case: Any, factors: list[float], probe: _WindowProbe | None = None) -> list[str]:
+def analyse_case(
+    cfg: dict[str, Any],
+    case: Any,
+    factors: list[float],
+    probe: _WindowProbe | None = None,
+    significances: tuple[float, ...] = (0.0,),
+) -> list[str]:
     """The oracle of one case: its budget's filter term and the flag's scores; the printed lines."""
     from lfstudy.piv.resolution import unresolved
     from lfstudy.simulate.flows import flow_from_config
@@ -256,15 +262,35 @@ def analyse_case(cfg: dict[str, Any], case: Any, factors: list[float], probe: _W
         f"  partial windows: {100 * np.count_nonzero(partial & fin) / max(int(fin.sum()), 1):.0f} % of the valid "
         f"vectors (per z plane {np.count_nonzero(partial & fin, axis=(1, 2)).tolist()})"
     )
+    valid = o["valid"].transpose(*dims).values.astype(bool)
+    from lfstudy.piv.resolution import noise_level
+
+    lvl = noise_level(field, valid & ~partial, win, spa)
+    ratio = [float(np.nanmedian(sigma[i][full])) for i in range(3)]  # median σ [voxels] per component
+    err_vox = []  # RMS error against the window-averaged truth [voxels]
+    for i, (c, a) in enumerate(zip("wvu", "zyx")):
+        per_vox = sig[a] / sigma[i]  # mm per voxel
+        err = o[f"{c}_mm"].transpose(*dims).values - e[f"{c}_true_mm"].transpose(*dims).values - filt[a]
+        err_vox.append(float(np.sqrt(np.nanmean((err / per_vox)[full] ** 2))))
+    lines.append(
+        "  the field's noise level (full windows) / median σ, w v u: "
+        + " ".join(f"{lv / r:.2f}" for lv, r in zip(lvl, ratio))
+        + "; error rms (window truth) / median σ: "
+        + " ".join(f"{ev / r:.2f}" for ev, r in zip(err_vox, ratio))
+    )
     for fac in factors:
-        flag = unresolved(field, sigma, win, spa, factor=fac, partial=partial)
-        pct, hit, false = unresolved_scores(flag, filt, sig, full)
-        n2 = int(sum(((np.abs(filt[a]) > 2 * sig[a]) & full) for a in filt).astype(bool).sum())
-        apct, ahit, afalse = unresolved_scores(flag | partial, filt, sig, fin)
-        lines.append(
-            f"  unresolved factor {fac:g}: full windows flagged {pct:.0f} %, hit {hit:.2f} (of {n2} > 2σ), false "
-            f"{false:.2f} | all windows, partial ones flagged too: {apct:.0f} %, hit {ahit:.2f}, false {afalse:.2f}"
-        )
+        for sg in significances:
+            flag = unresolved(
+                field, sigma, win, spa, factor=fac, partial=partial, valid=valid & ~partial, significance=sg
+            )
+            pct, hit, false = unresolved_scores(flag, filt, sig, full)
+            n2 = int(sum(((np.abs(filt[a]) > 2 * sig[a]) & full) for a in filt).astype(bool).sum())
+            apct, ahit, afalse = unresolved_scores(flag | partial, filt, sig, fin)
+            lines.append(
+                f"  unresolved factor {fac:g} significance {sg:g}: full windows flagged {pct:.0f} %, hit {hit:.2f} "
+                f"(of {n2} > 2σ), false {false:.2f} | all windows, partial ones flagged too: {apct:.0f} %, hit "
+                f"{ahit:.2f}, false {afalse:.2f}"
+            )
     if probe is not None:
         spread = probe.spread(tuple(o.sizes[d] for d in dims))
         mm = {ax: float(np.nanmedian(sig[ax] / sigma[i])) for i, ax in enumerate(("z", "y", "x"))}  # mm per voxel
@@ -291,6 +317,13 @@ def main() -> None:
     ap.add_argument("--add-flow", nargs="*", default=[], metavar="NAME=SPEC", help="a flow added (YAML mapping)")
     ap.add_argument("--ppp", nargs="*", type=float, default=None, help="seeding densities (default: the config's)")
     ap.add_argument("--factors", nargs="*", type=float, default=[0.3, 0.5, 1.0])
+    ap.add_argument(
+        "--significance",
+        nargs="*",
+        type=float,
+        default=[0.0, 3.0],
+        help="the flag's significance against the field's own noise (0: the noise not considered)",
+    )
     ap.add_argument("--spread", action="store_true", help="score the peak-width spread candidate too")
     args = ap.parse_args()
     args.sweep, args.seed = [], None  # bench_uncertainty's config reader takes these too
@@ -302,7 +335,7 @@ def main() -> None:
     probe = _WindowProbe() if args.spread else None
     t0 = time.perf_counter()
     for case in Sweep(cfg).cases():
-        print("\n".join(analyse_case(cfg, case, args.factors, probe)), flush=True)
+        print("\n".join(analyse_case(cfg, case, args.factors, probe, tuple(args.significance))), flush=True)
     print(f"all cases {time.perf_counter() - t0:.0f} s")
 
 

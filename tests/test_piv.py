@@ -615,6 +615,60 @@ def test_unresolved_flags_curvature_beyond_sigma_and_not_a_uniform_field():
     assert "unresolved" not in widim(a, b, window=16, spacing=8, uncertainty=None)
 
 
+def _overlapping_noise(n: int, shape: tuple[int, ...], seed: int) -> np.ndarray:
+    """``n`` fields of unit-variance errors on a vector grid ``shape`` whose windows are twice the spacing: each
+    vector the mean of the iid cells its window holds (2 per axis), so neighbours along an axis share half their
+    cells (correlation 0.5, as :func:`lfstudy.piv.resolution._overlap` says for L = 2 S)."""
+    cells = np.random.default_rng(seed).normal(size=(n, *(k + 1 for k in shape)))
+    out = cells
+    for ax in range(1, len(shape) + 1):
+        lo = [slice(None)] * out.ndim
+        hi = list(lo)
+        lo[ax], hi[ax] = slice(None, -1), slice(1, None)
+        out = (out[tuple(lo)] + out[tuple(hi)]) / np.sqrt(2.0)
+    return out
+
+
+def test_unresolved_noise_model_matches_errors_shared_by_overlapping_windows():
+    """The flag's noise: estimate_noise_gain is the spread of the smoothed estimate that errors shared by
+    overlapping windows give (interior, face, corner), noise_level reads their size back from one field and is
+    blind to a smooth flow, and the significance keeps the flag off a noisy uniform field where σ is too small."""
+    from scipy.ndimage import convolve1d
+
+    from lfstudy.piv.resolution import _SMOOTH, estimate_noise_gain, filter_estimate, noise_level, unresolved
+
+    shape, win, spa = (7, 9, 12), (8, 16, 16), (4, 8, 8)
+    noise = _overlapping_noise(3000, shape, seed=5)
+    est = filter_estimate(noise, win, spa)
+    for ax in range(1, 4):
+        est = convolve1d(est, _SMOOTH, axis=ax, mode="nearest")
+    g = estimate_noise_gain(shape, win, spa)
+    mc = est.std(axis=0)
+    np.testing.assert_allclose(g[3, 4, 5], 0.1496, atol=1e-4)  # interior (0.091 were the errors independent)
+    np.testing.assert_allclose(g, mc, rtol=0.08)  # the Monte-Carlo spread: 3000 fields
+    assert g[0, 0, 0] > 2 * g[3, 4, 5]  # a corner: copied second differences, no neighbours to average
+    # the errors' size, from one field per component, with a smooth flow beside them
+    z, y, x = np.meshgrid(*(np.arange(k, dtype=float) for k in shape), indexing="ij")
+    flow = 0.05 * (x - 6) ** 2 + 0.03 * (y - 4) * (z - 3) + 0.2 * x
+    field = 0.1 * noise[:3] + flow
+    lvl = noise_level(field, None, win, spa)
+    np.testing.assert_allclose(lvl, 0.1, rtol=0.25)
+    np.testing.assert_allclose(noise_level(field, None, win, spa), noise_level(0.1 * noise[:3], None, win, spa))
+    assert np.isnan(noise_level(field[:, :1, :2, :2], None, win, spa)).all()  # too few cells to tell
+    # a uniform shift whose errors are 1.5 x the σ WIDIM gives: the curvature of the errors alone passed 0.3 σ
+    sig = np.full((3, *shape), 0.1 / 1.5)
+    shift = 0.1 * noise[3:303].reshape(100, 3, *shape) + 0.5
+    loose = np.mean([unresolved(f, sig, win, spa, significance=0.0).mean() for f in shift])
+    strict = np.mean([unresolved(f, sig, win, spa).mean() for f in shift])
+    print("uniform flagged", loose, strict)
+    assert loose > 0.3 and strict < 0.08  # the default: a vector of pure noise passes in no component with 95 %
+    # a curvature well above the noise is still flagged: 0.2 per vector² along x -> 0.067 > 0.3 σ, 3 x its noise
+    curved = 0.1 * (x - 6) ** 2 + 0.1 * noise[:3] * 0.2
+    assert unresolved(curved, sig, win, spa)[1:-1, 1:-1, 1:-1].mean() > 0.9
+    with pytest.raises(ValueError, match="significance"):
+        unresolved(field, sig, win, spa, significance=-1.0)
+
+
 def test_partial_windows_are_the_ones_reaching_past_the_seeded_slab():
     """A slab seeded in the middle planes of z: the windows that reach past its faces are partial (truth-free,
     from the volumes' mean per plane), the others not; widim stores them and never flags them unresolved."""

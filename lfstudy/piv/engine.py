@@ -1043,7 +1043,7 @@ def widim(
         # truth-free: windows partly outside the seeded region, and where the final window's filtering of the
         # measured field likely exceeds σ (issue 38)
         partial = partial_windows(_plane_profiles(ia, ib), nodes, st.sizes[-1][0])
-        flag = unresolved(field, sigma, st.sizes[-1][0], st.sizes[-1][1], partial=partial)
+        flag = unresolved(field, sigma, st.sizes[-1][0], st.sizes[-1][1], partial=partial, valid=valid & ~partial)
     ds = _to_dataset(field, valid, peak, centres, ia, shape, st, history, sigma, flag, partial)
     ds.attrs["uncertainty"] = uncertainty or "none"
     return ds
