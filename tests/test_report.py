@@ -834,6 +834,32 @@ def test_the_report_names_the_renderer_and_the_inverse_crime(renderer, crime, tm
         assert said == (crime and method == "ipr")
 
 
+def test_the_unresolved_flag_verdict():
+    """The flag's verdict: the uniform flows' flagged share, the catch and the false share where the windows filter,
+    'trust' only where every case meets issue 38's targets; nothing without the scores."""
+    import pandas as pd
+
+    from lfstudy.study.report import _unresolved_verdict
+
+    cases = {
+        "unresolved_percent": [5.1, 2.8, 38.1, 31.3],
+        "unresolved_hit": [float("nan"), float("nan"), 0.86, 0.81],
+        "unresolved_false": [1.0, 1.0, 0.63, 0.45],
+        "filter_rms_total_mm": [1.6e-16, 0.0, 0.011, 0.016],
+    }
+    v = _unresolved_verdict(pd.DataFrame(cases))
+    assert "On the flows the windows do not filter, 3–5 % of the vectors are flagged" in v
+    assert "catches 0.81–0.86; 0.45–0.63 of its flags fall where the filtering is below σ." in v
+    assert "not as a verdict per vector" in v and "Trust" not in v
+    good = dict(cases, unresolved_false=[1.0, 1.0, 0.10, 0.05])
+    assert _unresolved_verdict(pd.DataFrame(good)).endswith("Trust the unresolved flag on these designs.")
+    # a uniform flow flagged on 15 % of its vectors: no trust, whatever the catch
+    assert "Trust" not in _unresolved_verdict(pd.DataFrame(dict(good, unresolved_percent=[15.0, 2.8, 38.1, 31.3])))
+    assert _unresolved_verdict(pd.DataFrame({"unresolved_percent": [1.0]})) == ""
+    nan = float("nan")
+    assert _unresolved_verdict(pd.DataFrame({k: [nan] for k in cases})) == ""
+
+
 def test_the_uncertainty_verdict():
     """σ 1.3-7.5x too small: do not trust it; within 1.5x either way: about right; mixed: per design."""
     import pandas as pd

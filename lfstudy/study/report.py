@@ -1298,6 +1298,72 @@ def _uncertainty_verdict(df: pd.DataFrame, circular: bool = False) -> str:
     return " ".join(out)
 
 
+#: The unresolved flag's targets (issue 38): it catches at least this share of the vectors whose true filtering
+#: exceeds 2σ ...
+UNRESOLVED_HIT = 0.8
+#: ... and at most this share of its flags fall on vectors whose true filtering is below σ ...
+UNRESOLVED_FALSE = 0.2
+#: ... and on a flow the windows do not filter (a uniform shift) it flags at most this many percent of the vectors:
+#: twice the false alarms it is built for on pure noise (5 %, lfstudy.piv.resolution.UNRESOLVED_SIGNIFICANCE).
+UNRESOLVED_STILL_PERCENT = 10.0
+#: The flag's scores in the metric table (unresolved_percent, _hit, _false)
+_FLAG_SCORES = tuple(m.name for m in mt.METRICS if m.name.startswith("unresolved_"))
+
+
+def _span(v: np.ndarray, fmt: str) -> str:
+    """``lo–hi`` of ``v`` in format ``fmt`` (one value where they print alike)."""
+    lo, hi = format(float(v.min()), fmt), format(float(v.max()), fmt)
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
+def _unresolved_verdict(df: pd.DataFrame) -> str:
+    """The verdict in words on the truth-free ``unresolved`` flag, from the cases' ``unresolved_percent``,
+    ``unresolved_hit``, ``unresolved_false`` and ``filter_rms_total_mm`` (a case whose windows filter nothing, a
+    uniform flow, has every flag false): trust it where it meets :data:`UNRESOLVED_HIT`, :data:`UNRESOLVED_FALSE`
+    and :data:`UNRESOLVED_STILL_PERCENT` on every case, else read it as a pointer. Empty without the columns or
+    scores."""
+    if not set(_FLAG_SCORES) <= set(df):
+        return ""
+    num = {c: pd.to_numeric(df[c], errors="coerce").to_numpy(float) for c in _FLAG_SCORES}
+    filt = pd.to_numeric(df.get("filter_rms_total_mm", pd.Series(np.nan, index=df.index)), errors="coerce")
+    still = filt.to_numpy(float) <= 1e-12
+    pct_still = num["unresolved_percent"][still]
+    pct_still = pct_still[np.isfinite(pct_still)]
+    hit = num["unresolved_hit"][~still]
+    hit = hit[np.isfinite(hit)]
+    false = num["unresolved_false"][~still]
+    false = false[np.isfinite(false)]
+    if not (pct_still.size or hit.size):
+        return ""
+    out = []
+    if pct_still.size:
+        out.append(
+            f"On the flows the windows do not filter, {_span(pct_still, '.0f')} % of the vectors are flagged "
+            "unresolved (each flag false there)."
+        )
+    if hit.size:
+        out.append(
+            f"Of the vectors whose true filtering exceeds 2σ the flag catches {_span(hit, '.2f')}"
+            + (f"; {_span(false, '.2f')} of its flags fall where the filtering is below σ." if false.size else ".")
+        )
+    good = (
+        hit.size > 0
+        and hit.min() >= UNRESOLVED_HIT
+        and (not false.size or false.max() <= UNRESOLVED_FALSE)
+        and (not pct_still.size or pct_still.max() <= UNRESOLVED_STILL_PERCENT)
+    )
+    if good:
+        out.append("Trust the unresolved flag on these designs.")
+    else:
+        out.append(
+            "Read the unresolved flag as a pointer to where the measured field varies on the window's scale "
+            "beyond its noise (the flow's or the reconstruction's), not as a verdict per vector "
+            f"(its targets: catch ≥ {UNRESOLVED_HIT:g}, ≤ {UNRESOLVED_FALSE:g} false, ≤ "
+            f"{UNRESOLVED_STILL_PERCENT:g} % flagged where nothing is filtered)."
+        )
+    return " ".join(out)
+
+
 def _circular(study: xr.Dataset) -> bool:
     """Whether the study's PIV correlated circularly: ``piv.zero_pad`` false in its parameters and not swept."""
     try:
@@ -1306,6 +1372,17 @@ def _circular(study: xr.Dataset) -> bool:
         return False
     swept = any(str(study[d].attrs.get("sweep_key", d)) == "piv.zero_pad" for d in study.dims)
     return not swept and not bool(piv.get("zero_pad", False))
+
+
+def _flag_rows(study: xr.Dataset) -> pd.DataFrame:
+    """The computed cases' ``unresolved_*`` scores and ``filter_rms_total_mm`` (those the study has), one row a
+    case: what :func:`_unresolved_verdict` reads."""
+    cols = [c for c in (*_FLAG_SCORES, "filter_rms_total_mm") if c in study]
+    if not cols:
+        return pd.DataFrame()
+    extra = ["computed"] if "computed" in study else []
+    df = study[cols + extra].to_dataframe().reset_index()
+    return df[df["computed"].astype(bool)] if extra else df
 
 
 def _uncertainty_blocks(
@@ -1359,6 +1436,7 @@ def _uncertainty_blocks(
             if (v := _uncertainty_verdict(df, _circular(study)))
             else ""
         )
+        + (f'<p class="verdict">{html.escape(v)}</p>' if (v := _unresolved_verdict(_flag_rows(study))) else "")
         + _table(shown.sort_values(["design", "flow"] if "flow" in df else ["design"]), index=False),
     )
     groups: dict[str, list[str]] = {}
