@@ -193,6 +193,10 @@ def test_frames_of_different_shapes_and_windows_too_large(files, cli_error, tmp_
             r"config key 'reconstruct\.ipr\.split' = 11: allowed range is \[0, 10\]",
         ),
         (
+            lambda c: c.update(piv={"unresolved_significance": 11}),
+            r"config key 'piv\.unresolved_significance' = 11: allowed range is \[0, 10\]",
+        ),
+        (
             lambda c: c.update(piv={"particles": "ptv", "ptv_order": 3}),
             r"piv\.ptv_order' = 3",
         ),

@@ -635,7 +635,14 @@ def test_unresolved_noise_model_matches_errors_shared_by_overlapping_windows():
     blind to a smooth flow, and the significance keeps the flag off a noisy uniform field where σ is too small."""
     from scipy.ndimage import convolve1d
 
-    from lfstudy.piv.resolution import _SMOOTH, estimate_noise_gain, filter_estimate, noise_level, unresolved
+    from lfstudy.piv.resolution import (
+        _SMOOTH,
+        NOISE_MARGIN_95,
+        estimate_noise_gain,
+        filter_estimate,
+        noise_level,
+        unresolved,
+    )
 
     shape, win, spa = (7, 9, 12), (8, 16, 16), (4, 8, 8)
     noise = _overlapping_noise(3000, shape, seed=5)
@@ -658,15 +665,35 @@ def test_unresolved_noise_model_matches_errors_shared_by_overlapping_windows():
     # a uniform shift whose errors are 1.5 x the σ WIDIM gives: the curvature of the errors alone passed 0.3 σ
     sig = np.full((3, *shape), 0.1 / 1.5)
     shift = 0.1 * noise[3:303].reshape(100, 3, *shape) + 0.5
-    loose = np.mean([unresolved(f, sig, win, spa, significance=0.0).mean() for f in shift])
-    strict = np.mean([unresolved(f, sig, win, spa).mean() for f in shift])
+    loose = np.mean([unresolved(f, sig, win, spa).mean() for f in shift])  # the default: the noise not considered
+    strict = np.mean([unresolved(f, sig, win, spa, significance=NOISE_MARGIN_95).mean() for f in shift])
     print("uniform flagged", loose, strict)
-    assert loose > 0.3 and strict < 0.08  # the default: a vector of pure noise passes in no component with 95 %
+    assert loose > 0.3 and strict < 0.08  # 2.39: a vector of pure noise passes in no component with 95 %
     # a curvature well above the noise is still flagged: 0.2 per vector² along x -> 0.067 > 0.3 σ, 3 x its noise
     curved = 0.1 * (x - 6) ** 2 + 0.1 * noise[:3] * 0.2
-    assert unresolved(curved, sig, win, spa)[1:-1, 1:-1, 1:-1].mean() > 0.9
+    assert unresolved(curved, sig, win, spa, significance=NOISE_MARGIN_95)[1:-1, 1:-1, 1:-1].mean() > 0.9
     with pytest.raises(ValueError, match="significance"):
         unresolved(field, sig, win, spa, significance=-1.0)
+
+
+def test_the_unresolved_margin_is_a_widim_setting_and_a_config_key():
+    """piv.unresolved_significance reaches WIDIM through config_options, is kept in the attrs, flags no more than
+    without it, and a value out of [0, 10] is refused by name."""
+    from lfstudy.piv.engine import config_options
+    from lfstudy.piv.resolution import NOISE_MARGIN_95
+
+    p = {"window": 16, "spacing": 8, "levels": 1, "mode": "deform", "subpixel": "auto", "predictor_filter": 1.0}
+    assert config_options(p)["unresolved_significance"] == 0.0
+    assert config_options({**p, "unresolved_significance": 2.39})["unresolved_significance"] == 2.39
+    a, b = particle_pair((48, 64, 64), (0.3, 0.5, -0.4), density=0.02, seed=3)
+    off = widim(a, b, window=16, spacing=8)
+    on = widim(a, b, window=16, spacing=8, unresolved_significance=NOISE_MARGIN_95)
+    assert off.attrs["unresolved_significance"] == 0.0
+    assert on.attrs["unresolved_significance"] == pytest.approx(2.3877, abs=1e-4)
+    assert not (on["unresolved"].values & ~off["unresolved"].values).any()  # the margin only takes flags away
+    np.testing.assert_array_equal(on["u"].values, off["u"].values)  # and changes nothing else
+    with pytest.raises(ValueError, match=r"unresolved_significance.*\[0, 10\]"):
+        widim(a, b, window=16, spacing=8, unresolved_significance=11.0)
 
 
 def test_partial_windows_are_the_ones_reaching_past_the_seeded_slab():

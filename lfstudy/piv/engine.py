@@ -198,6 +198,7 @@ def config_options(p: Mapping[str, Any]) -> dict[str, Any]:
         "subpixel": p["subpixel"],
         "predictor_filter": p["predictor_filter"],
         "zero_pad": p.get("zero_pad", False),
+        "unresolved_significance": p.get("unresolved_significance", 0.0),
     }
 
 
@@ -219,6 +220,7 @@ class WidimSettings:
     predictor_filter: float = 1.0
     chunk_windows: int | None = None
     workers: int | None = None
+    unresolved_significance: float = 0.0
 
     @classmethod
     def build(cls, shape: Sequence[int], *, window: Any, spacing: Any = None, **kw: Any) -> WidimSettings:
@@ -255,6 +257,11 @@ class WidimSettings:
             raise ValueError(f"`zero_pad` must be True or False; got {zero_pad!r}")
         chunk = kw.get("chunk_windows")
         workers = kw.get("workers")
+        margin = _check_number(
+            kw.get("unresolved_significance", d.unresolved_significance), "unresolved_significance", 0.0, strict=False
+        )
+        if margin > 10:
+            raise ValueError(f"`unresolved_significance` must be in [0, 10]; got {margin!r}")
         s = cls(
             window_t,
             spacing_t,
@@ -272,6 +279,7 @@ class WidimSettings:
             ),
             chunk_windows=None if chunk is None else _check_int(chunk, "chunk_windows", 1),
             workers=None if workers is None else _check_int(workers, "workers", 1),
+            unresolved_significance=margin,
         )
         for rf, (w, _) in enumerate(s.sizes, start=1):
             if min(w) < 4:
@@ -845,6 +853,7 @@ def widim(
     workers: int | None = None,
     progress: bool = False,
     uncertainty: str | None = "correlation",
+    unresolved_significance: float = 0.0,
 ) -> xr.Dataset:
     """Multi-pass, multi-grid PIV of two images or volumes (WIDIM, thesis ch. 6).
 
@@ -914,6 +923,12 @@ def widim(
         neighbouring voxels' contributions counted, ``"independent"`` the same as
         published, ``"moment"`` a simpler peak-width estimate; None or ``"none"``
         (the ``piv.uncertainty`` setting's word) skips it (no ``unc_*`` variables).
+    unresolved_significance : float
+        The ``unresolved`` flag's margin over the field's own noise, in standard deviations of what the vectors'
+        errors give its curvature estimate (:func:`lfstudy.piv.resolution.unresolved`'s ``significance``;
+        ``piv.unresolved_significance``), 0–10; 0 (default): the noise is not considered.
+        :data:`lfstudy.piv.resolution.NOISE_MARGIN_95` (2.39) leaves a vector of pure noise unflagged with 95 %
+        probability.
 
     Returns
     -------
@@ -987,6 +1002,7 @@ def widim(
         predictor_filter=predictor_filter,
         chunk_windows=chunk_windows,
         workers=workers,
+        unresolved_significance=unresolved_significance,
     )
     if uncertainty == "none":
         uncertainty = None
@@ -1043,7 +1059,15 @@ def widim(
         # truth-free: windows partly outside the seeded region, and where the final window's filtering of the
         # measured field likely exceeds σ (issue 38)
         partial = partial_windows(_plane_profiles(ia, ib), nodes, st.sizes[-1][0])
-        flag = unresolved(field, sigma, st.sizes[-1][0], st.sizes[-1][1], partial=partial, valid=valid & ~partial)
+        flag = unresolved(
+            field,
+            sigma,
+            st.sizes[-1][0],
+            st.sizes[-1][1],
+            partial=partial,
+            valid=valid & ~partial,
+            significance=st.unresolved_significance,
+        )
     ds = _to_dataset(field, valid, peak, centres, ia, shape, st, history, sigma, flag, partial)
     ds.attrs["uncertainty"] = uncertainty or "none"
     return ds

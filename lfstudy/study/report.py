@@ -1304,7 +1304,7 @@ UNRESOLVED_HIT = 0.8
 #: ... and at most this share of its flags fall on vectors whose true filtering is below σ ...
 UNRESOLVED_FALSE = 0.2
 #: ... and on a flow the windows do not filter (a uniform shift) it flags at most this many percent of the vectors:
-#: twice the false alarms it is built for on pure noise (5 %, lfstudy.piv.resolution.UNRESOLVED_SIGNIFICANCE).
+#: twice the 5 % of pure noise the flag leaves with the margin lfstudy.piv.resolution.NOISE_MARGIN_95.
 UNRESOLVED_STILL_PERCENT = 10.0
 #: The flag's scores in the metric table (unresolved_percent, _hit, _false)
 _FLAG_SCORES = tuple(m.name for m in mt.METRICS if m.name.startswith("unresolved_"))
