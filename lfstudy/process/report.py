@@ -170,8 +170,8 @@ def _pair_blocks(
                 "Standard uncertainty σ of each component per vector, middle x–y slice (colour scales over the "
                 "whole field); blank: invalid or replaced vector. Red crosses: vectors flagged unresolved, "
                 "where the measured field's curvature says the final window's averaging of the flow likely "
-                "exceeds σ, by more than the vectors' own errors could put there (σ covers the random error of "
-                "what a window measures, not that averaging). Grey dots: "
+                "exceeds σ (with piv.unresolved_significance: by more than the vectors' own errors could put "
+                "there; σ covers the random error of what a window measures, not that averaging). Grey dots: "
                 "windows partly outside the seeded region (they measure their seeded part, not the box about "
                 "their centre; never flagged unresolved). "
                 f"{calibration_note(piv.attrs)}",

@@ -373,8 +373,9 @@ METRICS: tuple[Metric, ...] = (
     Metric(
         "unresolved_percent", "percent", "full-window vectors flagged unresolved", None, (), "quality",
         description="of the valid vectors whose window is not partial, the share the PIV flags 'unresolved' "
-        "(piv.zarr: the window's filtering of the measured field likely exceeds σ, beyond what the vectors' own "
-        "errors put into its curvature; truth-free, lfstudy.piv.resolution)",
+        "(piv.zarr: the window's filtering of the measured field likely exceeds σ, with "
+        "piv.unresolved_significance also beyond what the vectors' own errors put into its curvature; truth-free, "
+        "lfstudy.piv.resolution)",
     ),
     Metric(
         "unresolved_hit", "1", "share of the true filter errors > 2σ flagged", False, (), "quality",
