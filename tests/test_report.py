@@ -474,6 +474,19 @@ def test_report_shows_the_uncertainty_per_design(study_dirs, tmp_path):
     # no files on disk: a note, not a failed figure
     gone = list(rp._uncertainty_blocks(study, {}))
     assert [b.name for b in gone] == ["table", "error_vs_sigma"] and "not available" in gone[1].note
+    # the unresolved flag's verdict beside σ's, from the study's scores (the tiny study's windows are all partial:
+    # no scores there, so none is said)
+    assert "unresolved flag" not in blocks[0].html
+    like = study["unc_coverage_x"]
+    scored = study.assign(
+        unresolved_percent=xr.full_like(like, 30.0),
+        unresolved_hit=xr.full_like(like, 0.9),
+        unresolved_false=xr.full_like(like, 0.5),
+        filter_rms_total_mm=xr.full_like(like, 0.01),
+    )
+    verdict = list(rp._uncertainty_blocks(scored, {}))[0].html
+    assert "the flag catches 0.90; 0.50 of its flags fall where the filtering is below σ" in verdict
+    assert "not as a verdict per vector" in verdict
     # a study without any σ says so instead of drawing
     bare = study.drop_vars([v for v in study.data_vars if str(v).startswith("unc_")])
     none = list(rp._uncertainty_blocks(bare, {}))
