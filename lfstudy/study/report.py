@@ -1356,8 +1356,9 @@ def _unresolved_verdict(df: pd.DataFrame) -> str:
         out.append("Trust the unresolved flag on these designs.")
     else:
         out.append(
-            "Read the unresolved flag as a pointer to where the measured field varies on the window's scale "
-            "beyond its noise (the flow's or the reconstruction's), not as a verdict per vector "
+            "Read the unresolved flag as a pointer to where the measured field varies on the window's scale (the "
+            "flow, the reconstruction or the vectors' own noise; piv.unresolved_significance sets a margin over "
+            "the noise), not as a verdict per vector "
             f"(its targets: catch ≥ {UNRESOLVED_HIT:g}, ≤ {UNRESOLVED_FALSE:g} false, ≤ "
             f"{UNRESOLVED_STILL_PERCENT:g} % flagged where nothing is filtered)."
         )
