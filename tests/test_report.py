@@ -484,7 +484,7 @@ def test_report_shows_the_uncertainty_per_design(study_dirs, tmp_path):
         unresolved_false=xr.full_like(like, 0.5),
         filter_rms_total_mm=xr.full_like(like, 0.01),
     )
-    verdict = list(rp._uncertainty_blocks(scored, {}))[0].html
+    verdict = next(iter(rp._uncertainty_blocks(scored, {}))).html
     assert "the flag catches 0.90; 0.50 of its flags fall where the filtering is below σ" in verdict
     assert "not as a verdict per vector" in verdict
     # a study without any σ says so instead of drawing
