@@ -53,9 +53,10 @@ partial. On the full windows, Hill's vortex: hit 0.90-0.96 of the vectors whose 
 flagged. Before the partial windows were set apart, all but 0-4 of the Hill oracle's false flags (98-119 a
 case) lay on windows at the slab's faces, nearly all with a real error above 2σ, not the filter's. On reconstructions
 (``benchmarks/bench_uncertainty.py``, the thesis camera cropped to 1200 x 900 px, 0.005 ppp, Monte-Carlo
-images, seed 2011, 67-75 % of the vectors partial): Hill with MART hit 0.80, false 0.11, with IPR 0.93 /
-0.09; a uniform shift 26 % (MART) and 28 % (IPR) flagged, the reconstructions' own errors in the second
-differences.
+images, seed 2011, 67-75 % of the vectors partial), run on a2ff4e5: Hill with MART hit 0.80, false 0.11, with
+IPR 0.93 / 0.09; a uniform shift 26 % (MART) and 28 % (IPR) flagged, the reconstructions' own errors in the second
+differences. The same case rerun on 8cf565e reads MART 0.76 / 0.11 and IPR 0.96 / 0.16 (below): MART's catch sits
+at the target's edge.
 
 Those figures are without the significance (the default). With it at 2.39 (the same oracles, seeds 2011 and 2012,
 0.001 and 0.005 ppp, flagged % / hit / false): a uniform shift 0-2 % (0-4 % without); Hill 42-57 % / 0.67-0.85 /
