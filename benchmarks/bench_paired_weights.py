@@ -42,9 +42,11 @@ def _line(err, piv) -> str:
         f"w {float(err.rms_z_mm):.4f}",
         f"crosstalk {float(err.crosstalk_z):+.3f}" if "crosstalk_z" in err and np.isfinite(err.crosstalk_z) else "",
         f"valid {float(err.valid_percent):5.1f} %",
-        f"sigma_w cov {float(err.unc_coverage_z):.2f} ratio {float(err.unc_ratio_z):.2f}"
+        "sigma cov/ratio "
+        + " ".join(f"{ax} {float(err[f'unc_coverage_{ax}']):.2f}/{float(err[f'unc_ratio_{ax}']):.2f}" for ax in "xyz")
         if "unc_ratio_z" in err
         else "",
+        f"unresolved {float(err.unresolved_percent):.1f} %" if "unresolved_percent" in err else "",
     ]
     depth, sd = piv.attrs.get("paired_weight_depth_mm", []), piv.attrs.get("paired_weight_sd_mm", [])
     if len(depth):

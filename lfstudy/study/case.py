@@ -639,7 +639,9 @@ def case_paired_piv(
     the tracks' own displacement variance at its distance from the focal plane
     (:func:`lfstudy.piv.ptv.depth_weights`): each of its two particles is rendered with the root of that weight
     times its intensity. The fit's ``sigma_z`` misses most of the depth error near focus (the fit's choice of
-    minimum, not the minimum's width), which the tracks' scatter shows.
+    minimum, not the minimum's width), which the tracks' scatter shows. That scatter, over the tracks inside a
+    vector's window, is also a floor of the vector's σ (``piv.paired_uncertainty``): the correlation's σ, read from
+    the correlation plane, sees little of the depth error near focus.
 
     Parameters
     ----------
@@ -666,11 +668,14 @@ def case_paired_piv(
         ``paired_rejected`` (tracks the median test dropped), ``particle_sigma_mm`` (σ z, y, x of the paired
         volumes' particles), ``paired_weights`` and the weights' bands (``paired_weight_depth_mm``: their median
         |z|; ``paired_weight_sd_mm``: the tracks' displacement scatter there; ``paired_weight_min``: the least
-        weight) and ``paired_seconds`` (pairing and rendering).
+        weight), ``paired_uncertainty`` and ``paired_seconds`` (pairing and rendering). With ``piv.paired_uncertainty``
+        ``tracks`` (the default, where WIDIM gives a σ) each vector's ``unc_<c>_mm`` is the larger of the correlation's
+        (kept as ``unc_correlation_<c>_mm``) and the tracks' own (``unc_tracks_<c>_mm``,
+        :func:`lfstudy.piv.ptv.track_sigma`), and ``unresolved`` is read against it.
     """
     import time
 
-    from lfstudy.piv.ptv import PAIRED_WEIGHTS, depth_weights
+    from lfstudy.piv.ptv import PAIRED_UNCERTAINTY, PAIRED_WEIGHTS, depth_weights
     from lfstudy.reconstruct.truth import render_truth
 
     if a.attrs.get("blob_sigma_mm") is None:
@@ -706,6 +711,11 @@ def case_paired_piv(
     vb = paired(b, particles_b, tracks.index_b.values)
     seconds = time.perf_counter() - t0
     res = case_piv(ccfg, va, vb)
+    sigma_mode = str(ccfg["piv"].get("paired_uncertainty", PAIRED_UNCERTAINTY[0]))
+    if sigma_mode not in PAIRED_UNCERTAINTY:
+        raise ValueError(f"piv.paired_uncertainty = {sigma_mode!r}; allowed values are {PAIRED_UNCERTAINTY}")
+    if sigma_mode == "tracks" and "unc_u_mm" in res:
+        res = _with_track_sigma(res, tracks, weights, vox)
     for c in ("u", "v", "w"):
         res[f"piv_{c}_mm"] = piv[f"{c}_mm"].assign_attrs(long_name=f"{c} of WIDIM on the reconstructed volumes")
     res["piv_valid"] = piv["valid"]
@@ -723,9 +733,58 @@ def case_paired_piv(
         paired_weight_depth_mm=bands["depth_mm"],
         paired_weight_sd_mm=bands["sd_mm"],
         paired_weight_min=float(weights.min()) if len(weights) else 1.0,
+        paired_uncertainty=sigma_mode,
         paired_seconds=seconds,
     )
     return res
+
+
+def _with_track_sigma(
+    res: xr.Dataset, tracks: xr.Dataset, weights: np.ndarray, vox: tuple[float, float, float]
+) -> xr.Dataset:
+    """The paired PIV result ``res`` with each vector's σ per component the larger of the correlation's and the
+    tracks' own (:func:`lfstudy.piv.ptv.track_sigma`, the tracks weighed as in the correlation), both kept
+    (``unc_correlation_<c>_mm``, ``unc_tracks_<c>_mm``), and the ``unresolved`` flag read again against that σ."""
+    from lfstudy.piv.ptv import track_sigma
+    from lfstudy.piv.resolution import unresolved
+
+    wz, wy, wx = (float(k) for k in res.attrs["final_window"])
+    window_mm = (wx * vox[0], wy * vox[1], wz * vox[2])
+    grid = res.transpose("z", "y", "x", ...)
+    st = track_sigma(tracks, grid, window_mm, voxel=tracks.attrs["voxel_mm"], weights=weights)
+    dims = tuple(d for d in ("z", "y", "x"))
+    st = np.stack([xr.DataArray(st[k], dims=dims).transpose(*res["unc_u_mm"].dims).values for k in range(3)])
+    out = res.copy()
+    for k, c in enumerate(("u", "v", "w")):
+        old = res[f"unc_{c}_mm"]
+        new = np.where(np.isfinite(old.values), np.fmax(old.values, st[k]), np.nan)
+        scale = np.where(old.values > 0, new / np.where(old.values > 0, old.values, 1.0), 1.0)
+        out[f"unc_{c}_mm"] = old.copy(data=new)
+        out[f"unc_{c}"] = res[f"unc_{c}"].copy(data=res[f"unc_{c}"].values * scale)
+        out[f"unc_correlation_{c}_mm"] = old.assign_attrs(
+            long_name=f"standard uncertainty of the {c} displacement read from the correlation alone"
+        )
+        out[f"unc_tracks_{c}_mm"] = old.copy(data=st[k]).assign_attrs(
+            long_name=f"standard uncertainty of the {c} displacement from the paired tracks' own scatter "
+            "(NaN: no track in the window)"
+        )
+    if "unresolved" in res:  # the flag marks filtering likely above σ: the σ now stored
+        dims = res["unresolved"].dims
+        field = np.stack([res[c].transpose(*dims).values for c in ("w", "v", "u")])
+        sigma = np.stack([out[f"unc_{c}"].transpose(*dims).values for c in ("w", "v", "u")])
+        partial = res["partial"].transpose(*dims).values.astype(bool)
+        valid = res["valid"].transpose(*dims).values.astype(bool)
+        flag = unresolved(
+            field,
+            sigma,
+            res.attrs["final_window"],
+            res.attrs["final_spacing"],
+            partial=partial,
+            valid=valid & ~partial,
+            significance=float(res.attrs.get("unresolved_significance", 0.0)),
+        )
+        out["unresolved"] = res["unresolved"].copy(data=flag)
+    return out
 
 
 def case_tracked_piv(
