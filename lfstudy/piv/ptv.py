@@ -792,8 +792,9 @@ def track_sigma(
     A paired vector is the correlation of the tracks inside its window, so it errs at least by their mean error.
     Near the focal plane a fitted particle's depth errs several times more than away from it
     (:func:`depth_weights`), and there the window holds few tracks; the correlation's σ, read from the
-    correlation plane, sees little of it (on held-out coarse demo designs σ of w covered 0.33-0.52 of the errors,
-    its RMS 1.05-1.68 times too small). Each track's variance per component is its band's robust variance
+    correlation plane, sees little of it (held-out coarse demo designs: σ of w covered 0.37-0.54 of the errors, its
+    RMS 0.93-1.60 times too small; the larger of the two σ 0.58-0.76 and 0.56-1.10, docs/config.md). Each
+    track's variance per component is its band's robust variance
     (:func:`depth_weights`' bands, interpolated at the track's |z|, each component's own), and the window's
     estimate is their weighted mean: ``var_c = Σ w_t² v_c(|z_t|) / (Σ w_t)²`` over the tracks inside the window
     (``w_t`` the correlation's weights, 1 without). No truth is used, so recordings too.
