@@ -1,7 +1,9 @@
 """The paired PIV's track weights (``piv.paired_weights``) against a finished study (issue 39: the demo's RMS targets).
 
-Reproduces: docs/config.md § "Weighing the tracks by depth (`piv.paired_weights`)"; lfstudy/schema.yaml
-(``piv.paired_weights``); lfstudy/piv/ptv.py (:func:`~lfstudy.piv.ptv.depth_weights`).
+Reproduces: docs/config.md § "Weighing the tracks by depth (`piv.paired_weights`)" and § "The paired vectors' σ from
+the tracks themselves (`piv.paired_uncertainty`)"; lfstudy/schema.yaml (``piv.paired_weights``,
+``piv.paired_uncertainty``); lfstudy/piv/ptv.py (:func:`~lfstudy.piv.ptv.depth_weights`,
+:func:`~lfstudy.piv.ptv.track_sigma`).
 
 Reads a finished study (the README's first command writes ``results/demo``) and, for every case whose
 reconstruction fitted particles (``volume_a.particles.zarr``), reruns the paired PIV
@@ -9,9 +11,9 @@ reconstruction fitted particles (``volume_a.particles.zarr``), reruns the paired
 lists once per ``--weights`` value, and scores it as the study does (:func:`lfstudy.study.metrics.case_errors`).
 Printed per case: the oracle's total RMS error and the issue's target, max(1.5 × oracle, oracle + 0.01 mm); then per
 setting the total RMS error [mm] (against the point truth, the study's ``rms_total_mm``), w's RMS error, the
-crosstalk of a lateral shift (``crosstalk_z``), the valid vectors, σ of w's coverage and RMS ratio (against the
-window-averaged truth, the study's ``unc_coverage_z`` / ``unc_ratio_z``), and for ``depth`` the tracks' robust
-displacement scatter [um] per band of |z| (the bands' median |z| [mm]).
+crosstalk of a lateral shift (``crosstalk_z``), the valid vectors, σ's coverage and RMS ratio per component (against
+the window-averaged truth, the study's ``unc_coverage_<ax>`` / ``unc_ratio_<ax>``), the ``unresolved`` share, and for
+``depth`` the tracks' robust displacement scatter [um] per band of |z| (the bands' median |z| [mm]).
 
     python benchmarks/bench_paired_weights.py [--results results/demo] [--config config/demo.yaml]
         [--weights none depth] [--set piv.paired_max_sigma_z=1000 ...]
@@ -22,6 +24,12 @@ were designed, and of 2b29782 at seed 8, held out; the table is in docs/config.m
 0.0683 / 0.0768 mm). ``depth`` takes the uniform shift's total RMS down 4-25 % on every design and seed (finest design
 0.0160 -> 0.0126 and 0.0152 -> 0.0121 mm against targets of 0.0116 and 0.0118), Hill's vortex -12 to +5 % (worse on the
 finest design, +2 and +5 %); median of the 16 cases -9.1 %. The band nearest focus scatters 2.5-6x the others.
+
+``--weights depth --set piv.paired_uncertainty=correlation`` against the default (``tracks``), run 2026-12-04 on the
+same lists of seeds 7 and 8 (``--config`` a copy of config/demo.yaml with ``sweep.seed: [7, 8]``, the lists of a
+``bench_uncertainty.py`` run) and on held-out coarse designs (M -0.85 and -0.9, pitch 0.104 and 0.112 mm, lateral y,
+diagonal and axial shifts, seed 23): case-components in issue 38's band (coverage 0.55-0.80, ratio 0.7-1.4)
+34 -> 41 of 48 (z 6 -> 11 of 16) and 24 -> 32 of 36 (z 0 -> 8 of 12); total RMS unchanged.
 """
 
 from __future__ import annotations
