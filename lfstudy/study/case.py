@@ -750,10 +750,8 @@ def _with_track_sigma(
 
     wz, wy, wx = (float(k) for k in res.attrs["final_window"])
     window_mm = (wx * vox[0], wy * vox[1], wz * vox[2])
-    grid = res.transpose("z", "y", "x", ...)
-    st = track_sigma(tracks, grid, window_mm, voxel=tracks.attrs["voxel_mm"], weights=weights)
-    dims = tuple(d for d in ("z", "y", "x"))
-    st = np.stack([xr.DataArray(st[k], dims=dims).transpose(*res["unc_u_mm"].dims).values for k in range(3)])
+    st = track_sigma(tracks, res, window_mm, voxel=tracks.attrs["voxel_mm"], weights=weights)  # (3, z, y, x)
+    st = np.stack([xr.DataArray(s, dims=("z", "y", "x")).transpose(*res["unc_u_mm"].dims).values for s in st])
     out = res.copy()
     for k, c in enumerate(("u", "v", "w")):
         old = res[f"unc_{c}_mm"]
