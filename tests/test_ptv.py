@@ -580,13 +580,11 @@ def test_depth_weights_without_enough_tracks_or_noise_are_one():
         depth_weights(_tracks_of(xyz, d[:1].repeat(400, axis=0)), voxel=VOXEL, neighbours=2)
 
 
-def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
-    """piv.paired_weights: the particles in the first quarter of the depth read their depth with 0.3 voxel of
-    scatter in each frame (as near the focal plane), the rest with 0.02; the fit's sigma_z does not say so.
-    Weighted by depth (the default) WIDIM's w on the paired particles errs less than with every track alike, and
-    the result names the weights and the bands' scatter."""
-    rng = np.random.default_rng(12)
-    coords, true = _scene(rng, 600)
+def _blind_near_focus(tmp_path, rng: np.random.Generator, n: int) -> tuple[dict[str, str], np.ndarray]:
+    """Two frames of ``n`` particles shifted laterally (1.3, -0.7, 0) voxels, fitted with 0.02 voxel of scatter, and
+    0.3 z voxel more in each frame where z < 1.5 mm (as near the focal plane); their lists' paths and the true
+    positions of frame a."""
+    coords, true = _scene(rng, n)
     shift = np.array([1.3, -0.7, 0.0]) * VOXEL
     blind = true[:, 2] < 1.5
     paths = {}
@@ -594,6 +592,15 @@ def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
         fit = pts + rng.normal(size=pts.shape) * VOXEL * 0.02
         fit[blind, 2] += rng.normal(size=int(blind.sum())) * 0.3 * VOXEL[2]
         paths[f] = _write_fitted_frame(tmp_path, f, fit, coords, np.full(len(fit), 1e-3))
+    return paths, true
+
+
+def test_paired_piv_weighs_the_tracks_whose_depth_scatters_down(tmp_path):
+    """piv.paired_weights: the particles in the first quarter of the depth read their depth with 0.3 voxel of
+    scatter in each frame (as near the focal plane), the rest with 0.02; the fit's sigma_z does not say so.
+    Weighted by depth (the default) WIDIM's w on the paired particles errs less than with every track alike, and
+    the result names the weights and the bands' scatter."""
+    paths, _ = _blind_near_focus(tmp_path, np.random.default_rng(12), 600)
     # windows the volume's whole depth deep: each holds particles of both kinds, and the weights choose among them
     piv = {"window": [16, 16, 16], "spacing": [8, 8, 8], **_PAIRED}
     res, w_rms = {}, {}
@@ -615,15 +622,7 @@ def test_paired_sigma_takes_the_tracks_scatter_where_the_depth_is_read_badly(tmp
     should, both parts are kept, and ``correlation`` gives the correlation's σ alone."""
     from lfstudy.piv.ptv import track_sigma
 
-    rng = np.random.default_rng(21)
-    coords, true = _scene(rng, 900)
-    shift = np.array([1.3, -0.7, 0.0]) * VOXEL
-    blind = true[:, 2] < 1.5
-    paths = {}
-    for f, pts in (("a", true), ("b", true + shift)):
-        fit = pts + rng.normal(size=pts.shape) * VOXEL * 0.02
-        fit[blind, 2] += rng.normal(size=int(blind.sum())) * 0.3 * VOXEL[2]
-        paths[f] = _write_fitted_frame(tmp_path, f, fit, coords, np.full(len(fit), 1e-3))
+    paths, true = _blind_near_focus(tmp_path, np.random.default_rng(21), 900)
     # windows a quarter of the depth deep: those nearest focus hold only badly read tracks (as on the demo)
     piv = {"window": [4, 16, 16], "spacing": [2, 8, 8], **_PAIRED, "uncertainty": "correlation"}
     res, _ = _paired_w_rms(tmp_path, piv, "tracks", paths)
