@@ -693,6 +693,9 @@ def case_paired_piv(
     weighting = str(ccfg["piv"].get("paired_weights", PAIRED_WEIGHTS[0]))
     if weighting not in PAIRED_WEIGHTS:
         raise ValueError(f"piv.paired_weights = {weighting!r}; allowed values are {PAIRED_WEIGHTS}")
+    sigma_mode = str(ccfg["piv"].get("paired_uncertainty", PAIRED_UNCERTAINTY[0]))
+    if sigma_mode not in PAIRED_UNCERTAINTY:
+        raise ValueError(f"piv.paired_uncertainty = {sigma_mode!r}; allowed values are {PAIRED_UNCERTAINTY}")
     weights, bands = (
         depth_weights(tracks, voxel=tracks.attrs["voxel_mm"])
         if weighting == "depth"
@@ -711,9 +714,6 @@ def case_paired_piv(
     vb = paired(b, particles_b, tracks.index_b.values)
     seconds = time.perf_counter() - t0
     res = case_piv(ccfg, va, vb)
-    sigma_mode = str(ccfg["piv"].get("paired_uncertainty", PAIRED_UNCERTAINTY[0]))
-    if sigma_mode not in PAIRED_UNCERTAINTY:
-        raise ValueError(f"piv.paired_uncertainty = {sigma_mode!r}; allowed values are {PAIRED_UNCERTAINTY}")
     if sigma_mode == "tracks" and "unc_u_mm" in res:
         res = _with_track_sigma(res, tracks, weights, vox)
     for c in ("u", "v", "w"):
