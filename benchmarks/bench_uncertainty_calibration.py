@@ -15,12 +15,14 @@ correlation peak height (does the factor depend on it?).
 
     python benchmarks/bench_uncertainty.py --config CFG --sweep "seed=[7,8]" --out DIR   # the cases
     python benchmarks/bench_uncertainty_calibration.py --config CFG --out DIR --fit-seeds 7 [--flows F] [--bins]
-        [--set ...] [--sweep KEY=[V1,V2] ...] [--where KEY=VALUE ...] [--truth window|point]
+        [--set ...] [--sweep KEY=[V1,V2] ...] [--where KEY=VALUE ...] [--truth window|point|oracle]
 
 ``--set`` and ``--sweep`` repeat the run's (bench_uncertainty.py's meaning); ``--where`` keeps the cases of one
 design of a run that swept several (``--where reconstruct.method=mart ppp=0.005``). ``--truth`` is the truth the
 printed coverage and ratio are against: ``window`` (default) the truth averaged over each final window, as the
-study's ``unc_ratio_<ax>`` the factor is fitted on (issue 38), ``point`` the truth at the window centre.
+study's ``unc_ratio_<ax>`` the factor is fitted on (issue 38), ``point`` the truth at the window centre, ``oracle``
+the case's oracle (the same WIDIM on the true particles: what the windows measure of the flow, their filtering and
+the deformation's predictor filter included; its own random error too), where the oracle has a valid vector.
 
 Measured (2 loaded cores; CFG = benchmarks/uncertainty_calibration_tiny.yaml: tiny camera, MART, 0.004 ppp,
 8 x 16 x 16 windows at 2 x 4 x 4 spacing, 75 vectors a case; fit on seed 3, checked on seeds 4 and 5; errors
@@ -69,7 +71,12 @@ the band, raw -> calibrated (of 9 per way with three flows, 6 with two):
   1.37-1.50 -> 0.50-0.58 / 0.91-1.10, z 0.22-0.26 / 2.29-2.43 -> 0.44-0.49 / 0.94-1.06: the ratio is
   repaired, the coverage is not (as MART's z).
 
-Not run: lamb_oseen at 0.001 ppp, and a larger crop (more vectors a case).
+Rerun 2026-12-04 at 0.001 ppp with lamb_oseen (``--flows hill uniform_x lamb_oseen --ppp 0.001``, the paired
+vectors' σ floor from their tracks the default; 12 cases in 5.5 min on 2 cores), held out, raw -> calibrated: MART 4 ->
+3 and 6 -> 6 of 9, IPR 2 -> 3 and 2 -> 3. lamb_oseen's x is out for both (ratio MART 2.0-2.5, IPR 3.4-3.5; the oracle
+errs as much there, 0.065 mm); with ``--truth oracle`` it is in or near the band (IPR 0.81 / 0.78-0.85, MART 0.52-0.61
+/ 0.78-0.94), held out MART 4 and 6, IPR 3 and 3 of 9 raw. IPR's uniform shift: σ 2-3x too large (x ratio 0.36-0.48).
+Not run: a larger crop (more vectors a case).
 """
 
 from __future__ import annotations
@@ -94,10 +101,17 @@ def _inside(cov: float, ratio: float) -> str:
 
 
 def _error(e, comp: str, truth: str) -> np.ndarray:
-    """A case's per-vector error [mm] against the point truth or the window-averaged truth."""
+    """A case's per-vector error [mm] against the point truth, the window-averaged truth or the oracle (NaN where
+    the oracle has no valid vector)."""
     err = e[f"{comp}_err_mm"].values
     if truth == "point":
         return err
+    if truth == "oracle":
+        if f"oracle_{comp}_mm" not in e:
+            raise SystemExit(f"--truth oracle: the case has no oracle_{comp}_mm (errors written without the oracle)")
+        # measured − oracle = (measured − point truth) + point truth − oracle
+        out = err + e[f"{comp}_true_mm"].values - e[f"oracle_{comp}_mm"].values
+        return np.where(e["oracle_valid"].values.astype(bool), out, np.nan)
     if f"{comp}_filter_mm" not in e:
         raise SystemExit(f"--truth window: the case has no {comp}_filter_mm (errors written without window_truth)")
     # measured − window-averaged truth = (measured − point truth) − (window-averaged − point truth)
@@ -129,7 +143,9 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="the same overrides as the run")
     ap.add_argument("--sweep", nargs="*", default=[], metavar="KEY=[V1,V2]", help="the same sweeps as the run")
     ap.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="only the cases of one design")
-    ap.add_argument("--truth", choices=("window", "point"), default="window", help="the truth the errors are against")
+    ap.add_argument(
+        "--truth", choices=("window", "point", "oracle"), default="window", help="the truth the errors are against"
+    )
     ap.add_argument("--out", type=Path, required=True, help="the run's directory (the cases' errors.zarr)")
     ap.add_argument("--fit-seeds", nargs="+", type=int, required=True, help="seeds the factor is fitted on")
     ap.add_argument("--flows", nargs="*", default=None, help="only these flows' cases (fit and check)")
@@ -162,7 +178,8 @@ def main() -> None:
     cal = fit_calibration(sub, source=str(args.out))
     print(cal.summary())
     print(f"fitted on {len(fit)} cases (seeds {args.fit_seeds}), checked on {len(held)} held-out cases")
-    print(f"errors against the {'window-averaged' if args.truth == 'window' else 'point'} truth\n")
+    against = {"window": "the window-averaged truth", "point": "the point truth", "oracle": "the oracle"}[args.truth]
+    print(f"errors against {against}\n")
     header = f"{'case':<44}{'set':>5} ax   raw cov  ratio  |  cal cov  ratio   band raw/cal"
     print(header)
     zlines = []
