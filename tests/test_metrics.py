@@ -302,6 +302,39 @@ def test_resolution_and_relative_error_in_mm():
         assert err[v].attrs["units"] in ("mm", "1") and err[v].attrs["long_name"]
 
 
+def test_sigma_against_the_oracle_takes_what_the_windows_measure_out_of_the_error():
+    """The oracle reads the flow 0.1 voxel short everywhere (as a window response would), and the case is the
+    oracle plus noise of the size of its σ: against the truth σ misses that response, against the oracle it is
+    right; vectors invalid in the oracle are left out."""
+    from types import SimpleNamespace
+
+    from lfstudy.study.metrics import case_metrics
+
+    shape = (4, 5, 6)
+    rng = np.random.default_rng(3)
+    e = rng.normal(0.0, 0.05, shape)
+    oracle = synthetic_piv(4.4, 0.0, 0.0).assign_attrs(oracle_seconds=1.0)
+    oracle["valid"] = (("z", "y", "x"), np.ones(shape, bool))
+    oracle["valid"].values[0, :, :] = False
+    case = synthetic_piv(4.4 + e, 0.0, 0.0).assign_attrs(final_window=[16, 32, 32])
+    case["unc_u_mm"] = (("z", "y", "x"), np.full(shape, 0.05 * VOX))
+    z, y, x = (np.linspace(-1, 1, n) for n in (9, 10, 11))
+    parts = xr.Dataset({"x": ("particle", [0.1]), "y": ("particle", [0.0]), "z": ("particle", [0.2])})
+    vol = xr.DataArray(render_truth({"z": z, "y": y, "x": x}, parts, sigma_mm=0.2), dims=("z", "y", "x"))
+    vol = vol.assign_coords(z=z, y=y, x=x)
+    cam = SimpleNamespace(fov_x=12.5, fov_y=9.0)
+    out = case_metrics(case, UniformFlow((0.5625, 0, 0)), cam, vol, parts, sigma_mm=0.2, oracle=oracle)
+    ok = np.ones(shape, bool)
+    ok[0] = False
+    assert float(out["unc_coverage_oracle_x"]) == pytest.approx(np.mean(np.abs(e[ok]) <= 0.05), abs=1e-12)
+    assert float(out["unc_ratio_oracle_x"]) == pytest.approx(np.sqrt(np.mean(e[ok] ** 2)) / 0.05, rel=1e-9)
+    assert 0.5 < float(out["unc_coverage_oracle_x"]) < 0.85
+    # against the (window-averaged = point) truth the 0.1-voxel response counts as error: σ reads 2x short
+    assert float(out["unc_coverage_x"]) < 0.3 and float(out["unc_ratio_x"]) > 1.8
+    assert np.isnan(float(out["unc_ratio_oracle_y"]))  # no σ of v
+    assert out["unc_ratio_oracle_x"].attrs["long_name"] and out["unc_coverage_oracle_z"].attrs["units"] == "1"
+
+
 def test_case_metrics_adds_fov_q_and_depth_gain_with_table_attrs():
     """The science run_errors used to do inline: a pure function of the PIV result, the camera, the
     volume and the particles; every scalar's attrs from the metric table."""

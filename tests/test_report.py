@@ -887,6 +887,11 @@ def test_the_uncertainty_verdict():
     assert "piv.zero_pad: true" in _uncertainty_verdict(pd.DataFrame({"unc_ratio_z": [0.9, 3.0]}), circular=True)
     assert "zero_pad" not in _uncertainty_verdict(pd.DataFrame({"unc_ratio_z": [0.9, 3.0]}), circular=False)
     assert "zero_pad" not in _uncertainty_verdict(pd.DataFrame({"unc_ratio_z": [0.9, 1.2]}), circular=True)
+    # too small against the window-averaged truth, right against the oracle: the windows' response, not noise
+    odd = pd.DataFrame({"unc_ratio_x": [2.0, 3.5], "unc_ratio_oracle_x": [0.78, 0.94]})
+    assert "Against the oracle (the same windows on the true particles) it is 0.78–0.94×" in _uncertainty_verdict(odd)
+    assert "oracle" not in _uncertainty_verdict(odd.assign(unc_ratio_oracle_x=[0.78, 1.7]))  # wrong there too
+    assert "oracle" not in _uncertainty_verdict(pd.DataFrame({"unc_ratio_x": [0.9, 1.1], "unc_ratio_oracle_x": [1, 1]}))
     import json
 
     import xarray as xr

@@ -153,6 +153,7 @@ def test_study_runs_end_to_end(study_dir):
     header = (out / "study.csv").read_text().splitlines()[0].split(",")
     assert {"oracle_rms_total_mm", "oracle_rms_z_mm", "recon_added_rms_total_mm", "crosstalk_z"} <= set(header)
     assert {"filter_rms_total_mm", "rest_rms_total_mm", "unc_ratio_point_z", "unresolved_hit"} <= set(header)
+    assert {"unc_coverage_oracle_x", "unc_ratio_oracle_z"} <= set(header)
     err = io.open_zarr(out / expand_cases(cfg)[0].case_id / "errors.zarr")
     assert err["oracle_w_mm"].dims == err["w_err_mm"].dims and "oracle_mean_z_mm" in err
     assert err["u_filter_mm"].dims == err["u_err_mm"].dims

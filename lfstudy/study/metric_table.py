@@ -370,6 +370,12 @@ METRICS: tuple[Metric, ...] = (
                group="error",
                description="unc_ratio_{ax} with the error against the truth at the window centre (the window's "
                "filtering counted as error)"),
+    *_per_axis("unc_coverage_oracle_{ax}", "1", "uncertainty coverage {ax} against the oracle", group="error",
+               description="unc_coverage_{ax} with the error against the oracle's vector (the same WIDIM on the true "
+               "particles: the windows' whole response to the flow), over the vectors valid in both"),
+    *_per_axis("unc_ratio_oracle_{ax}", "1", "RMS error / RMS uncertainty {ax} against the oracle", group="error",
+               description="unc_ratio_{ax} with the error against the oracle's vector (the same WIDIM on the true "
+               "particles: the windows' whole response to the flow), over the vectors valid in both"),
     Metric(
         "unresolved_percent", "percent", "full-window vectors flagged unresolved", None, (), "quality",
         description="of the valid vectors whose window is not partial, the share the PIV flags 'unresolved' "

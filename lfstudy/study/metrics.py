@@ -55,6 +55,7 @@ __all__ = [
     "window_average",
     "unresolved_scores",
     "oracle_metrics",
+    "oracle_uncertainty",
     "quadrature_excess",
     "error_budget",
     "with_metrics",
@@ -954,8 +955,58 @@ def case_metrics(
         case = {str(n): float(v) for n, v in err.data_vars.items() if v.ndim == 0}
         values.update(orc, **error_budget(case, orc), time_oracle=float(oracle.attrs.get("oracle_seconds", math.nan)))
         err = _with_oracle_vectors(err, oracle)
+        values.update(oracle_uncertainty(err))
     values.update(extra or {})
     return with_metrics(err, values, Q={"truth_sigma_mm": sigma})
+
+
+def oracle_uncertainty(err: xr.Dataset) -> dict[str, float]:
+    """σ judged against the oracle: ``unc_coverage_oracle_<ax>`` and ``unc_ratio_oracle_<ax>``.
+
+    The oracle is the case's own WIDIM on the true particles, so its vectors are what the windows measure of the
+    flow, their whole response included (the top-hat, the deformation and its predictor filter, the particle
+    images), plus its own small random error. The case's vector minus the oracle's is then the error the
+    reconstruction and the correlation add, which σ estimates (:func:`uncertainty_calibration`). Under a vortex
+    as wide as a few windows WIDIM's response is not the top-hat of ``unc_coverage_<ax>``: on the thesis camera's
+    Lamb–Oseen vortex x's ratio is 2–5 against the window-averaged truth and 0.65–1.65 against the oracle
+    (``benchmarks/bench_uncertainty_calibration.py --truth oracle``).
+
+    Parameters
+    ----------
+    err : xarray.Dataset
+        :func:`case_errors`' result with the oracle's vectors (``oracle_<c>_mm``, ``oracle_valid``) and σ
+        (``unc_<c>_mm``).
+
+    Returns
+    -------
+    dict
+        Per axis the coverage and the RMS ratio over the vectors valid in both; NaN where the case has no σ or
+        no oracle vector for that component.
+
+    Examples
+    --------
+    >>> import numpy as np, xarray as xr
+    >>> d = ("x",)
+    >>> err = xr.Dataset({"u_err_mm": (d, [0.1, 0.3]), "u_true_mm": (d, [1.0, 1.0]),
+    ...                   "oracle_u_mm": (d, [1.1, 1.1]), "unc_u_mm": (d, [0.15, 0.15]),
+    ...                   "oracle_valid": (d, [True, True])})
+    >>> out = oracle_uncertainty(err)
+    >>> out["unc_coverage_oracle_x"], round(out["unc_ratio_oracle_x"], 3)
+    (0.5, 0.943)
+    """
+    out: dict[str, float] = {}
+    dims = tuple(err["oracle_valid"].dims) if "oracle_valid" in err else ()
+    for ax in ("x", "y", "z"):
+        c = AXES[ax]
+        cov = ratio = math.nan
+        names = (f"{c}_err_mm", f"{c}_true_mm", f"oracle_{c}_mm", f"unc_{c}_mm")
+        if dims and all(n in err for n in names):
+            e, t, o, s = (err[n].transpose(*dims).values.astype(float) for n in names)
+            # measured − oracle = (measured − point truth) + point truth − oracle
+            cov, ratio = uncertainty_calibration(e + t - o, s, err["oracle_valid"].values.astype(bool))
+        out[f"unc_coverage_oracle_{ax}"] = cov
+        out[f"unc_ratio_oracle_{ax}"] = ratio
+    return out
 
 
 def _with_oracle_vectors(err: xr.Dataset, oracle: xr.Dataset) -> xr.Dataset:

@@ -1269,11 +1269,23 @@ ZERO_PAD_HINT = (
 )
 
 
+def _oracle_span(df: pd.DataFrame, ax: str) -> str:
+    """``lo–hi`` of the designs' ``unc_ratio_oracle_<ax>`` where every one is within :data:`SIGMA_OFF` of 1 (σ right
+    against what the windows read of the true particles), else ''."""
+    col = f"unc_ratio_oracle_{ax}"
+    v = pd.to_numeric(df[col], errors="coerce").dropna().to_numpy(float) if col in df else np.array([])
+    if not v.size or v.min() < 1 / SIGMA_OFF or v.max() > SIGMA_OFF:
+        return ""
+    return _span(v, ".2g")
+
+
 def _uncertainty_verdict(df: pd.DataFrame, circular: bool = False) -> str:
     """The verdict in words on the per-vector σ, per component, from the designs' RMS error / RMS σ ratios
-    (``unc_ratio_<axis>``): too small (do not trust it), too large (conservative), about right, or mixed.
-    ``circular``: the study's PIV correlated circularly (``piv.zero_pad`` false); where σ of w is too small on
-    some design the verdict then names the linear correlation (:data:`ZERO_PAD_HINT`)."""
+    (``unc_ratio_<axis>``): too small (do not trust it), too large (conservative), about right, or mixed; where it
+    is too small on some design but right against the oracle on every one (``unc_ratio_oracle_<axis>``), it says
+    that the rest is the windows' response to the flow. ``circular``: the study's PIV correlated circularly
+    (``piv.zero_pad`` false); where σ of w is too small on some design the verdict then names the linear
+    correlation (:data:`ZERO_PAD_HINT`)."""
     from lfstudy.study.metrics import AXES
 
     out = []
@@ -1293,6 +1305,12 @@ def _uncertainty_verdict(df: pd.DataFrame, circular: bool = False) -> str:
             out.append(f"{what} is about right ({span} the actual error, within {SIGMA_OFF:g}×).")
         else:
             out.append(f"{what} is {span} the actual error: right on some designs, not on others; trust it per design.")
+        if hi > SIGMA_OFF and (o := _oracle_span(df, ax)):
+            out.append(
+                f"Against the oracle (the same windows on the true particles) it is {o}× the error: what σ misses "
+                f"there is the windows' response to the flow beyond their top-hat average, not noise (the budget's "
+                f"oracle error holds it)."
+            )
         if ax == "z" and circular and hi > SIGMA_OFF:
             out.append(ZERO_PAD_HINT)
     return " ".join(out)
