@@ -190,6 +190,14 @@ The images (``image_accuracy``): the fit's results do not move beyond the seed n
 0.001 ppp, seed 7: the same 156 particles' figures (88.1 %, 9.6 %, 0.047 and 0.090 voxel), CPU 25.3 / 25.7 s (the
 MART candidates dominate there). (CPU per image: ``bench_particle_image.py``'s docstring.)
 
+Forward differences for the shake's Jacobian (``--compare jacobian=forward``: three trial images a particle and
+iteration instead of six; run 2026-12-04, ``--camera demo --crop 320 240 --ppp 0.005 --rays 2000 --photons 4000
+--threads 1 --seed 1 2 3 4``, quiet machine; defaults -> forward, found / ghosts %, rms x,y and z mm, CPU s): seed 1
+82.3 / 14.7, 0.0058, 0.0348, 8.8 -> 81.2 / 15.9, 0.0061, 0.0332, 6.7; seed 2 81.8 / 16.0, 0.0059, 0.0368, 9.0 -> 79.9 /
+18.1, 0.0062, 0.0369, 7.3; seed 3 80.5 / 17.2, 0.0053, 0.0349, 9.7 -> 78.4 / 19.8, 0.0056, 0.0385, 8.2; seed 4 79.4 /
+16.9, 0.0048, 0.0343, 8.2 -> 80.2 / 17.0, 0.0053, 0.0347, 7.8. CPU x0.76-0.95 (fewer images, and the residual rounds
+stop earlier), found -2.1 to +0.8 points, ghosts +0.1 to +2.6, x,y rms +3 to +10 %: the default stays central.
+
 The polish's screen (``_POLISH_SCREEN`` in ``lfstudy/reconstruct/ipr/polish.py``; issue 39, fewer images per
 particle). Where the images went on the demo camera (``--camera demo --crop 320 240 --ppp 0.005 --rays 2000 --photons
 4000 --threads 1``, seed 1, counted by caller): the polish's stencils 30,738 (51.5 %), the shake 28,560 (47.8 %). 192 of
