@@ -107,11 +107,12 @@ def _error(e, comp: str, truth: str) -> np.ndarray:
     if truth == "point":
         return err
     if truth == "oracle":
-        if f"oracle_{comp}_mm" not in e:
+        from lfstudy.study.metrics import oracle_error
+
+        out = oracle_error(e, comp)
+        if out is None:
             raise SystemExit(f"--truth oracle: the case has no oracle_{comp}_mm (errors written without the oracle)")
-        # measured − oracle = (measured − point truth) + point truth − oracle
-        out = err + e[f"{comp}_true_mm"].values - e[f"oracle_{comp}_mm"].values
-        return np.where(e["oracle_valid"].values.astype(bool), out, np.nan)
+        return out
     if f"{comp}_filter_mm" not in e:
         raise SystemExit(f"--truth window: the case has no {comp}_filter_mm (errors written without window_truth)")
     # measured − window-averaged truth = (measured − point truth) − (window-averaged − point truth)

@@ -56,6 +56,7 @@ __all__ = [
     "unresolved_scores",
     "oracle_metrics",
     "oracle_uncertainty",
+    "oracle_error",
     "quadrature_excess",
     "error_budget",
     "with_metrics",
@@ -995,18 +996,52 @@ def oracle_uncertainty(err: xr.Dataset) -> dict[str, float]:
     (0.5, 0.943)
     """
     out: dict[str, float] = {}
-    dims = tuple(err["oracle_valid"].dims) if "oracle_valid" in err else ()
     for ax in ("x", "y", "z"):
         c = AXES[ax]
         cov = ratio = math.nan
-        names = (f"{c}_err_mm", f"{c}_true_mm", f"oracle_{c}_mm", f"unc_{c}_mm")
-        if dims and all(n in err for n in names):
-            e, t, o, s = (err[n].transpose(*dims).values.astype(float) for n in names)
-            # measured − oracle = (measured − point truth) + point truth − oracle
-            cov, ratio = uncertainty_calibration(e + t - o, s, err["oracle_valid"].values.astype(bool))
+        d = oracle_error(err, c)
+        if d is not None and f"unc_{c}_mm" in err:
+            s = err[f"unc_{c}_mm"].transpose(*err[f"{c}_err_mm"].dims).values.astype(float)
+            cov, ratio = uncertainty_calibration(d, s, np.isfinite(d))
         out[f"unc_coverage_oracle_{ax}"] = cov
         out[f"unc_ratio_oracle_{ax}"] = ratio
     return out
+
+
+def oracle_error(err: xr.Dataset, comp: str) -> np.ndarray | None:
+    """Per vector, the case's ``comp`` displacement (u, v or w) minus the oracle's [mm], NaN where either is
+    invalid, in the dims order of ``<comp>_err_mm``; None where ``err`` has no oracle vectors
+    (:func:`case_metrics` without an oracle).
+
+    Parameters
+    ----------
+    err : xarray.Dataset
+        :func:`case_metrics`' result: ``<comp>_err_mm``, ``<comp>_true_mm``, ``oracle_<comp>_mm`` and
+        ``oracle_valid``.
+    comp : {"u", "v", "w"}
+        The component.
+
+    Returns
+    -------
+    ndarray or None
+
+    Examples
+    --------
+    >>> import xarray as xr
+    >>> d = ("x",)
+    >>> err = xr.Dataset({"u_err_mm": (d, [0.1, 0.3]), "u_true_mm": (d, [1.0, 1.0]),
+    ...                   "oracle_u_mm": (d, [1.1, 1.2]), "oracle_valid": (d, [True, False])})
+    >>> oracle_error(err, "u")
+    array([0., nan])
+    """
+    names = (f"{comp}_err_mm", f"{comp}_true_mm", f"oracle_{comp}_mm", "oracle_valid")
+    if not all(n in err for n in names):
+        return None
+    dims = err[names[0]].dims
+    e, t, o = (err[n].transpose(*dims).values.astype(float) for n in names[:3])
+    ok = err["oracle_valid"].transpose(*dims).values.astype(bool)
+    # measured − oracle = (measured − point truth) + point truth − oracle
+    return np.where(ok, e + t - o, np.nan)
 
 
 def _with_oracle_vectors(err: xr.Dataset, oracle: xr.Dataset) -> xr.Dataset:

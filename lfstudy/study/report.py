@@ -1269,11 +1269,15 @@ ZERO_PAD_HINT = (
 )
 
 
+def _finite(df: pd.DataFrame, col: str) -> np.ndarray:
+    """The numeric values of column ``col`` of ``df``, missing ones dropped (empty without the column)."""
+    return pd.to_numeric(df[col], errors="coerce").dropna().to_numpy(float) if col in df else np.array([])
+
+
 def _oracle_span(df: pd.DataFrame, ax: str) -> str:
     """``lo–hi`` of the designs' ``unc_ratio_oracle_<ax>`` where every one is within :data:`SIGMA_OFF` of 1 (σ right
     against what the windows read of the true particles), else ''."""
-    col = f"unc_ratio_oracle_{ax}"
-    v = pd.to_numeric(df[col], errors="coerce").dropna().to_numpy(float) if col in df else np.array([])
+    v = _finite(df, f"unc_ratio_oracle_{ax}")
     if not v.size or v.min() < 1 / SIGMA_OFF or v.max() > SIGMA_OFF:
         return ""
     return _span(v, ".2g")
@@ -1290,8 +1294,7 @@ def _uncertainty_verdict(df: pd.DataFrame, circular: bool = False) -> str:
 
     out = []
     for ax, c in AXES.items():
-        col = f"unc_ratio_{ax}"
-        v = pd.to_numeric(df[col], errors="coerce").dropna().to_numpy(float) if col in df else np.array([])
+        v = _finite(df, f"unc_ratio_{ax}")
         if not v.size:
             continue
         lo, hi = float(v.min()), float(v.max())
