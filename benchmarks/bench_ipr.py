@@ -399,6 +399,7 @@ def main() -> None:
     import numba
 
     from lfstudy.reconstruct.ipr import ipr_particles
+    from lfstudy.reconstruct.ipr.fit import STEPS
 
     numba.set_num_threads(args.threads)
     if args.memory:
@@ -446,6 +447,11 @@ def main() -> None:
                 f"({1e3 * a['seconds_patches'] / max(a['particle_images'], 1):.2f} ms each), "
                 f"fit {a['seconds_fit']:.1f} s, rest {rest:.1f} s; "
                 f"full frame at this cost per particle {full / 60:.0f} min; peak RSS {rss:.2f} GB\n"
+                "    by step (s / images): "
+                + ", ".join(
+                    f"{k} {a.get(f'seconds_step_{k}', 0.0):.1f} / {a.get(f'particle_images_{k}', 0)}" for k in STEPS
+                )
+                + "\n"
                 f"    residual candidates: new particles per round {a['candidates_added']}, "
                 f"{a['skipped_candidate_rounds']} rounds skipped; shakes sat out per iteration {a['shake_sat_out']}"
             )

@@ -321,6 +321,15 @@ def test_ipr_residual_is_kept_exact(scene, fitted):
     assert all(g > 0 for g in gain[:-1]) and (gain[-1] == 0) == (skipped > 0)
     split = sum(parts.attrs[k] for k in ("seconds_mart", "seconds_patches", "seconds_fit"))
     assert 0 < split <= parts.attrs["seconds"]
+    # the split by step: every image is counted in exactly one step, and the steps' times within the fit's
+    from lfstudy.reconstruct.ipr.fit import STEPS
+
+    steps = {k: parts.attrs[f"particle_images_{k}"] for k in STEPS}
+    assert sum(steps.values()) == parts.attrs["particle_images"]
+    assert steps["shake"] > 0 and steps["polish"] > 0 and steps["image_calibration"] == 0
+    step_s = [parts.attrs[f"seconds_step_{k}"] for k in STEPS]
+    assert min(step_s) >= 0 and 0 < sum(step_s) <= parts.attrs["seconds"]
+    assert parts.attrs["seconds_step_candidates"] >= parts.attrs["seconds_mart"]
 
 
 def test_gauss_newton_step_finds_a_shifted_particle():

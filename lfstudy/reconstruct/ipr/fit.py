@@ -11,6 +11,8 @@ placed) and then kept exact incrementally: every change subtracts or adds back a
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -35,6 +37,34 @@ from lfstudy.reconstruct.ipr.split import _split
 from lfstudy.reconstruct.registry import ReconstructionError, ReconstructionInputs
 
 __all__ = ["ipr_particles"]
+
+#: the steps whose wall time and particle images the fit's attrs give (``seconds_step_<step>``,
+#: ``particle_images_<step>``); their sum is the fit's (its remainder: the set-up, the final residual norm)
+STEPS = ("candidates", "shake", "image_calibration", "polish", "split")
+
+
+class _StepClock:
+    """The wall time and the particle images of each of the fit's :data:`STEPS` (``with clock("shake"): ...``),
+    read from the images' counter, so the split needs no change in the steps themselves."""
+
+    def __init__(self, images: _FitImages) -> None:
+        self.images = images
+        self.seconds = dict.fromkeys(STEPS, 0.0)
+        self.count = dict.fromkeys(STEPS, 0)
+
+    @contextmanager
+    def __call__(self, step: str) -> Iterator[None]:
+        t0, n0 = time.perf_counter(), self.images.clock["images"]
+        try:
+            yield
+        finally:
+            self.seconds[step] += time.perf_counter() - t0
+            self.count[step] += self.images.clock["images"] - n0
+
+    def attrs(self) -> dict[str, Any]:
+        """``seconds_step_<step>`` [s] and ``particle_images_<step>`` of every step."""
+        out: dict[str, Any] = {f"seconds_step_{k}": float(v) for k, v in self.seconds.items()}
+        return out | {f"particle_images_{k}": int(v) for k, v in self.count.items()}
 
 
 def ipr_particles(
@@ -90,7 +120,9 @@ def ipr_particles(
         the settings, ``candidates``, ``removed_ghosts``, ``residual_norm`` per iteration (relative,
         exact), ``seconds`` and its split (``seconds_mart``: the candidate volumes, ``mart_volumes`` of them;
         ``seconds_patches``: the exact particle images, ``particle_images`` of them; ``seconds_fit``: the fit
-        kernels) and the calibrated grid (:func:`~lfstudy.reconstruct.ipr.calibrated_camera`).
+        kernels), its split by step (``seconds_step_<step>`` and ``particle_images_<step>`` for each of
+        :data:`STEPS`: the candidates, the shake with the ghosts' removal, the image calibration, the polish and
+        the split) and the calibrated grid (:func:`~lfstudy.reconstruct.ipr.calibrated_camera`).
 
     Raises
     ------
@@ -118,13 +150,15 @@ def ipr_particles(
     signs = (1.0, -1.0) if central else (1.0,)
     tr = np.array([[d * delta[i] if a == i else 0.0 for a in range(3)] for i in range(3) for d in signs])
     images = _FitImages(cam, mask, s.image_accuracy, s.batch)
-    volumes = _CandidateVolumes(
-        inputs, _refined(grid, _REFINE_XY, _REFINE_Z), s.residual_plane_step, s.peak_threshold, images.clock
-    )
-
+    steps = _StepClock(images)
+    with steps("candidates"):  # the candidate grid's MART plan, made once for every volume
+        volumes = _CandidateVolumes(
+            inputs, _refined(grid, _REFINE_XY, _REFINE_Z), s.residual_plane_step, s.peak_threshold, images.clock
+        )
     inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
     # step 1: the candidates of the data (or the warm start)
-    xyz = volumes.first(lf, s.mart_iterations) if start is None else _start_positions(start, inputs, inside, vox)
+    with steps("candidates"):
+        xyz = volumes.first(lf, s.mart_iterations) if start is None else _start_positions(start, inputs, inside, vox)
     n_cand = len(xyz)
     p = _Particles.unshaken(xyz, np.zeros(len(xyz)))
     norm_d = float(np.sqrt(np.sum(data**2))) or 1.0
@@ -147,21 +181,24 @@ def ipr_particles(
     # the residual is kept exact incrementally: every image subtracted or added back is the exact one
     res = data.copy()
     if len(p):  # intensities of the candidates first (positions fixed); a warm start's jointly (_START_SWEEPS)
-        p.inten = images.fit_intensity(p.xyz, res, -1.0, 1 if start is None else _START_SWEEPS)
-        if start is not None:  # a warm start's depths from this frame's own data, not the start's
-            p.xyz, p.inten = _scan_depths(images, p.xyz, p.inten, res, vox)
+        with steps("candidates"):
+            p.inten = images.fit_intensity(p.xyz, res, -1.0, 1 if start is None else _START_SWEEPS)
+            if start is not None:  # a warm start's depths from this frame's own data, not the start's
+                p.xyz, p.inten = _scan_depths(images, p.xyz, p.inten, res, vox)
     for it in range(s.iterations):
         if not len(p):
             break
         res_hist.append(norm(res))
         # step 3: the shake, then the ghosts (faint particles, particles that left the grid, merged pairs)
         last = it == s.iterations - 1  # no later shake reuses its images
-        p, n_out, events = _shake(images, p, res, vox, settle, tr, delta, mstep, s.damping, central, not last)
-        sat_out.append(n_out)
-        lit = p.inten > 0
-        med = float(np.median(p.inten[lit])) if np.any(lit) else 0.0
-        n_before = len(p)
-        p, removed = _remove_ghosts(images, p, res, vox, inside, s.min_intensity * med if it >= _GHOST_FROM else 0.0)
+        with steps("shake"):
+            p, n_out, events = _shake(images, p, res, vox, settle, tr, delta, mstep, s.damping, central, not last)
+            sat_out.append(n_out)
+            lit = p.inten > 0
+            med = float(np.median(p.inten[lit])) if np.any(lit) else 0.0
+            n_before = len(p)
+            floor = s.min_intensity * med if it >= _GHOST_FROM else 0.0
+            p, removed = _remove_ghosts(images, p, res, vox, inside, floor)
         ghosts += n_before - len(p)
         events.append(removed)
         # step 1 again: candidates from the residual, in the first residual_candidates iterations
@@ -170,7 +207,8 @@ def ipr_particles(
         elif it < s.residual_candidates:
             its = min(_LATE_MART_ITERATIONS, s.residual_mart_iterations) if late else s.residual_mart_iterations
             floor = s.min_intensity * med
-            tried, new, amp = _residual_candidates(volumes, images, res, p.xyz, vox, its, s.residual_volume, floor)
+            with steps("candidates"):
+                tried, new, amp = _residual_candidates(volumes, images, res, p.xyz, vox, its, s.residual_volume, floor)
             if tried:
                 n_cand += tried
                 p = p.append(_Particles.unshaken(new, amp))
@@ -181,9 +219,10 @@ def ipr_particles(
             late |= gain[-1] < s.residual_late_gain * len(p)  # the later volumes take fewer MART iterations
         if it in calibrate_after and len(p):  # the camera's own particle images (issue 39 §2)
             zr = (float(grid.z[0]), float(grid.z[-1]))
-            model, res, p.inten, info = calibrate_image_model(
-                images.patches, data, res, mask, p.xyz, p.inten, cam, zr, images.model, batch=s.batch
-            )
+            with steps("image_calibration"):
+                model, res, p.inten, info = calibrate_image_model(
+                    images.patches, data, res, mask, p.xyz, p.inten, cam, zr, images.model, batch=s.batch
+                )
             images.model = model
             cal_info.append(info)
         if settle > 0:  # a change near a settled particle wakes it
@@ -193,10 +232,12 @@ def ipr_particles(
             bar.set_postfix(particles=len(p), residual=f"{res_hist[-1]:.4f}")
     bar.close()
     # step 4: the polish of the particles near focus
-    p, n_polished, merged = _polish(images, p, res, vox, s.polish)
+    with steps("polish"):
+        p, n_polished, merged = _polish(images, p, res, vox, s.polish)
     ghosts += merged
     # step 5: the split of bright particles into close pairs
-    p, n_split, merged = _split(images, p, res, vox, s.split, s.min_intensity, s.split_penalty, s.split_ratio)
+    with steps("split"):
+        p, n_split, merged = _split(images, p, res, vox, s.split, s.min_intensity, s.split_penalty, s.split_ratio)
     ghosts += merged
     if len(p):
         res_hist.append(norm(res))
@@ -262,6 +303,7 @@ def ipr_particles(
             "particle_images": int(clock["images"]),
             "particle_images_reused": int(clock["reused"]),
             "mart_volumes": int(clock["volumes"]),
+            **steps.attrs(),
             "weight_table_bytes": int(volumes.plan.proj.table_bytes),
             "coverage_bytes": int(sum(d.nbytes for d in volumes.plan.dens)),
             "warm_start": 0 if start is None else len(np.asarray(start)),
