@@ -214,6 +214,23 @@ s with it (load 1-2). Held out on the Table 4.3 camera (``--crop 300 300 --ppp 0
 near-focus images the screen saves are the cheapest, 0.1 ms, and the load varied). With e^-7 instead one screened
 particle of 708 would have moved 0.30 voxel; with e^-10 none of 643 more than 0.02.
 
+By step (the fit's attrs ``seconds_step_<step>`` / ``particle_images_<step>``, printed as "by step"; run 2026-12-04,
+``--camera demo --crop 320 240 --ppp 0.005 --rays 2000 --photons 4000 --threads 1 --seed 1 2``, quiet machine): the
+candidates (the MART plan and 11 volumes, and the new candidates' intensities) 4.1 / 4.6 s, the shake with the ghosts'
+removal 3.6 / 3.6 s (17,270 / 18,194 images), the polish 1.5-1.6 s (13,737 / 14,173 images), of 9.3 / 9.8 s. On the
+demo's four designs, their full 640 x 480 frames (seed 7, frame a, the study's stored light fields refitted with the
+defaults, 1 thread; CPU s, candidates / shake / polish, and found / ghosts %): M -1, pitch 0.0888 mm 36.8 s, 14.7 /
+17.2 / 4.9, 80.6 / 14.3; M -1, 0.1184 mm 41.6 s, 15.1 / 16.2 / 10.3, 62.4 / 33.4; M -0.8, 0.0888 mm 35.8 s, 12.8 /
+10.4 / 12.6, 53.1 / 43.1; M -0.8, 0.1184 mm 39.7 s, 11.9 / 10.3 / 17.6, 30.3 / 63.3. The polish's share grows from 13 %
+to 44 % where the fit finds least: there the residual is flat about most particles, the screen passes them, and
+each gets the whole 45-point stencil (76 % of the M -0.8, 0.1184 mm frame's particles, three rounds). Two ways to cut
+it were measured there and not kept, since each moves some particles: a finer screen (an off-axis stencil point
+rendered only where one of its axis projections weighs at least e^-10) keeps 56 % of the off-axis points and changes
+the weighted mean of 0.11 % of the full-stencil particle-rounds by more than 0.01 voxel (at most 0.5); letting a
+particle that moved less than 0.005 voxel in a round sit out the next would skip about half of them in rounds 2 and
+3, but 2.8-3.2 % of those then move 0.02-0.5 voxel in the round they would have skipped. A rule that skips a particle because its patch saw no change
+does not apply: at 0.005 ppp each patch's box meets those of ~75 others.
+
 The polish's order (issue 39; ``_runs`` in ``lfstudy/reconstruct/ipr/polish.py``). The polish moved every particle at
 once, each by drops of the residual computed with the others where they were: on the demo's coarse designs (every
 particle near focus, several behind each lenslet) two particles sharing lenslets each took the other's data for its
