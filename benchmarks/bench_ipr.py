@@ -228,8 +228,8 @@ it were measured there and not kept, since each moves some particles: a finer sc
 rendered only where one of its axis projections weighs at least e^-10) keeps 56 % of the off-axis points and changes
 the weighted mean of 0.11 % of the full-stencil particle-rounds by more than 0.01 voxel (at most 0.5); letting a
 particle that moved less than 0.005 voxel in a round sit out the next would skip about half of them in rounds 2 and
-3, but 2.8-3.2 % of those then move 0.02-0.5 voxel in the round they would have skipped. A rule that skips a particle because its patch saw no change
-does not apply: at 0.005 ppp each patch's box meets those of ~75 others.
+3, but 2.8-3.2 % of those then move 0.02-0.5 voxel in the round they would have skipped. A rule that skips a
+particle because its patch saw no change does not apply: at 0.005 ppp each patch's box meets those of ~75 others.
 
 The polish's order (issue 39; ``_runs`` in ``lfstudy/reconstruct/ipr/polish.py``). The polish moved every particle at
 once, each by drops of the residual computed with the others where they were: on the demo's coarse designs (every
