@@ -465,9 +465,7 @@ def main() -> None:
                 f"fit {a['seconds_fit']:.1f} s, rest {rest:.1f} s; "
                 f"full frame at this cost per particle {full / 60:.0f} min; peak RSS {rss:.2f} GB\n"
                 "    by step (s / images): "
-                + ", ".join(
-                    f"{k} {a.get(f'seconds_step_{k}', 0.0):.1f} / {a.get(f'particle_images_{k}', 0)}" for k in STEPS
-                )
+                + ", ".join(f"{k} {a[f'seconds_step_{k}']:.1f} / {a[f'particle_images_{k}']}" for k in STEPS)
                 + "\n"
                 f"    residual candidates: new particles per round {a['candidates_added']}, "
                 f"{a['skipped_candidate_rounds']} rounds skipped; shakes sat out per iteration {a['shake_sat_out']}"

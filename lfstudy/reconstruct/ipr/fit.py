@@ -151,13 +151,12 @@ def ipr_particles(
     tr = np.array([[d * delta[i] if a == i else 0.0 for a in range(3)] for i in range(3) for d in signs])
     images = _FitImages(cam, mask, s.image_accuracy, s.batch)
     steps = _StepClock(images)
-    with steps("candidates"):  # the candidate grid's MART plan, made once for every volume
+    inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
+    # step 1: the candidates of the data (or the warm start), on the candidate grid's MART plan made once for all
+    with steps("candidates"):
         volumes = _CandidateVolumes(
             inputs, _refined(grid, _REFINE_XY, _REFINE_Z), s.residual_plane_step, s.peak_threshold, images.clock
         )
-    inside = (grid.x[0], grid.x[-1]), (grid.y[0], grid.y[-1]), (grid.z[0], grid.z[-1])
-    # step 1: the candidates of the data (or the warm start)
-    with steps("candidates"):
         xyz = volumes.first(lf, s.mart_iterations) if start is None else _start_positions(start, inputs, inside, vox)
     n_cand = len(xyz)
     p = _Particles.unshaken(xyz, np.zeros(len(xyz)))
@@ -197,8 +196,8 @@ def ipr_particles(
             lit = p.inten > 0
             med = float(np.median(p.inten[lit])) if np.any(lit) else 0.0
             n_before = len(p)
-            floor = s.min_intensity * med if it >= _GHOST_FROM else 0.0
-            p, removed = _remove_ghosts(images, p, res, vox, inside, floor)
+            ghost_floor = s.min_intensity * med if it >= _GHOST_FROM else 0.0
+            p, removed = _remove_ghosts(images, p, res, vox, inside, ghost_floor)
         ghosts += n_before - len(p)
         events.append(removed)
         # step 1 again: candidates from the residual, in the first residual_candidates iterations
