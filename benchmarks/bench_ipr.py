@@ -203,6 +203,11 @@ Against 1 thread here (two CPUs, so roughly), the images scale x7.7 at 16 thread
 after 9 min 15 s (the kernels' compile and the scene included; 3097 s of CPU, 5.6 cores on average), its peak RSS
 7.94 GB by then: a real frame, not the few particles of ``--memory``, sits at issue 27's 8 GB.
 
+Since then the Gauss–Seidel kernels visit only the pixels each patch's images light (``lit_pixels``, the same bytes;
+the same crop, seed and particles, this machine, quiet): 1 thread IPR 206.3 s, MART 120.4, images 68.8, Gauss–Seidel
+14.7 (24.4), shake 67.8 (77.9); 2 threads IPR 127.4 s, MART 74.4, images 38.0, Gauss–Seidel 12.5 (26.9), shake 41.6
+(60.6). The MART volumes moved by 3–10 % between runs of the same code, so read the fit's total with that spread.
+
 The images (``image_accuracy``): the fit's results do not move beyond the seed noise (``bench_ipr.py --threads 1
 --compare image_accuracy=exact``, fast / exact, load 5–7 on 2 cores): 300 x 300 px at 0.005 ppp, seed 7: found 79.6
 / 79.6 %, ghosts 18.1 / 18.4 %, rms x,y 0.070 / 0.071 voxel, z 0.145 / 0.144 voxel, CPU 20.4 / 22.7 s; seed 8: found

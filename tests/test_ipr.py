@@ -336,6 +336,7 @@ def test_gauss_newton_step_finds_a_shifted_particle():
     """One linearised step (``_sweep``) from a particle's image at p towards data rendered at p + s
     (s = 0.3 voxel in x and z) goes the right way with either finite-difference Jacobian; what it leaves of
     the offset (in voxels) is 0.31 with central differences and 0.50 with forward ones (measured)."""
+    from lfstudy.reconstruct._shake_kernels import lit_pixels
     from lfstudy.reconstruct.ipr import _sweep
 
     vox = np.array([0.125, 0.125, 0.4])
@@ -351,10 +352,51 @@ def test_gauss_newton_step_finds_a_shifted_particle():
         res[tr0[0] : tr0[0] + tshp[0, 0], tc0[0] : tc0[0] + tshp[0, 1]] = 2.0 * true.reshape(tshp[0])
         out = np.zeros((1, 9))
         mask = np.ones((300, 300), np.uint8)
-        _sweep(res, mask, buf, offs, r0, c0, shp, np.zeros(1), delta, vox, 0.0, True, jacobian == "central", out)
+        lit = lit_pixels(mask, buf, offs, r0, c0, shp, len(tr) + 1)
+        _sweep(res, mask, buf, offs, r0, c0, shp, *lit, np.zeros(1), delta, vox, 0.0, True, jacobian == "central", out)
         assert np.all(np.sign(out[0, [0, 2]]) == np.sign(s[[0, 2]])) and out[0, 3] > 0
         left[jacobian] = np.linalg.norm((s - out[0, :3]) / vox) / np.linalg.norm(s / vox)
     assert left["central"] < 0.4 and left["forward"] < 0.6 and left["central"] < left["forward"], left
+
+
+def test_gauss_seidel_kernels_on_the_lit_pixels_give_the_bytes_of_the_whole_box():
+    """``_sweep`` and ``_choose`` visit each patch's lit pixels only (``lit_pixels``): the residual, the steps,
+    intensities, variances and choices are the bytes they give when handed every masked pixel of each box (the
+    kernels as they were, looping over the whole box), for overlapping particles in and out of focus, part of
+    the sensor masked out. The lit pixels are a few per cent of the boxes."""
+    from lfstudy.reconstruct._shake_kernels import _choose, _sweep, lit_pixels
+
+    rng = np.random.default_rng(5)
+    n = 24
+    pts = np.column_stack([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n), rng.uniform(-3, 3, n)])
+    vox = np.array([0.125, 0.125, 0.4])
+    delta = 0.1 * vox
+    tr = np.array([[d * delta[i] if a == i else 0.0 for a in range(3)] for i in range(3) for d in (1.0, -1.0)])
+    buf, offs, r0, c0, shp = particle_patches(CAM, *pts.T, trials=tr)
+    bn, on, r0n, c0n, shpn = particle_patches(CAM, *(pts + 0.03).T)
+    mask = np.ones((300, 300), np.uint8)
+    mask[:, 170:190] = 0
+    data = (
+        rng.normal(0.0, 0.002, (300, 300)) + render_exact(CAM, make_field(*(pts + 0.02).T, np.full(n, 1.1)), 1).values
+    )
+    lit = lit_pixels(mask, buf, offs, r0, c0, shp, 7)
+    boxes = [np.arange(int(h * w)) for h, w in shp]
+    every = [b[mask[r0[i] + b // shp[i, 1], c0[i] + b % shp[i, 1]] != 0] for i, b in enumerate(boxes)]
+    whole = np.concatenate(every).astype(np.int32)
+    stop = np.cumsum([len(e) for e in every])
+    whole_lists = (whole, stop - [len(e) for e in every], stop, np.array([len(e) for e in every]))
+    assert np.array_equal(lit[3], whole_lists[3])  # the masked pixels per box
+    assert 0 < (lit[2] - lit[1]).sum() < 0.2 * whole.size
+    got = {}
+    for name, lists in (("lit", lit), ("whole", whole_lists)):
+        res = data.copy()
+        out = np.zeros((n, 9))
+        _sweep(res, mask, buf, offs, r0, c0, shp, *lists, np.ones(n), delta, vox, 0.01, True, True, out)
+        pick = np.zeros((n, 2))
+        res2 = data.copy()
+        _choose(res2, mask, buf, offs, r0, c0, shp, *lists[:3], 7, np.ones(n), bn, on, r0n, c0n, shpn, pick)
+        got[name] = (res.tobytes(), out.tobytes(), res2.tobytes(), pick.tobytes())
+    assert got["lit"] == got["whole"]
 
 
 def test_polish_stencil_drops_are_the_exact_residuals():

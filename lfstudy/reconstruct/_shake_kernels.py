@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True)
@@ -30,12 +30,83 @@ def _accumulate_masked(img, mask, buf, offs, r0, c0, shp, inten, sign):  # pragm
                     img[r0[i] + r, c0[i] + c] += a * buf[o + r * w + c]
 
 
+@njit(parallel=True, cache=True)
+def _lit(mask, buf, offs, r0, c0, shp, nimg, start, lit, stop, nmask):  # pragma: no cover - jitted
+    """Patch i's lit pixels into ``lit[start[i]:stop[i]]`` (its box's slot, ``r·w + c`` in row order) and its box's
+    masked pixels into ``nmask[i]`` (:func:`lit_pixels`)."""
+    for i in prange(r0.size):
+        h, w = shp[i, 0], shp[i, 1]
+        sz = h * w
+        s0 = start[i]
+        for p in range(sz):  # the slot holds the flags first (each image a contiguous pass), then the list
+            lit[s0 + p] = 0
+        for k in range(nimg):
+            o = offs[i] + k * sz
+            for p in range(sz):
+                if buf[o + p] != 0.0:
+                    lit[s0 + p] = 1
+        n = 0
+        nm = 0
+        for r in range(h):
+            for c in range(w):
+                if mask[r0[i] + r, c0[i] + c] == 0:
+                    continue
+                nm += 1
+                p = r * w + c
+                if lit[s0 + p] != 0:  # read before the list's entry n <= p overwrites it
+                    lit[s0 + n] = p
+                    n += 1
+        stop[i] = s0 + n
+        nmask[i] = nm
+
+
+def lit_pixels(
+    mask: np.ndarray, buf: np.ndarray, offs: np.ndarray, r0: np.ndarray, c0: np.ndarray, shp: np.ndarray, nimg: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of each patch that its images light, for the Gauss–Seidel kernels.
+
+    A particle's image lights a few per cent of its patch's box (the spots behind the lenslets it reaches): on the
+    other pixels every term of :func:`_sweep`'s and :func:`_choose`'s sums is zero, so those kernels visit the lit
+    pixels only and give the same bytes. Found once per batch, in parallel (the kernels themselves run particle after
+    particle).
+
+    Parameters
+    ----------
+    mask : ndarray of uint8, (rows, cols)
+        The sensor pixels the light field holds.
+    buf, offs, r0, c0, shp : ndarray
+        The patches (:func:`lfstudy.reconstruct.ipr.particle_patches`' layout), ``nimg`` images each.
+    nimg : int
+        Images per patch (a pixel is lit where any of them is non-zero).
+
+    Returns
+    -------
+    lit : ndarray of int32
+        Patch i's lit pixels are ``lit[start[i]:stop[i]]``, as ``r·w + c`` in its box, in row order.
+    start, stop : ndarray of int64, (n,)
+        Each patch's slot in ``lit`` (its box's pixels) and the end of its lit pixels there.
+    nmask : ndarray of int64, (n,)
+        Each box's pixels in the mask (lit or not): the count of the residual's variance.
+    """
+    n = r0.size
+    start = np.asarray(offs[:n], np.int64) // int(nimg)  # each box's slot: its pixels, once
+    lit = np.empty(int(offs[n]) // int(nimg), np.int32)
+    stop = np.zeros(n, np.int64)
+    nmask = np.zeros(n, np.int64)
+    _lit(mask, buf, offs, r0, c0, shp, int(nimg), start, lit, stop, nmask)
+    return lit, start, stop, nmask
+
+
 @njit(cache=True)
-def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, move, central, out):  # pragma: no cover
+def _sweep(
+    res, mask, buf, offs, r0, c0, shp, lit, start, stop, nmask, inten, delta, max_step, damping, move, central, out
+):  # pragma: no cover - jitted
     """One Gauss–Seidel pass of the linearised fit over the particles (module docstring).
 
     ``buf`` holds per particle 7 images: U, then +x, −x, +y, −y, +z, −z (steps ``delta``; central
     differences), or with ``central`` False 4: U, +x, +y, +z (forward differences).
+    ``lit``, ``start``, ``stop``, ``nmask``: the patches' lit pixels (:func:`lit_pixels`); the sums run over those,
+    the residual's variance over every masked pixel of the box, in row order either way.
     ``res`` is the residual image (data − model), updated in place. ``out[i]`` receives
     (dx, dy, dz, I', var_x, var_y, var_z, relative residual, pixels).
     """
@@ -47,32 +118,29 @@ def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, m
         ii = inten[i]
         g = np.zeros((4, 4))
         v = np.zeros(4)
-        npx = 0.0
+        npx = float(nmask[i])
         # add the particle back, then the normal equations of [U, D_x, D_y, D_z]
-        for r in range(h):
-            for c in range(w):
-                rr, cc = r0[i] + r, c0[i] + c
-                if mask[rr, cc] == 0:
-                    continue
-                q = o + r * w + c
-                u = buf[q]
-                res[rr, cc] += ii * u
-                f0 = u
-                if central:
-                    f1 = (buf[q + sz] - buf[q + 2 * sz]) / (2.0 * delta[0])
-                    f2 = (buf[q + 3 * sz] - buf[q + 4 * sz]) / (2.0 * delta[1])
-                    f3 = (buf[q + 5 * sz] - buf[q + 6 * sz]) / (2.0 * delta[2])
-                else:
-                    f1 = (buf[q + sz] - u) / delta[0]
-                    f2 = (buf[q + 2 * sz] - u) / delta[1]
-                    f3 = (buf[q + 3 * sz] - u) / delta[2]
-                fv = (f0, f1, f2, f3)
-                rv = res[rr, cc]
-                npx += 1.0
-                for a in range(4):
-                    v[a] += fv[a] * rv
-                    for b in range(a, 4):
-                        g[a, b] += fv[a] * fv[b]
+        for t in range(start[i], stop[i]):
+            p = lit[t]
+            rr, cc = r0[i] + p // w, c0[i] + p % w
+            q = o + p
+            u = buf[q]
+            res[rr, cc] += ii * u
+            f0 = u
+            if central:
+                f1 = (buf[q + sz] - buf[q + 2 * sz]) / (2.0 * delta[0])
+                f2 = (buf[q + 3 * sz] - buf[q + 4 * sz]) / (2.0 * delta[1])
+                f3 = (buf[q + 5 * sz] - buf[q + 6 * sz]) / (2.0 * delta[2])
+            else:
+                f1 = (buf[q + sz] - u) / delta[0]
+                f2 = (buf[q + 2 * sz] - u) / delta[1]
+                f3 = (buf[q + 3 * sz] - u) / delta[2]
+            fv = (f0, f1, f2, f3)
+            rv = res[rr, cc]
+            for a in range(4):
+                v[a] += fv[a] * rv
+                for b in range(a, 4):
+                    g[a, b] += fv[a] * fv[b]
         for a in range(4):
             for b in range(a):
                 g[a, b] = g[b, a]
@@ -93,24 +161,26 @@ def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, m
                 inew = v[0] / g[0, 0]
             inew = max(inew, 0.0)
         # subtract the (linearised) image of the moved particle; its residual and covariance
-        rr2 = 0.0
         mm2 = 0.0
+        for t in range(start[i], stop[i]):
+            p = lit[t]
+            rr, cc = r0[i] + p // w, c0[i] + p % w
+            q = o + p
+            m = buf[q]
+            for a in range(3):
+                if central:
+                    m += step[a] * (buf[q + (2 * a + 1) * sz] - buf[q + (2 * a + 2) * sz]) / (2.0 * delta[a])
+                else:
+                    m += step[a] * (buf[q + (a + 1) * sz] - buf[q]) / delta[a]
+            m *= inew
+            res[rr, cc] -= m
+            mm2 += m * m
+        rr2 = 0.0  # over the whole box (each pixel changed once above, so the same terms in the same order)
         for r in range(h):
             for c in range(w):
                 rr, cc = r0[i] + r, c0[i] + c
-                if mask[rr, cc] == 0:
-                    continue
-                q = o + r * w + c
-                m = buf[q]
-                for a in range(3):
-                    if central:
-                        m += step[a] * (buf[q + (2 * a + 1) * sz] - buf[q + (2 * a + 2) * sz]) / (2.0 * delta[a])
-                    else:
-                        m += step[a] * (buf[q + (a + 1) * sz] - buf[q]) / delta[a]
-                m *= inew
-                res[rr, cc] -= m
-                rr2 += res[rr, cc] * res[rr, cc]
-                mm2 += m * m
+                if mask[rr, cc] != 0:
+                    rr2 += res[rr, cc] * res[rr, cc]
         if move and inew > 0.0 and npx > 4.0:
             s2 = rr2 / (npx - 4.0)
             jt = g.copy()  # J = [U, I'·D]: scale the derivative rows and columns by I'
@@ -138,7 +208,9 @@ def _sweep(res, mask, buf, offs, r0, c0, shp, inten, delta, max_step, damping, m
 
 
 @njit(cache=True)
-def _choose(res, mask, buf, offs, r0, c0, shp, nimg, inten, bufn, offn, r0n, c0n, shpn, out):  # pragma: no cover
+def _choose(
+    res, mask, buf, offs, r0, c0, shp, lit, start, stop, nimg, inten, bufn, offn, r0n, c0n, shpn, out
+):  # pragma: no cover
     """Gauss–Seidel choice of each particle's next position among exact images: its ``nimg`` images in
     ``buf`` (the current one, then the ±δ trials) and the Gauss–Newton step's in ``bufn``.
 
@@ -154,18 +226,16 @@ def _choose(res, mask, buf, offs, r0, c0, shp, nimg, inten, bufn, offn, r0n, c0n
         o = offs[i]
         a = np.zeros(nimg + 1)
         uu = np.zeros(nimg + 1)
-        for r in range(h):
-            for c in range(w):
-                rr, cc = r0[i] + r, c0[i] + c
-                if mask[rr, cc] == 0:
-                    continue
-                q = o + r * w + c
-                res[rr, cc] += inten[i] * buf[q]
-                rv = res[rr, cc]
-                for k in range(nimg):
-                    u = buf[q + k * sz]
-                    a[k] += rv * u
-                    uu[k] += u * u
+        for t in range(start[i], stop[i]):
+            p = lit[t]
+            rr, cc = r0[i] + p // w, c0[i] + p % w
+            q = o + p
+            res[rr, cc] += inten[i] * buf[q]
+            rv = res[rr, cc]
+            for k in range(nimg):
+                u = buf[q + k * sz]
+                a[k] += rv * u
+                uu[k] += u * u
         hn, wn = shpn[i, 0], shpn[i, 1]
         for r in range(hn):
             for c in range(wn):
@@ -182,11 +252,9 @@ def _choose(res, mask, buf, offs, r0, c0, shp, nimg, inten, bufn, offn, r0n, c0n
                 best, gain = k, g
         amp = a[best] / uu[best] if (uu[best] > 0.0 and a[best] > 0.0) else 0.0
         if best < nimg:
-            for r in range(h):
-                for c in range(w):
-                    rr, cc = r0[i] + r, c0[i] + c
-                    if mask[rr, cc] != 0:
-                        res[rr, cc] -= amp * buf[o + best * sz + r * w + c]
+            for t in range(start[i], stop[i]):
+                p = lit[t]
+                res[r0[i] + p // w, c0[i] + p % w] -= amp * buf[o + best * sz + p]
         else:
             for r in range(hn):
                 for c in range(wn):

@@ -51,7 +51,8 @@ The steps, one module each
    covariance σ²·(JᵀJ)⁻¹, σ² the patch's residual variance. An iteration costs 8 exact images per particle,
    fewer where the next shake reuses them: a particle the shake kept where it was keeps its seven images, and
    one the Gauss–Newton step moved less than a quarter of δ keeps its trials (the chord method); on the demo
-   camera a quarter of the shake's images are reused (:mod:`~lfstudy.reconstruct.ipr.shake`).
+   camera a quarter of the shake's images are reused (:mod:`~lfstudy.reconstruct.ipr.shake`). The Gauss–Seidel
+   kernels visit only the pixels each patch's images light, a few per cent of its box (the same bytes).
 4. **Polish** (:mod:`~lfstudy.reconstruct.ipr.polish`): near the focal plane a particle's image falls behind
    one to four lenslets and the residual is flat as it moves within them; ``polish`` (3) rounds move each
    particle whose defocus spot is at most ``_POLISH_SPOT`` lenslet pitches to the likelihood-weighted mean of a
