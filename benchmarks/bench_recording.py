@@ -408,15 +408,15 @@ def _setting(text: str | None) -> dict:
 
 
 def _variants(pairs: list[list[str]]) -> dict:
-    """``--variant LABEL k=v,k2=v2``: IPR with those ``reconstruct.ipr`` settings (values read as YAML), by label."""
-    import yaml
+    """``--variant LABEL k=v,k2=v2``: IPR with those ``reconstruct.ipr`` settings (bench_ipr's parsing of
+    ``--compare``), by label."""
+    from bench_ipr import _setting as ipr_setting
 
     out = {}
     for label, text in pairs:
         if label in METHODS:
             raise SystemExit(f"--variant: the label {label!r} is a method's; choose another")
-        ipr = {k: yaml.safe_load(v) for k, _, v in (item.partition("=") for item in text.split(","))}
-        out[label] = {"method": "ipr", "ipr": ipr}
+        out[label] = {"method": "ipr", "ipr": ipr_setting(text)}
     return out
 
 
