@@ -265,6 +265,28 @@ def _choose(
         out[i, 1] = amp
 
 
+def refit_intensities(
+    res: np.ndarray,
+    mask: np.ndarray,
+    buf: np.ndarray,
+    offs: np.ndarray,
+    r0: np.ndarray,
+    c0: np.ndarray,
+    shp: np.ndarray,
+    inten: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """One Gauss–Seidel pass over the intensities of the patches' particles, positions held: :func:`_choose` with
+    each particle's own image (one per patch) as its only candidate, handed again as the "step" image.
+
+    ``res`` (the residual, with the particles' images at ``inten`` subtracted) is updated in place; ``out[i]`` =
+    (choice, refitted intensity). The particle's image is summed twice, once over its lit pixels and once over its
+    box as the step's; both give the same gain, so the choice is always the current image.
+    """
+    lit, start, stop, _ = lit_pixels(mask, buf, offs, r0, c0, shp, 1)
+    _choose(res, mask, buf, offs, r0, c0, shp, lit, start, stop, 1, inten, buf, offs, r0, c0, shp, out)
+
+
 @njit(cache=True)
 def _stencil(res, mask, buf, offs, r0, c0, shp, k, inten, out):  # pragma: no cover - jitted
     """The exact residual's drop at each of ``k`` positions of every particle, the others held fixed.

@@ -137,7 +137,7 @@ def _cost(
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """‖R‖² of ``model`` after one Gauss–Seidel pass over the intensities (starting from ``inten``), with that
     residual R and the refitted intensities."""
-    from lfstudy.reconstruct._shake_kernels import _accumulate_masked, _choose, lit_pixels
+    from lfstudy.reconstruct._shake_kernels import _accumulate_masked, refit_intensities
 
     res = data.copy()
     for s in range(0, len(xyz), batch):  # subtract every particle first: the pass then sees its neighbours
@@ -147,8 +147,7 @@ def _cost(
     for s in range(0, len(xyz), batch):
         sl = slice(s, s + batch)
         buf, offs, r0, c0, shp = render(xyz[sl], model=model)
-        lit = lit_pixels(mask, buf, offs, r0, c0, shp, 1)[:3]
-        _choose(res, mask, buf, offs, r0, c0, shp, *lit, 1, inten[sl] * 1.0, buf, offs, r0, c0, shp, out[sl])
+        refit_intensities(res, mask, buf, offs, r0, c0, shp, inten[sl] * 1.0, out[sl])
     return float(np.sum(res * res)), res, out[:, 1]
 
 

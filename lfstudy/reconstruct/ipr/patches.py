@@ -27,7 +27,7 @@ from numba import njit, prange
 from lfstudy.optics import PlenopticCamera
 
 # The fit's Gauss-Seidel kernels (numba), shared with image_model.py.
-from lfstudy.reconstruct._shake_kernels import _accumulate_masked, _choose, lit_pixels
+from lfstudy.reconstruct._shake_kernels import _accumulate_masked, refit_intensities
 from lfstudy.reconstruct.image_model import ImageModel
 from lfstudy.reconstruct.registry import ReconstructionError
 from lfstudy.simulate._render_common import (
@@ -350,8 +350,7 @@ class _FitImages:
                 sl = slice(s, s + self.batch)
                 buf, offs, r0, c0, shp = self.patches(pos[sl], slot=0)
                 t0 = time.perf_counter()
-                lit = lit_pixels(mask, buf, offs, r0, c0, shp, 1)[:3]
-                _choose(res, mask, buf, offs, r0, c0, shp, *lit, 1, cur[sl], buf, offs, r0, c0, shp, out[sl])
+                refit_intensities(res, mask, buf, offs, r0, c0, shp, cur[sl], out[sl])
                 cur[sl] = out[sl, 1]
                 self.clock["fit"] += time.perf_counter() - t0
         back = (out[:, 1] <= floor) & (out[:, 1] != 0.0)
